@@ -1,0 +1,176 @@
+"""Attitude conventions and estimators.
+
+`R` is the 3x3 rotation with v_cam = R @ v_icrs: its rows are the camera axes (x right, y down,
+z boresight) expressed in ICRS. Quaternions are scalar-first [w, x, y, z] for the same rotation,
+with w >= 0. RA/Dec are those of the boresight (row 2); roll is the angle of the image-up direction
+(-y camera axis) from celestial north towards east, so roll 0 is north up, east to the left.
+
+Estimators (Wahba's problem, weights w_i = 1 / sigma_i^2): Markley's SVD method and Davenport's
+q-method. Both report the attitude covariance of the QUEST measurement model,
+P = (sum_i w_i (I - b_i b_i^T))^-1 in the camera frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from skyview.catalog import radec_to_vec, vec_to_radec
+
+RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
+
+
+# ------------------------------------------------------------------------- conventions
+
+def east_north(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local east and north unit vectors at direction b (east = z x b / |z x b|, north = b x east).
+
+    At the celestial poles east is taken along the RA that atan2 gives for b (the limit of z x b).
+    """
+    b = np.asarray(b, dtype=np.float64)
+    ra, _ = vec_to_radec(b)
+    east = np.array([-np.sin(ra), np.cos(ra), 0.0])
+    north = np.cross(b, east)
+    return east, north / np.linalg.norm(north)
+
+
+def R_from_radec_roll(ra_rad: float, dec_rad: float, roll_rad: float) -> np.ndarray:
+    """Attitude for a boresight at (RA, Dec) and a roll (image up from north towards east)."""
+    b = radec_to_vec(ra_rad, dec_rad)
+    east = np.array([-np.sin(ra_rad), np.cos(ra_rad), 0.0])
+    north = np.cross(b, east)
+    up = np.cos(roll_rad) * north + np.sin(roll_rad) * east
+    y = -up
+    x = np.cross(y, b)
+    return np.stack([x, y, b])
+
+
+def radec_roll_from_R(R: np.ndarray) -> tuple[float, float, float]:
+    """(RA in [0, 2pi), Dec, roll in (-pi, pi]) of an attitude, radians."""
+    R = np.asarray(R, dtype=np.float64)
+    b = R[2]
+    ra, dec = vec_to_radec(b)
+    east, north = east_north(b)
+    up = -R[1]
+    roll = float(np.arctan2(up @ east, up @ north))
+    return float(ra), float(dec), roll
+
+
+def quat_from_R(R: np.ndarray) -> np.ndarray:
+    """Scalar-first quaternion [w, x, y, z] (w >= 0) of the rotation R (v_cam = R v_icrs)."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat(scalar_first=True)
+    return -q if q[0] < 0 else q
+
+
+def R_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
+    return Rotation.from_quat(np.asarray(q_wxyz, dtype=np.float64), scalar_first=True).as_matrix()
+
+
+def random_attitudes(n: int, rng: np.random.Generator) -> np.ndarray:
+    """n attitudes uniform on SO(3), shape (n, 3, 3)."""
+    return Rotation.random(n, random_state=rng).as_matrix().reshape(n, 3, 3)
+
+
+def orthonormalize(R: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+# ------------------------------------------------------------------------- estimators
+
+@dataclass(frozen=True)
+class AttitudeEstimate:
+    R: np.ndarray  # v_cam = R v_icrs
+    covariance: np.ndarray  # 3x3 rad^2, small rotation about camera x, y, z
+    loss: float  # Wahba loss: 1/2 sum w |b - R r|^2 (unitless with w in 1/rad^2)
+
+    @property
+    def sigma_boresight_arcsec(self) -> float:
+        """1-sigma pointing error of the boresight, per cross-boresight axis (RMS of x and y)."""
+        return float(np.sqrt(0.5 * (self.covariance[0, 0] + self.covariance[1, 1])) * RAD_TO_ARCSEC)
+
+    @property
+    def sigma_roll_arcsec(self) -> float:
+        """1-sigma error of the rotation about the boresight."""
+        return float(np.sqrt(self.covariance[2, 2]) * RAD_TO_ARCSEC)
+
+
+def _weights(n: int, sigma: float | np.ndarray) -> np.ndarray:
+    s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
+    if np.any(s <= 0):
+        raise ValueError("measurement sigma must be positive")
+    return 1.0 / (s * s)
+
+
+def attitude_covariance(b: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """QUEST model covariance (sum w_i (I - b_i b_i^T))^-1, camera frame, rad^2."""
+    F = w.sum() * np.eye(3) - (b * w[:, None]).T @ b
+    return np.linalg.pinv(F)
+
+
+def _finish(R: np.ndarray, b: np.ndarray, r: np.ndarray, w: np.ndarray) -> AttitudeEstimate:
+    resid = b - r @ R.T
+    loss = 0.5 * float(np.sum(w * np.sum(resid * resid, axis=1)))
+    return AttitudeEstimate(R=R, covariance=attitude_covariance(b, w), loss=loss)
+
+
+def svd_attitude(b: np.ndarray, r: np.ndarray, sigma: float | np.ndarray = 1.0) -> AttitudeEstimate:
+    """Markley's SVD solution of Wahba's problem: b_i ~ R r_i (b: camera, r: ICRS), proper R."""
+    b = np.asarray(b, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    if len(b) < 2 or b.shape != r.shape:
+        raise ValueError("need at least two matched vector pairs of the same shape")
+    w = _weights(len(b), sigma)
+    B = (b * w[:, None]).T @ r
+    U, _, Vt = np.linalg.svd(B)
+    d = np.linalg.det(U) * np.linalg.det(Vt)
+    R = U @ np.diag([1.0, 1.0, d]) @ Vt
+    return _finish(R, b, r, w)
+
+
+def q_method_attitude(b: np.ndarray, r: np.ndarray, sigma: float | np.ndarray = 1.0) -> AttitudeEstimate:
+    """Davenport's q-method: the eigenvector of K with the largest eigenvalue."""
+    b = np.asarray(b, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    if len(b) < 2 or b.shape != r.shape:
+        raise ValueError("need at least two matched vector pairs of the same shape")
+    w = _weights(len(b), sigma)
+    B = (b * w[:, None]).T @ r
+    S = B + B.T
+    z = np.array([B[1, 2] - B[2, 1], B[2, 0] - B[0, 2], B[0, 1] - B[1, 0]])
+    tr = np.trace(B)
+    K = np.zeros((4, 4))
+    K[:3, :3] = S - tr * np.eye(3)
+    K[:3, 3] = z
+    K[3, :3] = z
+    K[3, 3] = tr
+    vals, vecs = np.linalg.eigh(K)
+    qv, q4 = vecs[:3, -1], vecs[3, -1]  # Markley's vector-first quaternion of the attitude matrix
+    qx = np.array([[0, -qv[2], qv[1]], [qv[2], 0, -qv[0]], [-qv[1], qv[0], 0]])
+    R = (q4 * q4 - qv @ qv) * np.eye(3) + 2.0 * np.outer(qv, qv) - 2.0 * q4 * qx
+    return _finish(R, b, r, w)
+
+
+ESTIMATORS = {"svd": svd_attitude, "q-method": q_method_attitude}
+
+
+# ------------------------------------------------------------------------- errors
+
+def attitude_error_arcsec(R_est: np.ndarray, R_true: np.ndarray) -> dict:
+    """Difference between two attitudes, in the camera frame of the truth.
+
+    boresight: angle between the two boresights; cross_x / cross_y: the small rotation about the
+    camera x and y axes; roll: about the boresight; total: the whole rotation angle. Arcseconds.
+    """
+    dR = np.asarray(R_est) @ np.asarray(R_true).T
+    phi = Rotation.from_matrix(dR).as_rotvec()
+    b_cos = np.clip(np.asarray(R_est)[2] @ np.asarray(R_true)[2], -1.0, 1.0)
+    return {
+        "boresight": float(np.arccos(b_cos) * RAD_TO_ARCSEC),
+        "cross_x": float(phi[0] * RAD_TO_ARCSEC),
+        "cross_y": float(phi[1] * RAD_TO_ARCSEC),
+        "roll": float(phi[2] * RAD_TO_ARCSEC),
+        "total": float(np.linalg.norm(phi) * RAD_TO_ARCSEC),
+    }
