@@ -105,7 +105,7 @@ class Camera:
             return xy_d
         pts = np.ascontiguousarray(xy_d.reshape(-1, 1, 2), dtype=np.float64)
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        und = cv2.undistortPointsIter(pts, np.eye(3), np.array([self.k1, self.k2, 0.0, 0.0]), None, None, crit)
+        und = cv2.undistortPoints(pts, np.eye(3), np.array([self.k1, self.k2, 0.0, 0.0]), None, None, None, crit)
         return und.reshape(xy_d.shape)
 
     def project(self, v_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

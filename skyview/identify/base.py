@@ -1,0 +1,88 @@
+"""What every identification method shares: its input, its step record and its result.
+
+Nothing in `skyview.identify` imports viser or rerun: the viewer and the recorder draw the steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+IDENTIFIED = "identified"
+INCONCLUSIVE = "inconclusive"
+FAILED = "failed"
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Observed stars of one frame, brightest first.
+
+    vectors: (N, 3) camera-frame unit vectors; uv: (N, 2) pixels; brightness: (N,) summed
+    background-subtracted intensity (used as rank / relative magnitude only); sigma_rad: the 1-sigma
+    direction error of one star (the paper's sigma).
+    """
+
+    vectors: np.ndarray
+    uv: np.ndarray
+    brightness: np.ndarray
+    sigma_rad: float
+
+    def __len__(self) -> int:
+        return int(self.vectors.shape[0])
+
+
+@dataclass
+class Step:
+    """One thing a method did, in its own vocabulary.
+
+    kind: short machine name ('pick', 'lookup', 'pivot', 'prune', 'verify', 'generation', ...).
+    note: one sentence for people ("pivoted to angle 2-5 (6.21 deg): 812 candidates, 3 consistent").
+    observed: observed-star indices involved. catalog: catalog rows involved (capped for size).
+    groups: candidate catalog tuples (pairs, triangles, ...) to draw, capped; rows of the catalog.
+    numbers: the figures behind the decision (candidates, bounds, costs, posteriors, ...).
+    extra: method-specific arrays the viewer may draw (a GA population, a posterior, ...).
+    """
+
+    kind: str
+    note: str
+    observed: list[int] = field(default_factory=list)
+    catalog: list[int] = field(default_factory=list)
+    groups: list[tuple[int, ...]] = field(default_factory=list)
+    numbers: dict[str, float] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "kind": self.kind, "note": self.note,
+            "observed": [int(i) for i in self.observed],
+            "catalog": [int(i) for i in self.catalog],
+            "groups": [[int(i) for i in g] for g in self.groups],
+            "numbers": {k: (float(v) if v is not None else None) for k, v in self.numbers.items()},
+        }
+
+
+@dataclass
+class Identification:
+    """The outcome of one identification.
+
+    status: IDENTIFIED (verified), INCONCLUSIVE (no unique verified hypothesis) or FAILED (could not
+    run: too few stars, ...). matches: observed index -> catalog row, only when identified (after
+    verification, extended to every observed star that agrees). R: attitude when identified.
+    """
+
+    method: str
+    status: str
+    matches: dict[int, int]
+    steps: list[Step]
+    reason: str = ""
+    R: np.ndarray | None = None
+    attitude_covariance: np.ndarray | None = None
+    verification: dict[str, Any] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
+    database_key: str = ""
+
+    @property
+    def identified(self) -> bool:
+        return self.status == IDENTIFIED
