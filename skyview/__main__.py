@@ -1,0 +1,5 @@
+import sys
+
+from skyview.cli import main
+
+sys.exit(main())

@@ -1,0 +1,245 @@
+"""Monte Carlo evaluation of a method on a scenario: simulate -> solve -> score against truth.
+
+Every trial renders a full sensor image with the simulator (random attitude, uniform on SO(3)),
+runs the same `Solver` that `skyview solve` uses, and scores the result against the truth sidecar:
+
+- correct: solved, and every reported match is the star that was rendered there;
+- incorrect: solved, and at least one match is wrong (the outcome that must never happen);
+- inconclusive: not solved (too few stars, no unique hypothesis, or verification refused it).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from skyview.attitude import attitude_error_arcsec, random_attitudes
+from skyview.catalog import load_guide_catalog
+from skyview.errors import BadInput
+from skyview.pipeline import Solver
+from skyview.scenarios import Scenario
+from skyview.simulate import SensorModel, simulate_image
+
+OUTCOMES = ("correct", "inconclusive", "incorrect")
+MATCH_RADIUS_PX = 3.0
+
+
+class Progress:
+    """A one-line progress bar on stderr (a line every 10 % when stderr is not a terminal)."""
+
+    def __init__(self, total: int, label: str, enabled: bool = True):
+        self.total, self.label, self.enabled = total, label, enabled
+        self.tty = sys.stderr.isatty()
+        self.t0 = time.perf_counter()
+        self.last_decile = -1
+
+    def update(self, done: int, counts: Counter) -> None:
+        if not self.enabled:
+            return
+        frac = done / max(self.total, 1)
+        rate = done / max(time.perf_counter() - self.t0, 1e-9)
+        eta = (self.total - done) / max(rate, 1e-9)
+        tally = " ".join(f"{k[:4]}={counts.get(k, 0)}" for k in OUTCOMES)
+        line = f"{self.label} [{'#' * int(30 * frac):<30}] {done}/{self.total} {tally} {rate:.1f}/s eta {eta:.0f}s"
+        if self.tty:
+            sys.stderr.write("\r" + line + ("\n" if done == self.total else ""))
+            sys.stderr.flush()
+        elif int(frac * 10) > self.last_decile:
+            self.last_decile = int(frac * 10)
+            sys.stderr.write(line + "\n")
+
+
+def score_trial(result, truth: dict) -> tuple[str, list[int]]:
+    """Outcome of one solve against the truth sidecar, and the wrong match indices."""
+    if not result.solved:
+        return "inconclusive", []
+    pts = [(s["u_noisy"], s["v_noisy"]) for s in truth["stars"]] + [(f["u"], f["v"]) for f in truth["false_stars"]]
+    hips = [s["hip"] for s in truth["stars"]] + [-1] * len(truth["false_stars"])
+    if not pts:
+        return "incorrect", [m["index"] for m in result.matches]
+    tree = cKDTree(np.array(pts))
+    wrong = []
+    for m in result.matches:
+        d, j = tree.query([m["u"], m["v"]])
+        if d > MATCH_RADIUS_PX or hips[j] != m["hip"]:
+            wrong.append(m["index"])
+    return ("incorrect" if wrong else "correct"), wrong
+
+
+def _stats(values) -> dict:
+    a = np.asarray([v for v in values if v is not None], dtype=float)
+    if a.size == 0:
+        return {"n": 0}
+    return {"n": int(a.size), "median": float(np.median(a)), "p95": float(np.percentile(a, 95)),
+            "mean": float(a.mean()), "max": float(a.max())}
+
+
+def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_params: dict | None = None,
+              sensor: SensorModel | None = None, progress: bool = True) -> dict:
+    if n < 1:
+        raise BadInput("the number of trials (-n) must be at least 1")
+    rng = np.random.default_rng(seed)
+    catalog = load_guide_catalog()
+    camera = scenario.camera()
+    t0 = time.perf_counter()
+    solver = Solver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
+                    catalog=catalog, method_params=method_params)
+    setup_ms = (time.perf_counter() - t0) * 1e3
+    sensor = sensor or SensorModel()
+    attitudes = random_attitudes(n, rng)
+    seeds = rng.integers(0, 2**31 - 1, size=n)
+    trials, counts = [], Counter()
+    bar = Progress(n, f"{method}/{scenario.name}", progress)
+    for k in range(n):
+        ts = time.perf_counter()
+        frame = simulate_image(catalog, camera, attitudes[k], sensor, seed=int(seeds[k]),
+                               mag_limit=scenario.mag_limit, n_false_stars=scenario.n_false_stars,
+                               false_star_placement=scenario.false_star_placement,
+                               position_noise_rad=scenario.noise_rad)
+        sim_ms = (time.perf_counter() - ts) * 1e3
+        result = solver.solve_array(frame.image)
+        outcome, wrong = score_trial(result, frame.truth)
+        counts[outcome] += 1
+        ident = result.identification
+        err = attitude_error_arcsec(result.R, attitudes[k]) if result.solved else None
+        trials.append({
+            "trial": k, "seed": int(seeds[k]), "outcome": outcome,
+            "status": ident.status if ident else "failed", "reason": result.reason,
+            "stars_in_fov": len(frame.truth["stars"]), "centroids": len(result.centroids),
+            "matches": len(result.matches), "wrong_matches": wrong,
+            "pivots": (ident.stats.get("pivots") if ident else None),
+            "p_false": (ident.verification.get("p_false") if ident else None),
+            "err_boresight_arcsec": err["boresight"] if err else None,
+            "err_cross_arcsec": [err["cross_x"], err["cross_y"]] if err else None,
+            "err_roll_arcsec": err["roll"] if err else None,
+            "sigma_boresight_arcsec": result.sigma_boresight_arcsec,
+            "sigma_roll_arcsec": result.sigma_roll_arcsec,
+            "time_ms": {"simulate": sim_ms, **result.time_ms},
+            "quaternion_true": [float(x) for x in np.asarray(frame.truth["quaternion"])],
+        })
+        bar.update(k + 1, counts)
+    return summarize(method, scenario, seed, trials, setup_ms, solver)
+
+
+def summarize(method: str, scenario: Scenario, seed: int, trials: list[dict], setup_ms: float, solver) -> dict:
+    n = len(trials)
+    rates = {o: sum(t["outcome"] == o for t in trials) / n for o in OUTCOMES}
+    by_stars: dict[int, Counter] = {}
+    for t in trials:
+        by_stars.setdefault(min(t["stars_in_fov"], 15), Counter())[t["outcome"]] += 1
+    stages = sorted({s for t in trials for s in t["time_ms"]})
+    solved = [t for t in trials if t["outcome"] != "inconclusive"]
+    cross = np.array([t["err_cross_arcsec"] for t in solved]).reshape(-1, 2)
+    roll = np.array([t["err_roll_arcsec"] for t in solved])
+    accuracy = {}
+    if len(solved):
+        accuracy = {
+            "solved": len(solved),
+            "boresight_error_arcsec": _stats([t["err_boresight_arcsec"] for t in solved]),
+            "cross_axis_rms_arcsec": float(np.sqrt(np.mean(cross ** 2))),
+            "cross_axis_sigma_reported_rms_arcsec": float(np.sqrt(np.mean([t["sigma_boresight_arcsec"] ** 2 for t in solved]))),
+            "roll_rms_arcsec": float(np.sqrt(np.mean(roll ** 2))),
+            "roll_sigma_reported_rms_arcsec": float(np.sqrt(np.mean([t["sigma_roll_arcsec"] ** 2 for t in solved]))),
+            "normalised_cross_error_rms": float(np.sqrt(np.mean(
+                (cross / np.array([t["sigma_boresight_arcsec"] for t in solved])[:, None]) ** 2))),
+            "normalised_roll_error_rms": float(np.sqrt(np.mean(
+                (roll / np.array([t["sigma_roll_arcsec"] for t in solved])) ** 2))),
+        }
+    return {
+        "method": method,
+        "scenario": scenario.to_dict(),
+        "n": n,
+        "seed": seed,
+        "sigma_assumed_urad": scenario.sigma_rad * 1e6,
+        "rates": rates,
+        "counts": {o: sum(t["outcome"] == o for t in trials) for o in OUTCOMES},
+        "by_stars_in_fov": {str(k) + ("+" if k == 15 else ""): {o: c.get(o, 0) for o in OUTCOMES}
+                            for k, c in sorted(by_stars.items())},
+        "pivots": dict(sorted(Counter(t["pivots"] for t in trials if t["pivots"] is not None).items())),
+        "pivots_mean_solved": (float(np.mean([t["pivots"] for t in solved if t["pivots"] is not None]))
+                               if any(t["pivots"] is not None for t in solved) else None),
+        "time_ms": {s: _stats([t["time_ms"].get(s) for t in trials]) for s in stages},
+        "setup_ms": {"solver_total": setup_ms, **solver.setup_ms},
+        "database": getattr(solver.identifier, "database_info", {}),
+        "database_key": solver.identifier.database_key,
+        "attitude_accuracy": accuracy,
+        "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine(),
+                    "cores": __import__("os").cpu_count()},
+        "trials": trials,
+    }
+
+
+def format_markdown(s: dict) -> str:
+    sc = s["scenario"]
+    pct = {k: f"{100 * v:.1f} %" for k, v in s["rates"].items()}
+    lines = [
+        f"# {s['method']} on {sc['name']} ({s['n']} attitudes, seed {s['seed']})",
+        "",
+        f"{sc['description']}; identifier sigma {s['sigma_assumed_urad']:.1f} urad.",
+        "",
+        "| correct | inconclusive | incorrect |",
+        "|---|---|---|",
+        f"| {pct['correct']} ({s['counts']['correct']}) | {pct['inconclusive']} ({s['counts']['inconclusive']}) "
+        f"| {pct['incorrect']} ({s['counts']['incorrect']}) |",
+        "",
+        "## By number of catalog stars in the image",
+        "",
+        "| stars | trials | correct | inconclusive | incorrect |",
+        "|---|---|---|---|---|",
+    ]
+    for k, c in s["by_stars_in_fov"].items():
+        tot = sum(c.values())
+        lines.append(f"| {k} | {tot} | {c['correct']} | {c['inconclusive']} | {c['incorrect']} |")
+    if s["pivots"]:
+        lines += ["", "## Pivots used (all trials)", "", "| pivots | trials |", "|---|---|"]
+        lines += [f"| {k} | {v} |" for k, v in s["pivots"].items()]
+        if s["pivots_mean_solved"] is not None:
+            lines += ["", f"Mean pivots over solved trials: {s['pivots_mean_solved']:.2f}"]
+    lines += ["", "## Time per stage (ms, this machine)", "", "| stage | median | p95 | mean |", "|---|---|---|---|"]
+    for stage, st in s["time_ms"].items():
+        if st.get("n"):
+            lines.append(f"| {stage} | {st['median']:.2f} | {st['p95']:.2f} | {st['mean']:.2f} |")
+    lines += ["", f"Setup (once): " + ", ".join(f"{k} {v:.1f} ms" for k, v in s["setup_ms"].items())]
+    if s["database"]:
+        lines += ["", "Database: " + ", ".join(f"{k} {v}" for k, v in s["database"].items())]
+    acc = s["attitude_accuracy"]
+    if acc:
+        lines += [
+            "", "## Attitude accuracy of solved images (arcsec)", "",
+            f"- boresight error: median {acc['boresight_error_arcsec']['median']:.2f}, "
+            f"p95 {acc['boresight_error_arcsec']['p95']:.2f}",
+            f"- per cross-boresight axis: RMS {acc['cross_axis_rms_arcsec']:.2f} vs reported sigma "
+            f"{acc['cross_axis_sigma_reported_rms_arcsec']:.2f} (normalised RMS {acc['normalised_cross_error_rms']:.2f})",
+            f"- roll: RMS {acc['roll_rms_arcsec']:.1f} vs reported sigma {acc['roll_sigma_reported_rms_arcsec']:.1f} "
+            f"(normalised RMS {acc['normalised_roll_error_rms']:.2f})",
+        ]
+    m = s["machine"]
+    lines += ["", f"Machine: Python {m['python']}, {m['cpu']}, {m['cores']} cores."]
+    return "\n".join(lines) + "\n"
+
+
+def save_results(summary: dict, out_dir: Path, stem: str, markdown: str | None = None) -> tuple[Path, Path]:
+    """Write <stem>.json and <stem>.md into out_dir (created if missing), never overwriting."""
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BadInput(f"cannot create the results folder {out_dir}: {exc.strerror}") from None
+    base, k = stem, 1
+    while (out_dir / f"{stem}.json").exists() or (out_dir / f"{stem}.md").exists():
+        k += 1
+        stem = f"{base}-{k}"
+    jpath, mpath = out_dir / f"{stem}.json", out_dir / f"{stem}.md"
+    try:
+        jpath.write_text(json.dumps(summary, indent=1))
+        mpath.write_text(markdown if markdown is not None else format_markdown(summary))
+    except OSError as exc:
+        raise BadInput(f"cannot write results into {out_dir}: {exc.strerror}") from None
+    return jpath, mpath

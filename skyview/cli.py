@@ -1,0 +1,390 @@
+"""`skyview` command line: demo, simulate, solve, bench, catalog.
+
+Exit codes: 0 success (solved), 1 ran but did not solve, 2 bad input. Errors are one line on stderr;
+set SKYVIEW_DEBUG=1 to see a traceback for an unexpected error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from skyview.errors import BadInput, SkyviewError
+
+EXIT_SOLVED, EXIT_NOT_SOLVED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
+ARCSEC = np.pi / 180 / 3600
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit 2 (argparse prints usage + message otherwise)
+        raise BadInput(f"{message} (see '{self.prog} --help')")
+
+
+def _float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not np.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return v
+
+
+def _write_text_new(path: Path, text: str, force: bool) -> None:
+    """Write a file atomically; refuse to overwrite unless force; one-line errors."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise BadInput(f"{path} exists; use --force to overwrite it")
+    if not path.parent.is_dir():
+        raise BadInput(f"folder {path.parent} does not exist")
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise BadInput(f"cannot write {path}: {exc.strerror}") from None
+
+
+# ----------------------------------------------------------------------------- commands
+
+def cmd_simulate(a) -> int:
+    from skyview.attitude import R_from_radec_roll
+    from skyview.camera import Camera
+    from skyview.catalog import load_guide_catalog
+    from skyview.simulate import SensorModel, save_frame, save_sequence, simulate_image, simulate_sequence
+
+    if not -90.0 <= a.dec <= 90.0:
+        raise BadInput(f"declination {a.dec} deg is outside [-90, 90]")
+    camera = Camera.from_fov(a.fov_deg, a.width, a.height, k1=a.distortion[0], k2=a.distortion[1])
+    sensor = SensorModel(bit_depth=a.bit_depth, **({"exposure_s": a.exposure_s} if a.exposure_s else {}))
+    catalog = load_guide_catalog(epoch=a.epoch)
+    R = R_from_radec_roll(np.radians(a.ra), np.radians(a.dec), np.radians(a.roll))
+    kw = dict(seed=a.seed, mag_limit=a.mag_limit, n_false_stars=a.false_stars, n_dropped=a.dropped,
+              position_noise_rad=a.noise_arcsec * ARCSEC)
+    if a.frames > 1:
+        seq = simulate_sequence(catalog, camera, R, a.frames, _turn(a), sensor, **kw)
+        paths = save_sequence(seq, Path(a.out), force=a.force)
+        print(f"wrote {len(seq.frames)} frames and {paths[-1]}")
+        return EXIT_SOLVED
+    frame = simulate_image(catalog, camera, R, sensor, **kw)
+    png, js = save_frame(frame, Path(a.out), force=a.force)
+    print(f"wrote {png} ({camera.width}x{camera.height}, {len(frame.truth['stars'])} stars, "
+          f"{len(frame.truth['false_stars'])} false) and truth {js}")
+    return EXIT_SOLVED
+
+
+def _turn(a):
+    from skyview.simulate import turn_about_camera_axis
+
+    axis = {"x": 0, "y": 1, "z": 2}[a.turn_axis]
+    return turn_about_camera_axis(axis, np.radians(a.turn_deg))
+
+
+def _result_with_truth(result, truth_path: Path | None) -> dict:
+    from skyview.attitude import attitude_error_arcsec
+
+    out = result.to_dict()
+    if truth_path is None:
+        return out
+    try:
+        truth = json.loads(Path(truth_path).read_text())
+        R_true = np.asarray(truth["R"], dtype=float)
+    except (OSError, ValueError, KeyError, TypeError):
+        raise BadInput(f"{truth_path} is not a skyview truth sidecar") from None
+    entry = {"path": str(truth_path), "ra_deg": truth.get("ra_deg"), "dec_deg": truth.get("dec_deg"),
+             "roll_deg": truth.get("roll_deg")}
+    if result.R is not None:
+        entry["error_arcsec"] = attitude_error_arcsec(result.R, R_true)
+        pts = np.array([[s.get("u_noisy", s["u"]), s.get("v_noisy", s["v"])] for s in truth.get("stars", [])])
+        ids = [s["hip"] for s in truth.get("stars", [])]
+        wrong = 0
+        for m in result.matches:
+            if len(pts) == 0:
+                wrong += 1
+                continue
+            d = np.hypot(pts[:, 0] - m["u"], pts[:, 1] - m["v"])
+            j = int(np.argmin(d))
+            wrong += int(d[j] > 3.0 or ids[j] != m["hip"])
+        entry["wrong_matches"] = wrong
+    out["truth"] = entry
+    return out
+
+
+def _print_human(out: dict, file=sys.stdout) -> None:
+    if out["status"] == "solved":
+        s = out["sigma_arcsec"]
+        print(f"solved by {out['method']}: RA {out['ra_deg']:.5f} deg  Dec {out['dec_deg']:+.5f} deg  "
+              f"roll {out['roll_deg']:+.4f} deg", file=file)
+        print(f"  1-sigma: boresight {s['boresight']:.2f} arcsec, roll {s['roll']:.1f} arcsec; "
+              f"{out['n_matches']} of {out['n_centroids']} centroids matched; "
+              f"P(false) {out['verification'].get('p_false', float('nan')):.2e}", file=file)
+        q = out["quaternion"]
+        print(f"  quaternion [w x y z]: {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}", file=file)
+    else:
+        print(f"not solved by {out['method']}: {out.get('reason', '')} ({out['n_centroids']} centroids)", file=file)
+    t = out["time_ms"]
+    print("  time: " + ", ".join(f"{k} {v:.1f} ms" for k, v in t.items()), file=file)
+    if "truth" in out and "error_arcsec" in out["truth"]:
+        e = out["truth"]["error_arcsec"]
+        print(f"  against truth: boresight {e['boresight']:.2f} arcsec, roll {e['roll']:.1f} arcsec, "
+              f"{out['truth']['wrong_matches']} wrong matches", file=file)
+
+
+def cmd_solve(a) -> int:
+    from skyview.centroid import load_image
+    from skyview.pipeline import solve_image
+
+    path = Path(a.image)
+    image = load_image(path)
+    if int(image.max()) == int(image.min()):
+        raise BadInput(f"{path} is blank (every pixel is {int(image.min())}): there is no sky to solve")
+    params = {}
+    if a.sigma_arcsec is not None:
+        if a.sigma_arcsec <= 0:
+            raise BadInput("--sigma-arcsec must be positive")
+        params["sigma_rad"] = a.sigma_arcsec * ARCSEC
+    method_params = {}
+    if a.statistic:
+        method_params["statistic"] = a.statistic
+    output = Path(a.output) if a.output else None
+    if output is not None and output.exists() and not a.force:
+        raise BadInput(f"{output} exists; use --force to overwrite it")
+    result = solve_image(image, a.fov_deg, a.method, mag_limit=a.mag_limit, epoch=a.epoch,
+                         estimator=a.estimator, max_stars=a.max_stars, k_sigma=a.k_sigma,
+                         distortion=tuple(a.distortion), method_params=method_params or None, **params)
+    truth = None
+    if a.truth:
+        truth = Path(a.truth)
+    elif not a.no_truth and path.with_suffix(".json").exists():
+        truth = path.with_suffix(".json")
+    out = _result_with_truth(result, truth)
+    out["image"] = str(path)
+    text = json.dumps(out, indent=1 if a.json else None)
+    if output is not None:
+        _write_text_new(output, text + "\n", a.force)
+    if a.json:
+        print(text)
+    else:
+        _print_human(out)
+    if not result.solved:
+        print(f"skyview: not solved: {result.reason}", file=sys.stderr)
+        return EXIT_NOT_SOLVED
+    return EXIT_SOLVED
+
+
+def cmd_demo(a) -> int:
+    from skyview.attitude import R_from_radec_roll
+    from skyview.camera import Camera
+    from skyview.catalog import load_guide_catalog
+    from skyview.pipeline import Solver
+    from skyview.simulate import SensorModel, simulate_image
+
+    t0 = time.perf_counter()
+    catalog = load_guide_catalog()
+    camera = Camera.from_fov(a.fov_deg, 1024)
+    R = R_from_radec_roll(np.radians(a.ra), np.radians(a.dec), np.radians(a.roll))
+    frame = simulate_image(catalog, camera, R, SensorModel(), seed=a.seed, mag_limit=6.0)
+    print(f"simulated a {camera.width}x{camera.height} image, FOV {a.fov_deg:g} deg, pointing RA {a.ra:g} "
+          f"Dec {a.dec:+g} roll {a.roll:g} deg: {len(frame.truth['stars'])} stars of Hp <= 6.0")
+    solver = Solver(camera, a.method, catalog=catalog)
+    print(f"loaded the catalog and the {a.method} database in "
+          f"{solver.setup_ms['catalog_load'] + solver.setup_ms['database_load']:.0f} ms "
+          f"(first run builds and caches it; total {1e3 * (time.perf_counter() - t0):.0f} ms so far)")
+    result = solver.solve_array(frame.image)
+    from skyview.attitude import attitude_error_arcsec
+
+    out = result.to_dict()
+    if result.R is not None:
+        wrong = 0
+        truth_uv = np.array([[s["u_noisy"], s["v_noisy"]] for s in frame.truth["stars"]])
+        ids = [s["hip"] for s in frame.truth["stars"]]
+        for m in result.matches:
+            d = np.hypot(truth_uv[:, 0] - m["u"], truth_uv[:, 1] - m["v"])
+            wrong += int(d.min() > 3 or ids[int(np.argmin(d))] != m["hip"])
+        out["truth"] = {"error_arcsec": attitude_error_arcsec(result.R, R), "wrong_matches": wrong}
+    _print_human(out)
+    if a.json:
+        print(json.dumps(out))
+    return EXIT_SOLVED if result.solved else EXIT_NOT_SOLVED
+
+
+def cmd_bench(a) -> int:
+    from skyview.bench import format_markdown, run_bench, save_results
+    from skyview.scenarios import get_scenario
+
+    if a.centroids:
+        from skyview.centroid_bench import format_markdown as fmt_c, measure_centroid_accuracy
+
+        res = measure_centroid_accuracy(n_images=a.n, seed=a.seed)
+        print(fmt_c(res))
+        j, m = save_results(res, Path(a.out), f"centroids-n{a.n}-seed{a.seed}", markdown=fmt_c(res))
+        print(f"saved {j} and {m}")
+        return EXIT_SOLVED
+    scenario = get_scenario(a.scenario)
+    from skyview.identify import METHODS
+
+    if a.method not in METHODS:
+        raise BadInput(f"unknown method {a.method!r}: choose from {', '.join(METHODS)}")
+    method_params = {}
+    if a.statistic:
+        method_params["statistic"] = a.statistic
+    out_dir = Path(a.out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise BadInput(f"{out_dir} is not a folder")
+    summary = run_bench(a.method, scenario, a.n, seed=a.seed, method_params=method_params or None,
+                        progress=not a.quiet)
+    md = format_markdown(summary)
+    print(md)
+    tag = f"-{a.statistic}" if a.statistic else ""
+    j, m = save_results(summary, out_dir, f"{a.method}{tag}-{scenario.name}-n{a.n}-seed{a.seed}")
+    print(f"saved {j} and {m}")
+    return EXIT_SOLVED
+
+
+def cmd_catalog(a) -> int:
+    from skyview.catalog import ASSET_PATH, build_guide_catalog, load_guide_catalog, save_guide_catalog
+
+    if a.action == "build":
+        out = Path(a.out) if a.out else ASSET_PATH
+        if not out.parent.is_dir():
+            raise BadInput(f"folder {out.parent} does not exist")
+        if out.suffix != ".npz":
+            raise BadInput(f"{out}: the guide catalog is written as a .npz file")
+        t0 = time.perf_counter()
+        cat = build_guide_catalog(epoch=a.epoch, mag_limit=a.mag_limit)
+        t1 = time.perf_counter()
+        try:
+            save_guide_catalog(cat, out)
+        except OSError as exc:
+            raise BadInput(f"cannot write {out}: {exc.strerror}") from None
+        t2 = time.perf_counter()
+        t3 = time.perf_counter()
+        load_guide_catalog(out)
+        t4 = time.perf_counter()
+        print(f"wrote {out}: {len(cat)} stars (Hp <= {a.mag_limit:g}) at epoch {a.epoch:g}, "
+              f"{out.stat().st_size / 1e6:.2f} MB; build {1e3 * (t1 - t0):.0f} ms, write {1e3 * (t2 - t1):.0f} ms, "
+              f"load {1e3 * (t4 - t3):.1f} ms")
+        return EXIT_SOLVED
+    cat = load_guide_catalog(Path(a.path) if a.path else None)
+    info = cat.describe()
+    info["brighter_than"] = {m: int((cat.mag <= m).sum()) for m in (4.5, 6.0, 6.5, 7.3, 8.0)}
+    print(json.dumps(info, indent=1))
+    return EXIT_SOLVED
+
+
+# ----------------------------------------------------------------------------- parser
+
+def build_parser() -> argparse.ArgumentParser:
+    from skyview.catalog import DEFAULT_BUILD_MAG_LIMIT, DEFAULT_EPOCH
+
+    p = _Parser(prog="skyview", description="Where is the star tracker pointing? Simulate, identify, solve, compare.")
+    p.add_argument("--version", action="version", version=f"skyview {__import__('skyview').__version__}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    d = sub.add_parser("demo", help="simulate a default sky (Orion) and solve it")
+    d.add_argument("--ra", type=_float, default=83.8)
+    d.add_argument("--dec", type=_float, default=-5.4)
+    d.add_argument("--roll", type=_float, default=30.0)
+    d.add_argument("--fov-deg", type=_float, default=8.0)
+    d.add_argument("--seed", type=int, default=1)
+    d.add_argument("--method", default="angle")
+    d.add_argument("--json", action="store_true", help="also print the result as JSON")
+    d.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("simulate", help="render a star-field image (PNG) and its truth sidecar (JSON)")
+    s.add_argument("--ra", type=_float, required=True, help="boresight right ascension, deg")
+    s.add_argument("--dec", type=_float, required=True, help="boresight declination, deg")
+    s.add_argument("--roll", type=_float, default=0.0, help="image up from north towards east, deg")
+    s.add_argument("--fov-deg", type=_float, default=8.0, help="horizontal full field of view, deg")
+    s.add_argument("--width", type=int, default=1024)
+    s.add_argument("--height", type=int, default=None)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--mag-limit", type=_float, default=6.0, help="render stars with Hp <= this")
+    s.add_argument("--false-stars", type=int, default=0, help="bright blobs that are not stars (debris)")
+    s.add_argument("--dropped", type=int, default=0, help="catalog stars left out of the image")
+    s.add_argument("--noise-arcsec", type=_float, default=0.0, help="extra 1-sigma jitter of star directions")
+    s.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
+    s.add_argument("--exposure-s", type=_float, default=None)
+    s.add_argument("--distortion", type=_float, nargs=2, default=(0.0, 0.0), metavar=("K1", "K2"))
+    s.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH)
+    s.add_argument("--frames", type=int, default=1, help="a slew sequence of this many frames")
+    s.add_argument("--turn-deg", type=_float, default=1.0, help="turn between frames (with --frames)")
+    s.add_argument("--turn-axis", choices=("x", "y", "z"), default="y", help="camera axis of the turn")
+    s.add_argument("--out", required=True, help="output PNG (truth next to it as .json)")
+    s.add_argument("--force", action="store_true", help="overwrite existing files")
+    s.set_defaults(func=cmd_simulate)
+
+    v = sub.add_parser("solve", help="image -> attitude")
+    v.add_argument("image")
+    v.add_argument("--fov-deg", type=_float, required=True, help="horizontal full field of view, deg")
+    v.add_argument("--method", default="angle")
+    v.add_argument("--json", action="store_true", help="print one JSON object")
+    v.add_argument("--sigma-arcsec", type=_float, default=None,
+                   help="1-sigma centroid direction error (default: half a pixel)")
+    v.add_argument("--mag-limit", type=_float, default=6.0, help="guide catalog limit, Hp")
+    v.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH)
+    v.add_argument("--estimator", choices=("svd", "q-method"), default="svd")
+    v.add_argument("--statistic", choices=("calibrated", "tetra3"), default=None)
+    v.add_argument("--max-stars", type=int, default=40, help="use at most this many brightest centroids")
+    v.add_argument("--k-sigma", type=_float, default=5.0, help="detection threshold in noise sigmas")
+    v.add_argument("--distortion", type=_float, nargs=2, default=(0.0, 0.0), metavar=("K1", "K2"))
+    v.add_argument("--truth", default=None, help="truth sidecar to compare with (default: IMAGE.json if present)")
+    v.add_argument("--no-truth", action="store_true", help="do not look for a truth sidecar")
+    v.add_argument("--output", default=None, help="also write the JSON result to this file")
+    v.add_argument("--force", action="store_true")
+    v.set_defaults(func=cmd_solve)
+
+    b = sub.add_parser("bench", help="Monte Carlo identification statistics for a method and scenario")
+    b.add_argument("--method", default="angle")
+    b.add_argument("--scenario", default="cole8")
+    b.add_argument("-n", type=int, default=100, help="number of random attitudes")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--statistic", choices=("calibrated", "tetra3"), default=None,
+                   help="verification statistic (default: calibrated)")
+    b.add_argument("--centroids", action="store_true", help="measure centroid accuracy instead")
+    b.add_argument("--out", default="bench-results", help="folder for the JSON and Markdown results")
+    b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.set_defaults(func=cmd_bench)
+
+    c = sub.add_parser("catalog", help="build or describe the guide catalog")
+    csub = c.add_subparsers(dest="action", required=True, parser_class=_Parser)
+    cb = csub.add_parser("build", help="derive the guide catalog from Hipparcos-2 (hip2.dat)")
+    cb.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH)
+    cb.add_argument("--mag-limit", type=_float, default=DEFAULT_BUILD_MAG_LIMIT)
+    cb.add_argument("--out", default=None, help="default: the shipped assets/guide_catalog.npz")
+    ci = csub.add_parser("info", help="describe a guide catalog")
+    ci.add_argument("path", nargs="?")
+    c.set_defaults(func=cmd_catalog)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        return args.func(args)
+    except BadInput as exc:
+        print(f"skyview: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except SkyviewError as exc:
+        print(f"skyview: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("skyview: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # one line for the user; the traceback on request
+        if os.environ.get("SKYVIEW_DEBUG"):
+            raise
+        print(f"skyview: internal error: {type(exc).__name__}: {exc} (SKYVIEW_DEBUG=1 shows the traceback)",
+              file=sys.stderr)
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,132 @@
+"""The command line as a user meets it: end to end on a simulated sky, and every bad input."""
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from skyview.cli import main
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_line_error(err: str) -> bool:
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    return len(lines) == 1 and lines[0].startswith("skyview:") and "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def orion(tmp_path_factory):
+    d = tmp_path_factory.mktemp("orion")
+    png = d / "orion.png"
+    code = main(["simulate", "--ra", "83.8", "--dec", "-5.4", "--roll", "30", "--fov-deg", "8", "--seed", "1",
+                 "--out", str(png)])
+    assert code == 0
+    return png
+
+
+def test_simulate_then_solve_end_to_end(orion, capsys):
+    truth = json.loads(orion.with_suffix(".json").read_text())
+    assert truth["ra_deg"] == pytest.approx(83.8) and truth["roll_deg"] == pytest.approx(30.0)
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--json")
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["status"] == "solved" and res["method"] == "angle"
+    for key in ("R", "quaternion", "ra_deg", "dec_deg", "roll_deg", "sigma_arcsec", "matches", "n_centroids",
+                "time_ms", "database_key"):
+        assert key in res
+    assert res["truth"]["error_arcsec"]["boresight"] < 60.0
+    assert abs(res["truth"]["error_arcsec"]["roll"]) < 60.0
+    assert res["truth"]["wrong_matches"] == 0
+    assert res["ra_deg"] == pytest.approx(83.8, abs=0.01) and res["dec_deg"] == pytest.approx(-5.4, abs=0.01)
+    assert res["roll_deg"] == pytest.approx(30.0, abs=0.05)
+    q = np.array(res["quaternion"])
+    assert q[0] >= 0 and np.linalg.norm(q) == pytest.approx(1.0)
+    truth_hips = {s["hip"] for s in json.loads(orion.with_suffix(".json").read_text())["stars"]}
+    assert len(res["matches"]) >= 4 and {m["hip"] for m in res["matches"]} <= truth_hips
+
+
+def test_solve_in_a_subprocess_prints_json(orion):
+    p = subprocess.run([sys.executable, "-m", "skyview", "solve", str(orion), "--fov-deg", "8", "--json"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout)["status"] == "solved"
+
+
+def test_missing_file(capsys, tmp_path):
+    code, out, err = run(capsys, "solve", str(tmp_path / "nothing.png"), "--fov-deg", "8")
+    assert code == 2 and one_line_error(err) and "nothing.png" in err
+
+
+def test_not_an_image(capsys, tmp_path):
+    bad = tmp_path / "notes.png"
+    bad.write_text("this is not a picture\n")
+    code, out, err = run(capsys, "solve", str(bad), "--fov-deg", "8")
+    assert code == 2 and one_line_error(err)
+
+
+def test_a_directory(capsys, tmp_path):
+    code, out, err = run(capsys, "solve", str(tmp_path), "--fov-deg", "8")
+    assert code == 2 and one_line_error(err)
+
+
+def test_blank_image(capsys, tmp_path):
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((256, 256), 17, np.uint8))
+    code, out, err = run(capsys, "solve", str(blank), "--fov-deg", "8")
+    assert code == 2 and one_line_error(err) and "blank" in err
+
+
+def test_empty_sky_is_not_solved(capsys, tmp_path):
+    png = tmp_path / "empty.png"
+    assert main(["simulate", "--ra", "10", "--dec", "10", "--mag-limit", "-3", "--out", str(png)]) == 0
+    capsys.readouterr()
+    code, out, err = run(capsys, "solve", str(png), "--fov-deg", "8", "--json")
+    assert code == 1 and one_line_error(err)
+    assert json.loads(out)["status"] == "failed"
+
+
+@pytest.mark.parametrize("fov", ["0", "-3", "180", "250", "nan", "abc"])
+def test_impossible_fov(capsys, orion, fov):
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", fov)
+    assert code == 2 and one_line_error(err)
+
+
+def test_unknown_method(capsys, orion):
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--method", "astrology")
+    assert code == 2 and one_line_error(err) and "astrology" in err
+
+
+def test_simulate_refuses_to_overwrite_and_to_write_into_a_missing_folder(capsys, tmp_path):
+    png = tmp_path / "sky.png"
+    png.write_bytes(b"user data")
+    code, out, err = run(capsys, "simulate", "--ra", "1", "--dec", "2", "--out", str(png))
+    assert code == 2 and one_line_error(err)
+    assert png.read_bytes() == b"user data"
+    code, out, err = run(capsys, "simulate", "--ra", "1", "--dec", "2", "--out", str(tmp_path / "no" / "sky.png"))
+    assert code == 2 and one_line_error(err)
+    code, out, err = run(capsys, "simulate", "--ra", "1", "--dec", "95", "--out", str(tmp_path / "x.png"))
+    assert code == 2 and one_line_error(err)
+
+
+def test_solve_output_is_never_overwritten(capsys, orion, tmp_path):
+    keep = tmp_path / "result.json"
+    keep.write_text("precious")
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--output", str(keep))
+    assert code == 2 and one_line_error(err) and keep.read_text() == "precious"
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--output", str(tmp_path / "no" / "r.json"))
+    assert code == 2 and one_line_error(err)
+
+
+def test_unknown_scenario_and_bad_options(capsys):
+    code, out, err = run(capsys, "bench", "--scenario", "hubble")
+    assert code == 2 and one_line_error(err)
+    code, out, err = run(capsys, "solve")
+    assert code == 2 and one_line_error(err)
