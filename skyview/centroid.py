@@ -1,0 +1,589 @@
+"""Image -> star centroids with OpenCV: background, noise, detection, sub-pixel position, flags.
+
+Pixel convention (DESIGN.md): pixel centres at integer coordinates, (0, 0) the centre of the
+top-left pixel; u = column (x, right), v = row (y, down).
+
+Steps of `detect_centroids`:
+
+1. Background: median of 64 px blocks (sampled every 4th pixel), 3x3 median across blocks, bilinear
+   map (a single level when the map is flat to 0.5 sigma). Noise sigma: 1.4826 x MAD of the
+   background-subtracted samples, refined by a 3.5-sigma clipped standard deviation (which stays
+   right on integer images whose noise is ~1 ADU, where the MAD is quantised).
+2. Detection: pixels above background + k_sigma * sigma, 8-connected components
+   (cv2.connectedComponentsWithStats). A single-pixel blob whose neighbours are at background is a
+   hot pixel: rejected and counted. Blobs smaller than min_pixels are dropped.
+3. Position in a window around each blob's brightest pixel (side 2*ceil(2.5 sigma_eff) + 1, 7 px for
+   the default PSF), background subtracted. Estimators (`estimator=`):
+   "fit" (default): least-squares fit of a pixel-integrated Gaussian PSF (amplitude and position,
+   width fixed to the PSF sigma measured from the image), Gauss-Newton from the iwcog position;
+   saturated pixels and pixels off the image are left out, so saturated and edge stars keep an
+   unbiased centre;
+   "iwcog": iteratively Gaussian-weighted centre of gravity, each step scaled by
+   (sigma_psf^2 + sigma_w^2) / sigma_w^2 so that it converges on the centre of a Gaussian PSF;
+   "cog": plain centre of gravity of the positive background-subtracted intensity;
+   "gauss3": three-point Gaussian (log-parabola) fit on the 3x3 marginals, falling back to "iwcog"
+   when a value is not positive or the star is saturated.
+   skyview.centroid_bench measures them on the same images: "fit" has the lowest RMS at SNR >= 20
+   (iwcog is within a few percent below SNR 80, then twice as large because of edge stars;
+   cog and gauss3 are 50-70 % worse at SNR 20-40).
+4. Brightness = summed background-subtracted intensity in the window; peak = highest raw pixel
+   value; flags: saturated (a pixel at the ADC maximum of the dtype, at `saturation_level`, or at
+   the image's top value when that value forms a plateau), elongated (second-moment axis ratio above
+   max_axis_ratio for blobs with peak >= 20 sigma, above max_axis_ratio + 0.5 at 10 sigma, not
+   judged below: blends and streaks), edge (window crosses the border). Sorted by brightness, brightest first.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.special import erf
+
+from skyview.errors import BadInput
+
+ESTIMATORS = ("fit", "iwcog", "cog", "gauss3")
+DEFAULT_ESTIMATOR = "fit"
+_MAD_TO_SIGMA = 1.4826
+_CLIP_K = 3.5
+# std of a unit normal truncated to +-3.5 sigma
+_CLIP_STD = math.sqrt(1.0 - 2 * _CLIP_K * math.exp(-_CLIP_K ** 2 / 2) / math.sqrt(2 * math.pi) / math.erf(_CLIP_K / math.sqrt(2)))
+
+
+# ============================================================================ result
+
+@dataclass
+class Centroids:
+    uv: np.ndarray  # (N, 2) float64 pixel positions (u = column, v = row)
+    brightness: np.ndarray  # (N,) summed background-subtracted intensity in the window (image units)
+    peak: np.ndarray  # (N,) highest raw pixel value of the blob (image units, background included)
+    n_pixels: np.ndarray  # (N,) pixels above the detection threshold in the blob (shared when blended)
+    saturated: np.ndarray  # (N,) bool
+    elongated: np.ndarray  # (N,) bool
+    edge: np.ndarray  # (N,) bool: the measurement window crosses the image border
+    blended: np.ndarray  # (N,) bool: one of several peaks split from the same blob
+    axis_ratio: np.ndarray  # (N,) second-moment axis ratio (>= 1), NaN when not measured
+    background_level: float = 0.0  # median background (image units)
+    noise_sigma: float = 0.0  # background noise sigma (image units)
+    threshold: float = 0.0  # detection threshold above the background (k_sigma * noise_sigma)
+    n_hot_pixels_rejected: int = 0
+    n_small_rejected: int = 0  # other blobs smaller than min_pixels
+    psf_sigma_px: float = float("nan")  # PSF sigma used by iwcog (measured or given)
+    estimator: str = DEFAULT_ESTIMATOR
+    image_shape: tuple[int, int] = (0, 0)
+    params: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.uv.shape[0])
+
+    def to_list(self) -> list[dict]:
+        """One JSON-ready dict per centroid, brightest first."""
+        out = []
+        for k in range(len(self)):
+            ar = float(self.axis_ratio[k])
+            out.append({
+                "u": float(self.uv[k, 0]), "v": float(self.uv[k, 1]),
+                "brightness": float(self.brightness[k]), "peak": float(self.peak[k]),
+                "n_pixels": int(self.n_pixels[k]), "saturated": bool(self.saturated[k]),
+                "elongated": bool(self.elongated[k]), "edge": bool(self.edge[k]),
+                "blended": bool(self.blended[k]),
+                "axis_ratio": ar if math.isfinite(ar) else None,
+            })
+        return out
+
+    def to_dict(self) -> dict:
+        """Summary numbers plus the list of centroids (JSON-ready)."""
+        return {
+            "n": len(self), "background_level": self.background_level, "noise_sigma": self.noise_sigma,
+            "threshold": self.threshold, "n_hot_pixels_rejected": self.n_hot_pixels_rejected,
+            "n_small_rejected": self.n_small_rejected,
+            "psf_sigma_px": self.psf_sigma_px if math.isfinite(self.psf_sigma_px) else None,
+            "estimator": self.estimator, "image_shape": list(self.image_shape), "params": self.params,
+            "centroids": self.to_list(),
+        }
+
+    @classmethod
+    def empty(cls, **kw) -> "Centroids":
+        z = np.zeros(0)
+        b = np.zeros(0, dtype=bool)
+        return cls(uv=np.zeros((0, 2)), brightness=z, peak=z.copy(), n_pixels=np.zeros(0, dtype=np.int64),
+                   saturated=b, elongated=b.copy(), edge=b.copy(), blended=b.copy(), axis_ratio=z.copy(), **kw)
+
+
+# ============================================================================ loading
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """2-D image from a 2-D, (H, W, 1), BGR or BGRA array (OpenCV channel order)."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] == 1:
+        return a[:, :, 0]
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        if a.dtype not in (np.uint8, np.uint16, np.float32):
+            a = a.astype(np.float32)
+        code = cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        return cv2.cvtColor(np.ascontiguousarray(a), code)
+    return a
+
+
+def load_image(path: str | os.PathLike) -> np.ndarray:
+    """Read an image file (PNG, TIFF, JPEG, ... anything cv2 decodes) unchanged in depth, as grey.
+
+    Raises BadInput with one line for a missing file, a directory, an empty file, a file OpenCV
+    cannot decode and an image of size 0.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(f"image {p} does not exist")
+    if p.is_dir():
+        raise BadInput(f"image {p} is a directory, not an image file")
+    try:
+        data = np.fromfile(p, dtype=np.uint8)
+    except OSError as exc:
+        raise BadInput(f"image {p} cannot be read: {exc.strerror or exc}") from None
+    if data.size == 0:
+        raise BadInput(f"image {p} is empty (0 bytes)")
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    if img is None:
+        raise BadInput(f"{p} is not an image OpenCV can read")
+    img = to_gray(img)
+    if img.size == 0 or img.ndim != 2:
+        raise BadInput(f"image {p} is empty (size {img.shape})")
+    return img
+
+
+# ============================================================================ background / noise
+
+def estimate_background(f: np.ndarray, block: int = 64) -> tuple[np.ndarray | float, float, float]:
+    """(background map or scalar, median background level, noise sigma) of a float32 image."""
+    H, W = f.shape
+    step = 4 if min(H, W) >= 256 else (2 if min(H, W) >= 64 else 1)
+    sub = f[::step, ::step]
+    sh, sw = sub.shape
+    bs = max(4, block // step)  # samples per block side
+    gh, gw = max(1, sh // bs), max(1, sw // bs)
+    by, bx = sh // gh, sw // gw
+    cells = sub[: gh * by, : gw * bx].reshape(gh, by, gw, bx).transpose(0, 2, 1, 3).reshape(gh, gw, by * bx)
+    grid = np.median(cells, axis=2).astype(np.float32)
+    if gh >= 3 and gw >= 3:
+        grid = cv2.medianBlur(grid, 3)
+    level = float(np.median(grid))
+    if gh * gw > 1:
+        bsub = cv2.resize(grid, (sw, sh), interpolation=cv2.INTER_LINEAR)
+        r = (sub - bsub).ravel()
+    else:
+        r = (sub - level).ravel()
+    mad = float(np.median(np.abs(r - np.median(r))))
+    s0 = _MAD_TO_SIGMA * mad
+    is_int = bool(np.all(np.floor(sub) == sub))  # integer-valued data (e.g. from uint images)
+    floor = 1.0 if is_int else max(1e-12, 1e-9 * float(np.abs(sub).max()))
+    clip = _CLIP_K * max(s0, floor)
+    rc = r[np.abs(r) <= clip]
+    sigma = float(rc.std()) / _CLIP_STD if rc.size > 10 else s0
+    sigma = max(sigma, 0.5 if is_int else floor)
+    if gh * gw == 1 or float(grid.max() - grid.min()) < 0.5 * sigma:
+        return level, level, sigma
+    bkg = cv2.resize(grid, (W, H), interpolation=cv2.INTER_LINEAR)
+    return bkg, level, sigma
+
+
+# ============================================================================ detection
+
+def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | None = None, min_pixels: int = 2,
+                     estimator: str = DEFAULT_ESTIMATOR, psf_sigma_px: float | None = None,
+                     saturation_level: float | None = None, max_axis_ratio: float = 1.4,
+                     background_block: int = 64, iterations: int = 6, deblend: bool = True) -> Centroids:
+    """Find stars in a 2-D image and measure their sub-pixel centroids (see the module docstring).
+
+    window: odd side of the square measurement window (pixels) around each blob's brightest pixel;
+    window: None picks 2*ceil(2.5 sigma_eff) + 1 from the measured PSF (sigma_eff^2 = sigma^2 + 1/12).
+    psf_sigma_px: PSF sigma for the fit and iwcog; None measures it from the bright stars
+    (3-point log-curvature), falling back to 1.2 px. A blank (constant) image gives zero centroids.
+    A colour (BGR/BGRA) image is converted to grey; any other non-2-D array is BadInput.
+    deblend: split a blob with several peaks (each >= 2.5 px from a brighter one, with a dip of at
+    least 20 % and 3 sigma between them) into one centroid per peak, flagged `blended`; with the
+    "fit" estimator each one is refitted after subtracting its neighbours' fitted PSFs.
+    """
+    if estimator not in ESTIMATORS:
+        raise BadInput(f"unknown centroid estimator {estimator!r}: choose one of {', '.join(ESTIMATORS)}")
+    if window is not None and (int(window) < 3 or int(window) % 2 == 0):
+        raise BadInput(f"window={window} must be an odd number >= 3")
+    if not (k_sigma > 0):
+        raise BadInput(f"k_sigma={k_sigma} must be positive")
+    img = to_gray(image)
+    if img.ndim != 2:
+        raise BadInput(f"image must be 2-D (grey) or BGR/BGRA, got an array of shape {np.shape(image)}")
+    if img.dtype.kind not in "uif":
+        raise BadInput(f"image dtype {img.dtype} is not a number type")
+    H, W = img.shape
+    params = {"k_sigma": k_sigma, "window": window, "min_pixels": int(min_pixels),
+              "max_axis_ratio": max_axis_ratio}
+    if H < 3 or W < 3:
+        raise BadInput(f"image of shape {img.shape} is too small to search for stars")
+    f = img.astype(np.float32, copy=False)
+    if img.dtype.kind == "f" and not np.all(np.isfinite(f)):
+        f = np.where(np.isfinite(f), f, np.float32(np.nanmedian(np.where(np.isfinite(f), f, np.nan))))
+    if img.dtype.kind in "ui":
+        dtype_max = float(np.iinfo(img.dtype).max)
+    else:
+        dtype_max = math.inf
+    fmin, fmax = float(f.min()), float(f.max())
+    if fmax == fmin:
+        return Centroids.empty(background_level=fmin, noise_sigma=0.0, estimator=estimator,
+                               image_shape=(H, W), params=params)
+
+    bkg, level, sigma = estimate_background(f, background_block)
+    thr = float(k_sigma) * sigma
+    if isinstance(bkg, float):
+        resid = None
+        mask = f > np.float32(bkg + thr)
+    else:
+        resid = f - bkg
+        mask = resid > np.float32(thr)
+    empty = dict(background_level=level, noise_sigma=sigma, threshold=thr, estimator=estimator,
+                 image_shape=(H, W), params=params)
+    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8,
+                                                               ltype=cv2.CV_32S)
+    if n_lab <= 1:
+        return Centroids.empty(**empty)
+    idx = np.flatnonzero(mask)
+    lab = labels.reshape(-1)[idx]
+    raw = f.reshape(-1)[idx]
+    val = raw - bkg if resid is None else resid.reshape(-1)[idx]
+    order = np.lexsort((val, lab))
+    lab_s = lab[order]
+    last = np.flatnonzero(np.r_[lab_s[1:] != lab_s[:-1], True])  # index of each label's maximum
+    peak_flat = idx[order[last]]
+    peak_val = val[order[last]]
+    area = stats[1:, cv2.CC_STAT_AREA].astype(np.int64)
+    pi, pj = peak_flat // W, peak_flat % W
+
+    # saturation level: the dtype maximum, a given level, or a plateau at the image's top value
+    sat = dtype_max if saturation_level is None else float(saturation_level)
+    top = float(raw.max())
+    n_top = int(np.count_nonzero(raw == top))
+    if top < sat and top > 0 and ((n_top >= 2 and _is_adc_max(top)) or n_top >= 5):
+        sat = top  # e.g. 12-bit data in a 16-bit file: a plateau at 4095
+    blob_max = np.full(n_lab - 1, -np.inf)
+    np.maximum.at(blob_max, lab - 1, raw)
+    saturated_all = blob_max >= sat
+
+    # hot pixels: single-pixel blobs whose neighbours are at background
+    single = np.flatnonzero(area == 1)
+    hot = np.zeros(n_lab - 1, dtype=bool)
+    if single.size:
+        nb = _gather(f, bkg, resid, pi[single], pj[single], 1)[0]  # (n, 3, 3), off-image -> 0
+        nb[:, 1, 1] = -np.inf
+        nb_max = nb.reshape(len(single), -1).max(axis=1)
+        hot[single] = nb_max < np.maximum(3.0 * sigma, 0.25 * peak_val[single])
+    small = (area < int(min_pixels)) & ~hot
+    keep = np.flatnonzero(~hot & ~small)
+    n_hot = int(hot.sum())
+    n_small = int(small.sum())
+    if keep.size == 0:
+        return Centroids.empty(n_hot_pixels_rejected=n_hot, n_small_rejected=n_small, **empty)
+
+    pi, pj, area, saturated, peak_val = pi[keep], pj[keep], area[keep], saturated_all[keep], peak_val[keep]
+    peak_raw = blob_max[keep]
+    comp = keep + 1  # connected-component label of each entry
+    if deblend:
+        extra = _split_blends(f, bkg, resid, idx, lab, val, raw, comp, area, pi, pj, sigma, sat)
+        if extra is not None:
+            e_comp, e_pi, e_pj, e_val, e_raw = extra
+            e_area = area[np.searchsorted(comp, e_comp)]
+            pi, pj = np.r_[pi, e_pi], np.r_[pj, e_pj]
+            comp, area = np.r_[comp, e_comp], np.r_[area, e_area]
+            peak_val, peak_raw = np.r_[peak_val, e_val], np.r_[peak_raw, e_raw]
+            saturated = np.r_[saturated, np.zeros(len(e_comp), dtype=bool)]
+    blended = np.zeros(len(comp), dtype=bool)
+    if len(comp) > len(keep):
+        blended = np.isin(comp, comp[len(keep):])
+
+    # PSF width from the 3-point log curvature of bright, unsaturated stars away from the border
+    v3, valid3, _ = _gather(f, bkg, resid, pi, pj, 1)
+    g_ok, g_uv, g_s2 = _gauss3(v3, 1, pi, pj)
+    if psf_sigma_px is None:
+        good = g_ok & ~saturated & valid3.all(axis=(1, 2)) & (peak_val > 20.0 * sigma)
+        s_eff = float(np.sqrt(np.median(g_s2[good]))) if good.any() else math.sqrt(1.2 ** 2 + 1.0 / 12.0)
+        s_eff = float(np.clip(s_eff, 0.4, 5.0))
+        psf_used = float(np.sqrt(max(s_eff ** 2 - 1.0 / 12.0, 0.04)))
+    else:
+        psf_used = float(psf_sigma_px)
+        s_eff = math.sqrt(psf_used ** 2 + 1.0 / 12.0)
+    h = int(window) // 2 if window is not None else int(np.clip(math.ceil(2.5 * s_eff), 2, 8))
+    params["window_used"] = 2 * h + 1
+
+    vals, valid, rawv = _gather(f, bkg, resid, pi, pj, h)
+    edge = ~valid.all(axis=(1, 2))
+    d = np.arange(-h, h + 1, dtype=np.float64)
+    X = pj[:, None, None] + d[None, None, :]  # column (u) of each window pixel
+    Y = pi[:, None, None] + d[None, :, None]  # row (v)
+
+    uv_cog = _cog(vals, X, Y, pi, pj)
+    if estimator == "cog":
+        uv = uv_cog
+    elif estimator == "gauss3":
+        uv_iw = _iwcog(vals, X, Y, uv_cog, s_eff, h, pi, pj, iterations)
+        uv = np.where((g_ok & ~saturated)[:, None], g_uv, uv_iw)
+    elif estimator == "iwcog":
+        uv = _iwcog(vals, X, Y, uv_cog, s_eff, h, pi, pj, iterations)
+    else:
+        uv_iw = _iwcog(vals, X, Y, uv_cog, s_eff, h, pi, pj, iterations)
+        use = valid & (rawv < sat)  # saturated pixels carry no shape information: the wings do
+        uv, amp = _psf_fit(vals, use, X, Y, uv_iw, psf_used, h, pi, pj, iterations)
+        if blended.any():
+            # each blended star starts at its own peak; three rounds of: subtract the neighbours'
+            # current PSF models from its window, refit it (kept within 1.5 px of its peak)
+            b = np.flatnonzero(blended)
+            uv_b = np.where(g_ok[b, None], g_uv[b], np.stack([pj[b], pi[b]], axis=1).astype(np.float64))
+            frac = np.array([_psf_model(np.array([pj[q]]), np.array([pi[q]]), uv_b[n], 1.0, psf_used)[0, 0]
+                             for n, q in enumerate(b)])
+            amp_b = peak_val[b] / np.maximum(frac, 1e-6)
+            vals = vals.copy()
+            vb = vals[b]
+            for _round in range(3):
+                vb = vals[b].copy()
+                for n, s_i in enumerate(b):
+                    for m_, o_i in enumerate(b):
+                        if o_i != s_i and comp[o_i] == comp[s_i]:
+                            vb[n] -= _psf_model(X[s_i, 0, :], Y[s_i, :, 0], uv_b[m_], amp_b[m_], psf_used)
+                uv_b, amp_b = _psf_fit(vb, use[b], X[b], Y[b], uv_b, psf_used, h, pi[b], pj[b], iterations,
+                                       max_shift=1.5)
+            uv[b] = uv_b
+            vals[b] = vb
+
+    brightness = vals.sum(axis=(1, 2))
+    ratio = _axis_ratio(vals, X, Y, uv, sigma)
+    # noise alone gives axis ratios up to ~1.75 below a 20-sigma peak, < 1.3 above it: judge blobs
+    # with peak >= 20 sigma against max_axis_ratio, 10-20 sigma against a stricter line, fainter not
+    psnr = peak_val / sigma
+    ratio_limit = max_axis_ratio + 0.5 * np.clip((20.0 - psnr) / 10.0, 0.0, 1.0)
+    elongated = (ratio > ratio_limit) & (psnr >= 10.0)
+    order = np.argsort(-brightness, kind="stable")
+    return Centroids(
+        uv=uv[order].astype(np.float64), brightness=brightness[order].astype(np.float64),
+        peak=peak_raw[order].astype(np.float64), n_pixels=area[order], saturated=saturated[order],
+        elongated=elongated[order], edge=edge[order], blended=blended[order], axis_ratio=ratio[order],
+        background_level=level, noise_sigma=sigma, threshold=thr, n_hot_pixels_rejected=n_hot,
+        n_small_rejected=n_small, psf_sigma_px=psf_used, estimator=estimator, image_shape=(H, W),
+        params=params,
+    )
+
+
+# ============================================================================ helpers
+
+def _gather(f, bkg, resid, pi, pj, h):
+    """(2h+1)^2 windows around (pi, pj): background-subtracted values (0 off the image), the mask
+    of pixels on the image, and the raw values."""
+    H, W = f.shape
+    d = np.arange(-h, h + 1)
+    rows = pi[:, None, None] + d[None, :, None]
+    cols = pj[:, None, None] + d[None, None, :]
+    valid = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)
+    rc = np.clip(rows, 0, H - 1)
+    cc = np.clip(cols, 0, W - 1)
+    raw = f[rc, cc].astype(np.float64)
+    vals = resid[rc, cc].astype(np.float64) if resid is not None else raw - bkg
+    vals[~valid] = 0.0
+    return vals, valid, raw
+
+
+def _cog(vals, X, Y, pi, pj):
+    w = np.maximum(vals, 0.0)
+    sw = w.sum(axis=(1, 2))
+    ok = sw > 0
+    sw = np.where(ok, sw, 1.0)
+    u = np.where(ok, (w * X).sum(axis=(1, 2)) / sw, pj)
+    v = np.where(ok, (w * Y).sum(axis=(1, 2)) / sw, pi)
+    return np.stack([u, v], axis=1)
+
+
+def _iwcog(vals, X, Y, uv0, s_eff, h, pi, pj, iterations):
+    """Iteratively weighted CoG with a Gaussian weight of the PSF's width.
+
+    For a Gaussian PSF of width s and weight width s_w centred at the current estimate c, the
+    weighted CoG lies at (x0 s_w^2 + c s^2) / (s^2 + s_w^2): stepping by (s^2 + s_w^2) / s_w^2 times
+    the difference (2 with s_w = s) converges on the true centre x0 in a few iterations.
+    """
+    sw2 = s_eff * s_eff
+    gainf = 2.0
+    u = uv0[:, 0].copy()
+    v = uv0[:, 1].copy()
+    ok_all = np.ones(len(u), dtype=bool)
+    for _ in range(iterations):
+        g = np.exp(-((X - u[:, None, None]) ** 2 + (Y - v[:, None, None]) ** 2) / (2.0 * sw2))
+        w = vals * g
+        s = w.sum(axis=(1, 2))
+        ok = s > 0
+        ok_all &= ok
+        s = np.where(ok, s, 1.0)
+        cu = (w * X).sum(axis=(1, 2)) / s
+        cv = (w * Y).sum(axis=(1, 2)) / s
+        u = np.where(ok, u + gainf * (cu - u), u)
+        v = np.where(ok, v + gainf * (cv - v), v)
+        u = np.clip(u, pj - h, pj + h)
+        v = np.clip(v, pi - h, pi + h)
+    bad = ~ok_all | ~np.isfinite(u) | ~np.isfinite(v)
+    u[bad] = uv0[bad, 0]
+    v[bad] = uv0[bad, 1]
+    return np.stack([u, v], axis=1)
+
+
+def _gauss3(vals, h, pi, pj):
+    """Three-point Gaussian fit on the 3x3 marginals: (ok, uv, effective sigma^2)."""
+    c = vals[:, h - 1: h + 2, h - 1: h + 2]
+    mx = c.sum(axis=1)  # (N, 3) along u
+    my = c.sum(axis=2)  # (N, 3) along v
+    ok = (mx > 0).all(axis=1) & (my > 0).all(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lx = np.log(np.where(mx > 0, mx, 1.0))
+        ly = np.log(np.where(my > 0, my, 1.0))
+        cx = lx[:, 0] - 2 * lx[:, 1] + lx[:, 2]
+        cy = ly[:, 0] - 2 * ly[:, 1] + ly[:, 2]
+        du = (lx[:, 0] - lx[:, 2]) / (2.0 * cx)
+        dv = (ly[:, 0] - ly[:, 2]) / (2.0 * cy)
+        s2 = -0.5 * (1.0 / cx + 1.0 / cy)
+    ok &= (cx < 0) & (cy < 0) & (np.abs(du) < 1.0) & (np.abs(dv) < 1.0)
+    uv = np.stack([pj + np.where(ok, du, 0.0), pi + np.where(ok, dv, 0.0)], axis=1)
+    return ok, uv, np.where(ok, s2, np.nan)
+
+
+def _axis_ratio(vals, X, Y, uv, sigma):
+    """sqrt(l1 / l2) of the intensity second moments (pixels above 2 sigma) about the centroid."""
+    w = np.where(vals > 2.0 * sigma, vals, 0.0)
+    s = w.sum(axis=(1, 2))
+    ok = s > 0
+    s = np.where(ok, s, 1.0)
+    dx = X - uv[:, 0, None, None]
+    dy = Y - uv[:, 1, None, None]
+    mxx = (w * dx * dx).sum(axis=(1, 2)) / s + 1.0 / 12.0
+    myy = (w * dy * dy).sum(axis=(1, 2)) / s + 1.0 / 12.0
+    mxy = (w * dx * dy).sum(axis=(1, 2)) / s
+    tr = mxx + myy
+    disc = np.sqrt(np.maximum((mxx - myy) ** 2 / 4.0 + mxy ** 2, 0.0))
+    l1 = tr / 2.0 + disc
+    l2 = np.maximum(tr / 2.0 - disc, 1e-12)
+    return np.where(ok, np.sqrt(l1 / l2), np.nan)
+
+
+def _is_adc_max(x: float) -> bool:
+    """x is 2^k - 1 for an ADC of 8 to 16 bits."""
+    return any(x == (1 << k) - 1 for k in range(8, 17))
+
+
+def _psf_fit(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None):
+    """Least-squares fit of a pixel-integrated Gaussian PSF (amplitude, u, v; sigma fixed).
+
+    Model of pixel (x, y): A * [Phi((x+1/2-u)/s) - Phi((x-1/2-u)/s)] * [same in y]: exact for a
+    Gaussian PSF at any sampling, so it has no pixel-phase bias; pixels off the image or saturated
+    are left out. Gauss-Newton from the iwcog position, steps limited to 0.5 px.
+    """
+    n_st = len(vals)
+    x = X[:, 0, :]  # (N, n) column coordinates
+    y = Y[:, :, 0]  # (N, n) row coordinates
+    w = use.astype(np.float64)
+    u = uv0[:, 0].copy()
+    v = uv0[:, 1].copy()
+    k = 1.0 / (s * math.sqrt(2.0))
+    c = 1.0 / (s * math.sqrt(2.0 * math.pi))
+
+    def prof(t, t0):
+        hi = (t + 0.5 - t0[:, None]) * k
+        lo = (t - 0.5 - t0[:, None]) * k
+        p = 0.5 * (erf(hi) - erf(lo))
+        dp = -c * (np.exp(-hi * hi) - np.exp(-lo * lo))  # d p / d t0
+        return p, dp
+
+    fu, _ = prof(x, u)
+    fv, _ = prof(y, v)
+    P = fv[:, :, None] * fu[:, None, :]
+    A = (w * vals * P).sum(axis=(1, 2)) / np.maximum((w * P * P).sum(axis=(1, 2)), 1e-300)
+    ok = np.isfinite(A) & (A > 0)
+    for _ in range(max(3, iterations)):
+        fu, dfu = prof(x, u)
+        fv, dfv = prof(y, v)
+        P = fv[:, :, None] * fu[:, None, :]
+        J = np.stack([P, A[:, None, None] * fv[:, :, None] * dfu[:, None, :],
+                      A[:, None, None] * dfv[:, :, None] * fu[:, None, :]], axis=-1).reshape(n_st, -1, 3)
+        r = ((vals - A[:, None, None] * P) * w).reshape(n_st, -1)
+        Jw = J * w.reshape(n_st, -1, 1)
+        JTJ = np.einsum("nki,nkj->nij", Jw, J) + 1e-9 * np.eye(3)
+        JTr = np.einsum("nki,nk->ni", Jw, r)
+        try:
+            step = np.linalg.solve(JTJ, JTr[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        step = np.where(np.isfinite(step), step, 0.0)
+        A = A + step[:, 0]
+        u = u + np.clip(step[:, 1], -0.5, 0.5)
+        v = v + np.clip(step[:, 2], -0.5, 0.5)
+    lim = h if max_shift is None else max_shift
+    ok &= np.isfinite(u) & np.isfinite(v) & (A > 0) & (np.abs(u - pj) <= lim) & (np.abs(v - pi) <= lim)
+    uv = np.stack([np.where(ok, u, uv0[:, 0]), np.where(ok, v, uv0[:, 1])], axis=1)
+    return uv, np.where(ok, A, 0.0)
+
+
+def _psf_model(x, y, uv, A, s):
+    """A pixel-integrated Gaussian of amplitude A centred at uv on the grid x (columns) by y (rows)."""
+    k = 1.0 / (s * math.sqrt(2.0))
+    fu = 0.5 * (erf((x + 0.5 - uv[0]) * k) - erf((x - 0.5 - uv[0]) * k))
+    fv = 0.5 * (erf((y + 0.5 - uv[1]) * k) - erf((y - 0.5 - uv[1]) * k))
+    return A * fv[:, None] * fu[None, :]
+
+
+def _split_blends(f, bkg, resid, idx, lab, val, raw, comp, area, pi, pj, sigma, sat, min_sep=2.5):
+    """Secondary peaks of multi-peak blobs: (component, row, col, value, raw) arrays, or None.
+
+    A peak is a pixel not below any of its 8 neighbours, not saturated, at least `min_sep` px from
+    every accepted (brighter) peak of its blob, and separated from the nearest one by a dip: the
+    lowest pixel on the straight line between them is at least max(3 sigma, 20 %) below it.
+    """
+    H, W = f.shape
+    big = comp[area >= 6]
+    if big.size == 0:
+        return None
+    sel = np.isin(lab, big)
+    sidx, slab, sval, sraw = idx[sel], lab[sel], val[sel], raw[sel]
+    ri, rj = sidx // W, sidx % W
+    nb = _gather(f, bkg, resid, ri, rj, 1)[0]
+    nb[:, 1, 1] = -np.inf
+    ismax = (sval >= nb.reshape(len(sval), -1).max(axis=1)) & (sraw < sat)
+    if not ismax.any():
+        return None
+    c_lab, c_val, c_i, c_j, c_raw = slab[ismax], sval[ismax], ri[ismax], rj[ismax], sraw[ismax]
+    where = {int(c): k for k, c in enumerate(comp)}
+    out = []
+    for L in np.unique(c_lab):
+        m = np.flatnonzero(c_lab == L)
+        k0 = where[int(L)]
+        if len(m) == 1 and c_i[m[0]] == pi[k0] and c_j[m[0]] == pj[k0]:
+            continue
+        acc = [(int(pi[k0]), int(pj[k0]))]
+        for q in m[np.argsort(-c_val[m], kind="stable")]:
+            i, j, v = int(c_i[q]), int(c_j[q]), float(c_val[q])
+            d = [math.hypot(i - a, j - b) for a, b in acc]
+            n_near = int(np.argmin(d))
+            if d[n_near] < min_sep:
+                continue
+            a, b = acc[n_near]
+            t = np.linspace(0.0, 1.0, int(math.ceil(2 * d[n_near])) + 1)
+            si = np.rint(i + t * (a - i)).astype(np.int64)
+            sj = np.rint(j + t * (b - j)).astype(np.int64)
+            seg = resid[si, sj] if resid is not None else f[si, sj] - bkg
+            if v - float(seg.min()) >= max(3.0 * sigma, 0.2 * v):
+                acc.append((i, j))
+                out.append((int(L), i, j, v, float(c_raw[q])))
+    if not out:
+        return None
+    o = np.array(out, dtype=np.float64)
+    return o[:, 0].astype(np.int64), o[:, 1].astype(np.int64), o[:, 2].astype(np.int64), o[:, 3], o[:, 4]

@@ -1,0 +1,713 @@
+"""Star-field simulator: attitude + camera + catalog -> sensor image with known truth.
+
+Conventions (docs: /work/shared/DESIGN.md): v_cam = R @ v_icrs; camera +x right (u), +y down (v),
++z boresight; pixel centres at integer coordinates, (0, 0) the centre of the top-left pixel, so
+pixel (i, j) (row i, column j) covers u in [j - 0.5, j + 0.5] and v in [i - 0.5, i + 0.5].
+
+Image chain, per frame:
+
+1. Catalog stars with Hp <= mag_limit inside the field (optionally with a Gaussian direction jitter,
+   `position_noise_rad`, per tangent-plane axis) are projected with the Camera (radial distortion
+   included). Stars whose PSF centre falls off the sensor are not rendered; `n_dropped` more are
+   removed at random; `n_false_stars` extra blobs not in the catalog are added.
+2. Expected photo-electrons per star: zero_point_e_per_s * 10^(-0.4 Hp) * exposure_s, spread by a
+   Gaussian PSF integrated exactly over each pixel (erf differences along u and v).
+3. Sky background + dark current per pixel, hot pixels; Poisson shot noise on all of it; clip at the
+   full well; electronic bias (pedestal) and Gaussian read noise; gain to ADU; rounding and clipping
+   to the ADC range (8 or 16 bit).
+
+Everything random comes from one numpy Generator seeded with `seed`: the same arguments give the
+same image, bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+from scipy.special import erf
+from scipy.spatial.transform import Rotation
+
+from skyview.attitude import R_from_radec_roll, quat_from_R, radec_roll_from_R
+from skyview.camera import Camera
+from skyview.catalog import GuideCatalog, vec_to_radec
+from skyview.errors import BadInput
+
+HIP_BETELGEUSE = 27989
+_SQRT2 = math.sqrt(2.0)
+
+
+# ============================================================================ sensor model
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Detector and optics of a star tracker, in physical units.
+
+    Defaults describe a small CMOS star tracker (~30 mm aperture, 100 ms exposure, slightly
+    defocused optics): a Hp 6.0 star gives ~2600 e- and SNR ~40, stars brighter than Hp ~0.5
+    saturate their central pixel, the background is read-noise dominated.
+
+    gain_e_per_adu=None picks a gain that suits the bit depth: 16 bit -> full_well_e / 65535 (the
+    ADC range spans the full well), 8 bit -> read_noise_e (1 ADU per read-noise sigma, so faint
+    stars survive quantisation and stars brighter than Hp ~3.7 saturate the 8-bit ADC).
+    bias_e is the electronic pedestal added before the ADC so that read noise is not clipped at 0.
+    """
+
+    exposure_s: float = 0.1
+    zero_point_e_per_s: float = 6.5e6  # photo-electrons per second from a Hp 0.0 star
+    psf_sigma_px: float = 1.1
+    sky_background_e_per_px_s: float = 20.0
+    dark_current_e_per_px_s: float = 5.0
+    read_noise_e: float = 10.0
+    gain_e_per_adu: float | None = None
+    bit_depth: int = 16
+    full_well_e: float = 50000.0
+    bias_e: float = 100.0
+    n_hot_pixels: int = 8
+    hot_pixel_e: float = 3000.0
+
+    def __post_init__(self) -> None:
+        if self.bit_depth not in (8, 16):
+            raise BadInput(f"bit_depth {self.bit_depth} is not supported: use 8 or 16")
+        for name in ("exposure_s", "zero_point_e_per_s", "psf_sigma_px", "full_well_e"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise BadInput(f"sensor {name}={v} must be a positive number")
+        for name in ("sky_background_e_per_px_s", "dark_current_e_per_px_s", "read_noise_e",
+                     "bias_e", "hot_pixel_e", "n_hot_pixels"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise BadInput(f"sensor {name}={v} must be a number >= 0")
+        if self.gain_e_per_adu is not None and not (np.isfinite(self.gain_e_per_adu) and self.gain_e_per_adu > 0):
+            raise BadInput(f"sensor gain_e_per_adu={self.gain_e_per_adu} must be positive (or None for auto)")
+
+    # ---------------------------------------------------------------- derived quantities
+    @property
+    def adc_max(self) -> int:
+        return (1 << self.bit_depth) - 1
+
+    @property
+    def gain(self) -> float:
+        """Effective gain in e-/ADU (resolves gain_e_per_adu=None)."""
+        if self.gain_e_per_adu is not None:
+            return float(self.gain_e_per_adu)
+        if self.bit_depth == 16:
+            return self.full_well_e / self.adc_max
+        return max(self.read_noise_e, 1.0)
+
+    @property
+    def dtype(self) -> type:
+        return np.uint16 if self.bit_depth == 16 else np.uint8
+
+    @property
+    def background_e_per_px(self) -> float:
+        """Sky + dark electrons per pixel in one exposure (mean, before bias)."""
+        return (self.sky_background_e_per_px_s + self.dark_current_e_per_px_s) * self.exposure_s
+
+    @property
+    def noise_equivalent_pixels(self) -> float:
+        """4 pi sigma^2: the effective number of pixels of a Gaussian PSF (optimal weighting)."""
+        return 4.0 * math.pi * self.psf_sigma_px ** 2
+
+    def electrons(self, mag: float | np.ndarray) -> float | np.ndarray:
+        """Expected photo-electrons of a star of Hipparcos magnitude `mag` in one exposure."""
+        return self.zero_point_e_per_s * 10.0 ** (-0.4 * np.asarray(mag, dtype=np.float64)) * self.exposure_s
+
+    def pixel_noise_e(self) -> float:
+        """Per-pixel noise of the background in electrons: sqrt(B + D*t + RN^2 + gain^2/12)."""
+        return math.sqrt(self.background_e_per_px + self.read_noise_e ** 2 + self.gain ** 2 / 12.0)
+
+    def snr(self, electrons: float | np.ndarray) -> float | np.ndarray:
+        """Model SNR of a star: S / sqrt(S + npix_eff * (B + D*t + RN^2 + gain^2/12)).
+
+        npix_eff = 4 pi sigma_psf^2 (noise-equivalent area of a Gaussian PSF). Saturation ignored.
+        """
+        s = np.asarray(electrons, dtype=np.float64)
+        return s / np.sqrt(s + self.noise_equivalent_pixels * self.pixel_noise_e() ** 2)
+
+    def snr_of_mag(self, mag: float | np.ndarray) -> float | np.ndarray:
+        return self.snr(self.electrons(mag))
+
+    def saturation_mag(self) -> float:
+        """Hp at which a star centred on a pixel fills that pixel to the ADC/full-well limit."""
+        a = 0.5 / (self.psf_sigma_px * _SQRT2)
+        frac = float(erf(a)) ** 2  # fraction of the flux in the central pixel
+        cap_e = min(self.full_well_e, self.adc_max * self.gain - self.bias_e)
+        return float(-2.5 * np.log10(cap_e / frac / (self.zero_point_e_per_s * self.exposure_s)))
+
+    def describe(self) -> dict:
+        """Derived numbers for reports and the truth sidecar."""
+        return {
+            "gain_e_per_adu": self.gain,
+            "adc_max_adu": self.adc_max,
+            "bias_adu": self.bias_e / self.gain,
+            "background_e_per_px": self.background_e_per_px,
+            "pixel_noise_e": self.pixel_noise_e(),
+            "noise_equivalent_pixels": self.noise_equivalent_pixels,
+            "electrons_hp6": float(self.electrons(6.0)),
+            "snr_hp6": float(self.snr_of_mag(6.0)),
+            "saturation_hp": self.saturation_mag(),
+        }
+
+    # ---------------------------------------------------------------- (de)serialisation
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SensorModel":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise BadInput(f"unknown sensor field(s): {', '.join(unknown)}")
+        return cls(**d)
+
+    def replace(self, **changes: Any) -> "SensorModel":
+        return SensorModel.from_dict({**self.to_dict(), **changes})
+
+
+# ============================================================================ PSF rendering
+
+def psf_window_radius(sigma_px: float) -> int:
+    """Half-size of the square window a star is drawn in: flux outside is < 1e-8."""
+    return max(2, int(math.ceil(5.5 * sigma_px)))
+
+
+def render_stars(shape: tuple[int, int], uv: np.ndarray, electrons: np.ndarray, sigma_px: float,
+                 out: np.ndarray | None = None) -> np.ndarray:
+    """Add Gaussian PSFs at sub-pixel positions to a float image (electrons), integrated per pixel.
+
+    Pixel (i, j) receives E * [Phi((j+0.5-u)/s) - Phi((j-0.5-u)/s)] * [Phi((i+0.5-v)/s) - Phi((i-0.5-v)/s)]
+    with Phi the normal CDF: exact pixel integrals of a separable Gaussian, no rounding of the
+    position. Each star is drawn in a (2r+1)^2 window around its nearest pixel; parts of the window
+    off the sensor are dropped (stars near the edge are clipped naturally).
+    """
+    H, W = int(shape[0]), int(shape[1])
+    img = np.zeros((H, W), dtype=np.float64) if out is None else out
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    e = np.asarray(electrons, dtype=np.float64).reshape(-1)
+    if len(uv) == 0:
+        return img
+    r = psf_window_radius(sigma_px)
+    n = 2 * r + 1
+    ar = np.arange(n)
+    j0 = np.rint(uv[:, 0]).astype(np.int64) - r  # first column of each window
+    i0 = np.rint(uv[:, 1]).astype(np.int64) - r
+    scale = 1.0 / (sigma_px * _SQRT2)
+    edges_u = (j0[:, None] - 0.5 + np.arange(n + 1)[None, :] - uv[:, :1]) * scale
+    edges_v = (i0[:, None] - 0.5 + np.arange(n + 1)[None, :] - uv[:, 1:]) * scale
+    fu = 0.5 * np.diff(erf(edges_u), axis=1)  # (N, n) fraction of the flux per column
+    fv = 0.5 * np.diff(erf(edges_v), axis=1)  # (N, n) per row
+    patch = e[:, None, None] * fv[:, :, None] * fu[:, None, :]  # (N, rows, cols)
+    rows = np.broadcast_to((i0[:, None] + ar)[:, :, None], patch.shape)
+    cols = np.broadcast_to((j0[:, None] + ar)[:, None, :], patch.shape)
+    ok = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)
+    flat = rows[ok] * W + cols[ok]
+    np.add.at(img.reshape(-1), flat, patch[ok])
+    return img
+
+
+# ============================================================================ frames
+
+@dataclass
+class SimulatedFrame:
+    image: np.ndarray  # (H, W) uint8 or uint16
+    truth: dict  # JSON-ready, see simulate_image
+
+    @property
+    def R(self) -> np.ndarray:
+        return np.asarray(self.truth["R"], dtype=np.float64)
+
+    @property
+    def star_uv(self) -> np.ndarray:
+        """(N, 2) true catalog positions (u, v) of the rendered stars, brightest first."""
+        return np.array([[s["u"], s["v"]] for s in self.truth["stars"]], dtype=np.float64).reshape(-1, 2)
+
+    @property
+    def rendered_uv(self) -> np.ndarray:
+        """(N, 2) positions where the stars were drawn (u_noisy, v_noisy)."""
+        return np.array([[s["u_noisy"], s["v_noisy"]] for s in self.truth["stars"]],
+                        dtype=np.float64).reshape(-1, 2)
+
+    @property
+    def hips(self) -> np.ndarray:
+        return np.array([s["hip"] for s in self.truth["stars"]], dtype=np.int64)
+
+
+def _tangent_jitter(v: np.ndarray, sigma_rad: float, rng: np.random.Generator) -> np.ndarray:
+    """Add an isotropic Gaussian vector in the tangent plane of each unit vector, renormalise."""
+    g = rng.standard_normal(v.shape) * sigma_rad
+    g -= np.sum(g * v, axis=1, keepdims=True) * v
+    w = v + g
+    return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+
+def _check_R(R: np.ndarray) -> np.ndarray:
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise BadInput("attitude R must be a finite 3x3 rotation matrix")
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+        raise BadInput("attitude R is not a proper rotation matrix (R R^T != I or det R < 0)")
+    return R
+
+
+def _n_to_drop(n_dropped: int | float, n_available: int) -> int:
+    if isinstance(n_dropped, (bool, np.bool_)):
+        raise BadInput("n_dropped must be a count (int) or a fraction in [0, 1)")
+    if isinstance(n_dropped, (int, np.integer)):
+        if n_dropped < 0:
+            raise BadInput(f"n_dropped={n_dropped} must be >= 0")
+        return int(min(n_dropped, n_available))
+    f = float(n_dropped)
+    if not (0.0 <= f < 1.0):
+        raise BadInput(f"n_dropped={n_dropped}: a float is a fraction and must be in [0, 1)")
+    return int(round(f * n_available))
+
+
+def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor: SensorModel | None = None,
+                   *, seed: int = 0, mag_limit: float = 6.0, n_false_stars: int = 0,
+                   false_star_placement: str = "sensor", false_star_mag_range: tuple[float, float] = (2.0, 5.0),
+                   n_dropped: int | float = 0, position_noise_rad: float = 0.0,
+                   noise: bool = True) -> SimulatedFrame:
+    """Render the sky seen by `camera` at attitude R (v_cam = R @ v_icrs).
+
+    - catalog stars with Hp <= mag_limit whose (jittered) PSF centre lands on the sensor are drawn;
+      stars whose centre is off the sensor are not drawn even if their wings would reach it
+      (listed in truth["off_sensor"] when within 5 sigma of the edge);
+    - position_noise_rad: Gaussian direction jitter per tangent-plane axis added to each star's true
+      direction before rendering (Cole & Crassidis: "add a Gaussian vector then normalise");
+      truth keeps the true (u, v) and the rendered (u_noisy, v_noisy);
+    - n_dropped: int count, or float fraction in [0, 1), of the on-sensor stars left out (truth["dropped"]);
+    - n_false_stars: blobs that are not catalog stars, Hp uniform in false_star_mag_range;
+      false_star_placement="sensor": uniform on the image; "disk": as Cole & Crassidis, the boresight
+      plus a vector of random direction and a random length up to half the (horizontal) FOV,
+      normalised (then jittered like a star); redrawn if it misses the sensor;
+    - noise=False switches off shot noise and read noise (hot pixels, bias, quantisation and
+      saturation remain; set their SensorModel fields to 0 to remove them).
+    """
+    sensor = SensorModel() if sensor is None else sensor
+    R = _check_R(R)
+    if false_star_placement not in ("sensor", "disk"):
+        raise BadInput(f"false_star_placement must be 'sensor' or 'disk', not {false_star_placement!r}")
+    if int(n_false_stars) < 0:
+        raise BadInput(f"n_false_stars={n_false_stars} must be >= 0")
+    if not (np.isfinite(position_noise_rad) and position_noise_rad >= 0):
+        raise BadInput(f"position_noise_rad={position_noise_rad} must be >= 0")
+    lo_mag, hi_mag = (float(x) for x in false_star_mag_range)
+    if hi_mag < lo_mag:
+        raise BadInput(f"false_star_mag_range {false_star_mag_range} must be (brightest, faintest)")
+    rng = np.random.default_rng(seed)
+    H, W = camera.height, camera.width
+    sigma = sensor.psf_sigma_px
+
+    # ---------------------------------------------------------------- catalog stars in the field
+    boresight = R[2]
+    margin_rad = 6.0 * sigma / camera.fx + 10.0 * position_noise_rad
+    cone = catalog.within(boresight, camera.half_diagonal_rad + margin_rad)
+    cone = cone[catalog.mag[cone] <= mag_limit]
+    cone = cone[np.argsort(catalog.mag[cone], kind="stable")]  # brightest first
+    v_true = catalog.xyz[cone] @ R.T
+    uv_true, front = camera.project(v_true)
+    v_noisy = _tangent_jitter(v_true, position_noise_rad, rng) if position_noise_rad > 0 else v_true
+    uv_noisy, front_n = camera.project(v_noisy)
+    on = front & front_n & camera.in_image(uv_noisy)
+    near = front_n & ~on & camera.in_image(uv_noisy, margin=-5.0 * sigma)
+    off_sensor = [int(h) for h in catalog.hip[cone[near]]]
+    idx_on = np.flatnonzero(on)
+
+    k_drop = _n_to_drop(n_dropped, len(idx_on))
+    drop_pos = np.sort(rng.choice(len(idx_on), size=k_drop, replace=False)) if k_drop else np.array([], int)
+    keep = np.ones(len(idx_on), dtype=bool)
+    keep[drop_pos] = False
+    dropped = [int(catalog.hip[cone[idx_on[p]]]) for p in drop_pos]
+    rend = idx_on[keep]
+    mags = catalog.mag[cone[rend]].astype(np.float64)
+    star_e = np.asarray(sensor.electrons(mags), dtype=np.float64)
+
+    # ---------------------------------------------------------------- false stars
+    nf = int(n_false_stars)
+    f_mag = rng.uniform(lo_mag, hi_mag, size=nf) if nf else np.zeros(0)
+    f_uv = np.zeros((nf, 2))
+    half_fov = math.radians(camera.fov_deg) / 2.0
+    for k in range(nf):
+        for _attempt in range(1000):
+            if false_star_placement == "sensor":
+                p = np.array([rng.uniform(-0.5, W - 0.5), rng.uniform(-0.5, H - 0.5)])
+            else:
+                phi = rng.uniform(0.0, 2.0 * math.pi)
+                length = rng.uniform(0.0, half_fov)
+                d = np.array([math.cos(phi), math.sin(phi), 0.0]) * length  # camera frame tangent vector
+                v = np.array([[0.0, 0.0, 1.0]]) + d
+                v /= np.linalg.norm(v)
+                if position_noise_rad > 0:
+                    v = _tangent_jitter(v, position_noise_rad, rng)
+                p, fr = camera.project(v)
+                p = p[0]
+                if not fr[0]:
+                    continue
+            if camera.in_image(p[None])[0]:
+                f_uv[k] = p
+                break
+        else:  # pragma: no cover - only with absurd distortion
+            raise BadInput("could not place a false star on the sensor")
+    f_e = np.asarray(sensor.electrons(f_mag), dtype=np.float64).reshape(-1)
+
+    # ---------------------------------------------------------------- electrons -> ADU
+    signal = np.zeros((H, W), dtype=np.float64)
+    render_stars((H, W), np.concatenate([uv_noisy[rend], f_uv]), np.concatenate([star_e, f_e]), sigma, out=signal)
+    n_hot = int(sensor.n_hot_pixels)
+    hot_flat = rng.choice(H * W, size=min(n_hot, H * W), replace=False) if n_hot else np.zeros(0, np.int64)
+    if n_hot:
+        signal.reshape(-1)[hot_flat] += sensor.hot_pixel_e
+    bg = sensor.background_e_per_px
+    if noise:
+        # shot noise: background (uniform) + signal pixels; sums of independent Poissons are Poisson
+        e = rng.poisson(bg, size=(H, W)).astype(np.float32) if bg > 0 else np.zeros((H, W), np.float32)
+        nz = np.flatnonzero(signal)
+        e.reshape(-1)[nz] += rng.poisson(signal.reshape(-1)[nz]).astype(np.float32)
+    else:
+        e = (signal + bg).astype(np.float32)
+    np.minimum(e, np.float32(sensor.full_well_e), out=e)
+    e += np.float32(sensor.bias_e)
+    if noise and sensor.read_noise_e > 0:
+        e += rng.standard_normal((H, W), dtype=np.float32) * np.float32(sensor.read_noise_e)
+    adu = e * np.float32(1.0 / sensor.gain)
+    np.rint(adu, out=adu)
+    np.clip(adu, 0, sensor.adc_max, out=adu)
+    image = adu.astype(sensor.dtype)
+
+    # ---------------------------------------------------------------- truth
+    ra, dec, roll = radec_roll_from_R(R)
+    stars = []
+    for k, i in enumerate(rend):
+        c = cone[i]
+        stars.append({
+            "hip": int(catalog.hip[c]),
+            "u": float(uv_true[i, 0]), "v": float(uv_true[i, 1]),
+            "mag": float(mags[k]),
+            "electrons": float(star_e[k]),
+            "snr": float(sensor.snr(star_e[k])),
+            "u_noisy": float(uv_noisy[i, 0]), "v_noisy": float(uv_noisy[i, 1]),
+        })
+    false_stars = [{"u": float(f_uv[k, 0]), "v": float(f_uv[k, 1]), "mag": float(f_mag[k]),
+                    "electrons": float(f_e[k]), "snr": float(sensor.snr(f_e[k]))} for k in range(nf)]
+    truth = {
+        "camera": camera.to_dict(),
+        "R": R.tolist(),
+        "quaternion": [float(x) for x in quat_from_R(R)],
+        "ra_deg": math.degrees(ra), "dec_deg": math.degrees(dec), "roll_deg": math.degrees(roll),
+        "epoch": float(catalog.epoch),
+        "stars": stars,
+        "false_stars": false_stars,
+        "false_star_placement": false_star_placement,
+        "dropped": dropped,
+        "off_sensor": off_sensor,
+        "hot_pixels": [[int(f % W), int(f // W)] for f in hot_flat],  # [u, v]
+        "sensor": sensor.to_dict(),
+        "sensor_derived": sensor.describe(),
+        "seed": int(seed) if isinstance(seed, (int, np.integer)) else seed,
+        "mag_limit": float(mag_limit),
+        "position_noise_rad": float(position_noise_rad),
+        "noise": bool(noise),
+        "notes": ("u, v: true catalog position (pixel centres at integers, (0,0) = centre of the "
+                  "top-left pixel); u_noisy, v_noisy: where the star was drawn (after "
+                  "position_noise_rad). Stars whose PSF centre is off the sensor are not rendered; "
+                  "those within 5 PSF sigma of the edge are listed in off_sensor."),
+    }
+    return SimulatedFrame(image=image, truth=truth)
+
+
+# ============================================================================ writing files
+
+def _check_folder(folder: Path) -> None:
+    if not folder.exists():
+        raise BadInput(f"folder {folder} does not exist")
+    if not folder.is_dir():
+        raise BadInput(f"{folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise BadInput(f"folder {folder} is not writable")
+
+
+def _check_png_path(png_path: str | os.PathLike) -> Path:
+    p = Path(png_path)
+    if p.suffix.lower() != ".png":
+        raise BadInput(f"{p}: the image path must end in .png")
+    _check_folder(p.parent if str(p.parent) else Path("."))
+    return p
+
+
+def _encode_png(image: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:  # pragma: no cover
+        raise BadInput("OpenCV could not encode the image as PNG")
+    return buf.tobytes()
+
+
+def _write_atomic(items: list[tuple[Path, bytes]], force: bool) -> None:
+    """Write all files or none: temp files in the target folders, then os.replace each one.
+
+    Without force, nothing is written if any target exists (checked before writing), and each file
+    is moved into place with a no-clobber link where the filesystem supports it.
+    """
+    if not force:
+        for p, _ in items:
+            if p.exists() or p.is_symlink():
+                raise BadInput(f"{p} already exists (use force to overwrite)")
+    temps: list[tuple[Path, Path]] = []
+    done: list[Path] = []
+    try:
+        for p, data in items:
+            fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+            temps.append((Path(tmp), p))
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.chmod(tmp, 0o644)
+        for tmp, p in temps:
+            if force:
+                os.replace(tmp, p)
+            else:
+                try:
+                    os.link(tmp, p)  # fails if p appeared meanwhile: never clobber
+                    os.unlink(tmp)
+                except FileExistsError:
+                    raise BadInput(f"{p} already exists (use force to overwrite)") from None
+                except OSError:
+                    if p.exists():
+                        raise BadInput(f"{p} already exists (use force to overwrite)") from None
+                    os.replace(tmp, p)
+            done.append(p)
+    except OSError as exc:
+        for p in done:
+            _unlink_quiet(p)
+        raise BadInput(f"could not write {exc.filename or items[0][0]}: {exc.strerror or exc}") from None
+    except BaseException:
+        for p in done:
+            _unlink_quiet(p)
+        raise
+    finally:
+        for tmp, _ in temps:
+            _unlink_quiet(tmp)
+
+
+def _unlink_quiet(p: Path) -> None:
+    try:
+        os.unlink(p)
+    except OSError:
+        pass
+
+
+def _json_bytes(obj: Any) -> bytes:
+    return (json.dumps(obj, indent=1, allow_nan=False) + "\n").encode()
+
+
+def save_frame(frame: SimulatedFrame, png_path: str | os.PathLike, *, force: bool = False) -> tuple[Path, Path]:
+    """Write the image (8 or 16 bit PNG) and its truth sidecar (same stem, .json).
+
+    Refuses (BadInput) a path not ending in .png, a missing or unwritable folder, and existing files
+    unless force=True. Both files are written to temporary files and moved into place, so a
+    failure leaves neither half-written. Returns (png_path, json_path).
+    """
+    p = _check_png_path(png_path)
+    j = p.with_suffix(".json")
+    _write_atomic([(p, _encode_png(frame.image)), (j, _json_bytes(frame.truth))], force)
+    return p, j
+
+
+def load_truth(path: str | os.PathLike) -> dict:
+    """Read a truth sidecar: give the .json itself or the .png next to it (a frame or sequence.json)."""
+    p = Path(path)
+    if p.suffix.lower() != ".json":
+        p = p.with_suffix(".json")
+    if not p.exists():
+        raise BadInput(f"truth file {p} does not exist")
+    if p.is_dir():
+        raise BadInput(f"truth file {p} is a directory")
+    try:
+        with open(p, encoding="utf-8") as fh:
+            return json.load(fh)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BadInput(f"truth file {p} is not readable JSON: {exc}") from None
+
+
+# ============================================================================ slews
+
+@dataclass(frozen=True)
+class Turn:
+    """A constant turn applied between consecutive frames.
+
+    frame="camera": `matrix` is dR_cam, with v_cam_{k+1} = dR_cam @ v_cam_k (R_{k+1} = dR_cam @ R_k).
+    frame="icrs": `matrix` is rot_icrs, the rotation of the camera body expressed in ICRS: the camera
+    axes (as ICRS vectors) at k+1 are rot_icrs @ those at k, i.e. R_{k+1} = R_k @ rot_icrs.T.
+    A constant turn in one frame is a constant turn in the other (dR_cam = R_k rot_icrs^T R_k^T).
+    """
+
+    matrix: np.ndarray
+    frame: str = "camera"
+
+    def __post_init__(self) -> None:
+        m = np.asarray(self.matrix, dtype=np.float64)
+        if self.frame not in ("camera", "icrs"):
+            raise BadInput(f"turn frame must be 'camera' or 'icrs', not {self.frame!r}")
+        object.__setattr__(self, "matrix", _check_R(m))
+
+    def dR_cam(self, R_k: np.ndarray) -> np.ndarray:
+        if self.frame == "camera":
+            return self.matrix
+        return R_k @ self.matrix.T @ R_k.T
+
+    def apply(self, R_k: np.ndarray) -> np.ndarray:
+        if self.frame == "camera":
+            return self.matrix @ R_k
+        return R_k @ self.matrix.T
+
+
+_AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
+
+
+def turn_about_camera_axis(axis: str | Sequence[float], angle_rad: float) -> Turn:
+    """The camera body turns by +angle (right-handed) about one of its own axes ('x', 'y', 'z' or a vector).
+
+    Stars then move the other way: dR_cam = Rot(axis, -angle). E.g. ('y', +a) pans the boresight
+    towards +x (image right), so stars move left; ('x', +a) tilts it towards -y (image up), so
+    stars move down; ('z', +a) rolls it so stars turn counter-clockwise in the displayed image.
+    """
+    a = np.asarray(_AXES[axis] if isinstance(axis, str) and axis in _AXES else axis, dtype=np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) == 0:
+        raise BadInput(f"turn axis {axis!r} must be 'x', 'y', 'z' or a non-zero 3-vector")
+    a = a / np.linalg.norm(a)
+    return Turn(Rotation.from_rotvec(-float(angle_rad) * a).as_matrix(), "camera")
+
+
+def turn_along_ra(step_rad: float) -> Turn:
+    """Turn about the ICRS pole so the boresight's RA grows by `step_rad` (Dec and roll unchanged).
+
+    The Udomkesmalee et al. experiment: 10 deg steps "along the right ascension axis".
+    """
+    return Turn(Rotation.from_rotvec([0.0, 0.0, float(step_rad)]).as_matrix(), "icrs")
+
+
+def R_pointing_at(catalog: GuideCatalog, hip: int, roll_rad: float = 0.0) -> np.ndarray:
+    """Attitude whose boresight is on catalog star `hip` (at the catalog epoch), with `roll_rad`."""
+    try:
+        i = catalog.index_of(hip)
+    except KeyError as exc:
+        raise BadInput(str(exc.args[0])) from None
+    ra, dec = vec_to_radec(catalog.xyz[i])
+    return R_from_radec_roll(float(ra), float(dec), roll_rad)
+
+
+@dataclass
+class SimulatedSequence:
+    frames: list[SimulatedFrame]
+    relative: list[dict] = field(default_factory=list)  # len(frames) - 1 entries, see simulate_sequence
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def truth(self) -> dict:
+        return {
+            "n_frames": len(self.frames),
+            "conventions": RELATIVE_CONVENTIONS,
+            "frames": [f.truth for f in self.frames],
+            "relative": self.relative,
+        }
+
+    def dR_cam(self, k: int) -> np.ndarray:
+        """v_cam_{k+1} = dR_cam(k) @ v_cam_k."""
+        return np.asarray(self.relative[k]["dR_cam"], dtype=np.float64)
+
+
+RELATIVE_CONVENTIONS = {
+    "dR_cam": "v_cam_{k+1} = dR_cam @ v_cam_k for any fixed star; R_{k+1} = dR_cam @ R_k",
+    "turn_cam": "dR_cam.T: the active rotation of the camera body in the camera axes of frame k "
+                "(what gyros integrate); turn_rotvec_cam_rad is its rotation vector",
+    "rot_icrs": "the same turn in ICRS: camera axes at k+1 = rot_icrs @ camera axes at k; "
+                "R_{k+1} = R_k @ rot_icrs.T",
+}
+
+
+def _relative(R_k: np.ndarray, R_k1: np.ndarray, k: int) -> dict:
+    dR_cam = R_k1 @ R_k.T
+    rot_icrs = R_k1.T @ R_k
+    rv = Rotation.from_matrix(dR_cam.T).as_rotvec()
+    return {
+        "from": k, "to": k + 1,
+        "dR_cam": dR_cam.tolist(),
+        "turn_cam": dR_cam.T.tolist(),
+        "turn_rotvec_cam_rad": rv.tolist(),
+        "turn_angle_deg": float(np.degrees(np.linalg.norm(rv))),
+        "rot_icrs": rot_icrs.tolist(),
+    }
+
+
+def simulate_sequence(catalog: GuideCatalog, camera: Camera, R0: np.ndarray, n_frames: int,
+                      rotation_per_frame: Turn | np.ndarray, sensor: SensorModel | None = None, *,
+                      seed: int = 0, **kwargs: Any) -> SimulatedSequence:
+    """Frames k = 0..n_frames-1 with R_{k+1} = turn applied to R_k.
+
+    rotation_per_frame: a Turn (see turn_about_camera_axis, turn_along_ra) or a 3x3 matrix taken as
+    dR_cam (v_cam_{k+1} = dR_cam @ v_cam_k). Each frame gets its own seed drawn from `seed`
+    (recorded in its truth); other keyword arguments go to simulate_image. `relative[k]` holds the
+    turn from frame k to k+1 as dR_cam, turn_cam (= dR_cam.T, gyro convention), its rotation vector
+    and angle, and rot_icrs.
+    """
+    if int(n_frames) < 1:
+        raise BadInput(f"n_frames={n_frames} must be >= 1")
+    turn = rotation_per_frame if isinstance(rotation_per_frame, Turn) else Turn(rotation_per_frame, "camera")
+    seeds = np.random.SeedSequence(seed).generate_state(int(n_frames), dtype=np.uint32)
+    Rs = [_check_R(R0)]
+    for _ in range(int(n_frames) - 1):
+        Rs.append(turn.apply(Rs[-1]))
+    frames = [simulate_image(catalog, camera, Rk, sensor, seed=int(s), **kwargs) for Rk, s in zip(Rs, seeds)]
+    for k, f in enumerate(frames):
+        f.truth["sequence_index"] = k
+        f.truth["sequence_seed"] = int(seed) if isinstance(seed, (int, np.integer)) else seed
+    rel = [_relative(Rs[k], Rs[k + 1], k) for k in range(len(Rs) - 1)]
+    return SimulatedSequence(frames=frames, relative=rel)
+
+
+def betelgeuse_ra_sequence(catalog: GuideCatalog, camera: Camera, n_frames: int = 5, step_deg: float = 10.0,
+                           roll_deg: float = 0.0, sensor: SensorModel | None = None, **kwargs: Any) -> SimulatedSequence:
+    """The stochastic paper's slew: start with the boresight on Betelgeuse, step `step_deg` in RA."""
+    R0 = R_pointing_at(catalog, HIP_BETELGEUSE, math.radians(roll_deg))
+    return simulate_sequence(catalog, camera, R0, n_frames, turn_along_ra(math.radians(step_deg)), sensor, **kwargs)
+
+
+def save_sequence(seq: SimulatedSequence, folder_or_stem: str | os.PathLike, *, force: bool = False) -> list[Path]:
+    """Write a sequence: into an existing folder as frame_000.png/.json ... + sequence.json, or, for
+    any other path, as <stem>_000.png/.json ... + <stem>.json (its folder must exist).
+
+    Same rules as save_frame: nothing is overwritten without force, and if any file cannot be
+    written none of the new files is left behind. Returns the paths written.
+    """
+    p = Path(folder_or_stem)
+    if p.is_dir():
+        folder, prefix, seq_json = p, "frame_", p / "sequence.json"
+    else:
+        if p.suffix.lower() in (".png", ".json"):
+            p = p.with_suffix("")
+        folder = p.parent if str(p.parent) else Path(".")
+        _check_folder(folder)
+        prefix, seq_json = p.name + "_", p.with_name(p.name + ".json")
+    _check_folder(folder)
+    items: list[tuple[Path, bytes]] = []
+    names = []
+    for k, f in enumerate(seq.frames):
+        png = folder / f"{prefix}{k:03d}.png"
+        items.append((png, _encode_png(f.image)))
+        items.append((png.with_suffix(".json"), _json_bytes(f.truth)))
+        names.append(png.name)
+    truth = seq.truth
+    truth["images"] = names
+    items.append((seq_json, _json_bytes(truth)))
+    _write_atomic(items, force)
+    return [it[0] for it in items]

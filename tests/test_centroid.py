@@ -1,0 +1,248 @@
+"""Centroiding: positions against known truth, detection, flags, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from skyview.attitude import random_attitudes
+from skyview.camera import Camera
+from skyview.catalog import load_guide_catalog
+from skyview.centroid import DEFAULT_ESTIMATOR, ESTIMATORS, Centroids, detect_centroids, load_image
+from skyview.centroid_bench import _match, format_markdown, measure_centroid_accuracy
+from skyview.errors import BadInput
+from skyview.simulate import SensorModel, render_stars, simulate_image
+
+
+def _star_image(uv, electrons, shape=(128, 128), sigma=1.1, bias=100.0, noise=0.0, seed=0, dtype=np.uint16):
+    img = render_stars(shape, np.atleast_2d(uv), np.atleast_1d(electrons).astype(float), sigma) + bias
+    if noise:
+        img += np.random.default_rng(seed).normal(0.0, noise, shape)
+    top = np.iinfo(dtype).max
+    return np.clip(np.rint(img), 0, top).astype(dtype)
+
+
+def _nearest_err(det_uv, true_uv):
+    d = np.linalg.norm(np.asarray(det_uv)[:, None, :] - np.asarray(true_uv)[None, :, :], axis=2)
+    return d.min(axis=0)
+
+
+@pytest.fixture(scope="module")
+def cat():
+    return load_guide_catalog()
+
+
+# ------------------------------------------------------------------------------------ positions
+
+@pytest.mark.parametrize("estimator", ESTIMATORS)
+def test_noiseless_subpixel_positions(estimator):
+    rng = np.random.default_rng(1)
+    grid = np.stack(np.meshgrid(np.arange(16, 240, 16), np.arange(16, 240, 16)), -1).reshape(-1, 2)
+    uv = grid + rng.uniform(-0.5, 0.5, grid.shape)
+    img = _star_image(uv, np.full(len(uv), 20000.0), shape=(256, 256))
+    c = detect_centroids(img, estimator=estimator)
+    assert len(c) == len(uv)
+    err = _nearest_err(c.uv, uv)
+    assert err.max() < (0.02 if estimator == "cog" else 0.005)
+    assert c.psf_sigma_px == pytest.approx(1.1, abs=0.02)
+
+
+def test_default_estimator_is_the_fit():
+    assert DEFAULT_ESTIMATOR == "fit"
+
+
+def test_accuracy_on_noisy_simulated_images(cat):
+    """RMS < 0.1 px (radial) for stars with SNR >= 20, on a handful of simulated 8-deg fields."""
+    cam = Camera.from_fov(8.0, 1024)
+    Rs = random_attitudes(4, np.random.default_rng(2024))
+    errs, missed, false = [], 0, 0
+    for k, R in enumerate(Rs):
+        f = simulate_image(cat, cam, R, seed=100 + k, mag_limit=7.5)
+        true_uv = f.rendered_uv
+        snr = np.array([s["snr"] for s in f.truth["stars"]])
+        c = detect_centroids(f.image)
+        m = _match(c.uv, true_uv, 2.0)
+        false += int((m < 0).sum())
+        ok = m >= 0
+        strong = snr[m[ok]] >= 20
+        errs.append((c.uv[ok] - true_uv[m[ok]])[strong])
+        missed += int(np.sum(snr >= 20)) - int(strong.sum())
+    e = np.concatenate(errs)
+    assert len(e) >= 40
+    rms_radial = np.sqrt(np.mean(np.sum(e * e, axis=1)))
+    assert rms_radial < 0.1
+    assert np.abs(e.mean(axis=0)).max() < 0.02  # no systematic offset (pixel convention)
+    assert missed <= 1 and false == 0
+
+
+def test_eight_bit_image(cat):
+    cam = Camera.from_fov(8.0, 1024)
+    R = random_attitudes(1, np.random.default_rng(8))[0]
+    f = simulate_image(cat, cam, R, SensorModel(bit_depth=8), seed=1, mag_limit=6.5)
+    c = detect_centroids(f.image)
+    strong = np.array([s["snr"] for s in f.truth["stars"]]) >= 20
+    err = _nearest_err(c.uv, f.rendered_uv[strong])
+    assert strong.sum() >= 3 and err.max() < 0.5
+    assert 0.5 < c.noise_sigma < 2.0  # ~1 ADU read noise in 8 bit, not the quantised MAD
+
+
+# ------------------------------------------------------------------------------------ detection
+
+def test_blank_and_constant_images_give_no_centroids():
+    for img in (np.zeros((64, 64), np.uint8), np.full((64, 64), 700, np.uint16), np.full((50, 70), 3.5)):
+        c = detect_centroids(img)
+        assert len(c) == 0 and c.uv.shape == (0, 2)
+        assert c.to_list() == []
+    # pure noise: nothing
+    noise = np.random.default_rng(0).normal(100, 5, (256, 256))
+    assert len(detect_centroids(noise)) == 0
+
+
+def test_bad_arrays():
+    with pytest.raises(BadInput):
+        detect_centroids(np.zeros(100))
+    with pytest.raises(BadInput):
+        detect_centroids(np.zeros((4, 4, 4, 4)))
+    with pytest.raises(BadInput):
+        detect_centroids(np.zeros((0, 10)))
+    with pytest.raises(BadInput):
+        detect_centroids(np.zeros((32, 32)), estimator="magic")
+    with pytest.raises(BadInput):
+        detect_centroids(np.zeros((32, 32)), window=4)
+
+
+def test_colour_image_is_converted():
+    img = _star_image([[40.3, 50.7]], [30000.0], dtype=np.uint8, bias=10, noise=1.0)
+    bgr = np.dstack([img, img, img])
+    a, b = detect_centroids(img), detect_centroids(bgr)
+    assert len(a) == len(b) == 1
+    assert np.allclose(a.uv, b.uv, atol=0.05)
+
+
+def test_hot_pixels_rejected_and_counted():
+    rng = np.random.default_rng(4)
+    img = rng.normal(200, 10, (256, 256))
+    hot = [(20, 30), (100, 200), (250, 5), (128, 128)]
+    for i, j in hot:
+        img[i, j] += 3000
+    img = np.rint(img).astype(np.uint16)
+    c = detect_centroids(img)
+    assert len(c) == 0
+    assert c.n_hot_pixels_rejected == len(hot)
+    # a real star next to them is kept
+    img2 = img + _star_image([[60.2, 70.6]], [5000.0], shape=(256, 256), bias=0)
+    c2 = detect_centroids(img2)
+    assert len(c2) == 1 and c2.n_hot_pixels_rejected == len(hot)
+    assert np.linalg.norm(c2.uv[0] - [60.2, 70.6]) < 0.1
+
+
+def test_sorted_by_brightness_and_json():
+    uv = np.array([[30.0, 30.0], [90.2, 40.1], [60.7, 100.3]])
+    e = np.array([2000.0, 30000.0, 8000.0])
+    c = detect_centroids(_star_image(uv, e, noise=3.0))
+    assert len(c) == 3
+    assert np.all(np.diff(c.brightness) < 0)
+    assert np.allclose(c.uv[0], uv[1], atol=0.05)
+    assert c.brightness[0] == pytest.approx(30000.0, rel=0.02)  # ADU = e- here
+    lst = json.loads(json.dumps(c.to_list()))
+    assert len(lst) == 3 and set(lst[0]) >= {"u", "v", "brightness", "peak", "n_pixels", "saturated", "elongated",
+                                             "edge"}
+    json.dumps(c.to_dict(), allow_nan=False)
+    assert isinstance(c, Centroids)
+
+
+def test_saturation_flags():
+    # 8-bit ADC maximum
+    img = _star_image([[40.0, 40.0], [90.3, 90.6]], [20000.0, 800.0], dtype=np.uint8, bias=10, noise=1.0)
+    assert img.max() == 255
+    c = detect_centroids(img)
+    assert len(c) == 2
+    assert c.saturated.tolist() == [True, False]
+    assert np.linalg.norm(c.uv[0] - [40.0, 40.0]) < 0.1  # fitted from the unsaturated wings
+    # 12-bit data in a 16-bit container: a plateau at 4095
+    img16 = np.minimum(_star_image([[40.4, 60.3], [100.0, 30.0]], [200000.0, 3000.0], noise=3.0), 4095)
+    c = detect_centroids(img16)
+    assert c.saturated.tolist() == [True, False]
+    assert np.linalg.norm(c.uv[0] - [40.4, 60.3]) < 0.1
+    # an explicit level
+    c = detect_centroids(_star_image([[50.0, 50.0]], [10000.0], noise=2.0), saturation_level=1000)
+    assert c.saturated.tolist() == [True]
+
+
+def test_edge_flag_and_edge_star_position():
+    img = _star_image([[1.2, 60.4], [64.0, 64.0]], [20000.0, 20000.0], noise=2.0)
+    c = detect_centroids(img)
+    assert len(c) == 2
+    at_edge = np.argmin(c.uv[:, 0])
+    assert c.edge[at_edge] and not c.edge[1 - at_edge]
+    assert np.linalg.norm(c.uv[at_edge] - [1.2, 60.4]) < 0.05
+
+
+def test_elongated_streak_and_round_star():
+    # a short streak (smeared star) and a round star
+    streak_uv = np.column_stack([np.linspace(30, 36, 25), np.full(25, 40.0)])
+    img = _star_image(streak_uv, np.full(25, 1000.0)) + _star_image([[90.0, 90.0]], [25000.0], bias=0)
+    c = detect_centroids(img)
+    assert len(c) == 2
+    streak = np.argmin(c.uv[:, 0])
+    assert c.elongated[streak] and c.axis_ratio[streak] > 1.6
+    assert not c.elongated[1 - streak]
+
+
+def test_blended_pair_is_split():
+    uv = np.array([[50.3, 60.2], [54.3, 63.2]])  # 5 px apart, one blob
+    img = _star_image(uv, [20000.0, 10000.0], noise=3.0)
+    c = detect_centroids(img)
+    assert len(c) == 2 and c.blended.all()
+    assert _nearest_err(c.uv, uv).max() < 0.05
+    no = detect_centroids(img, deblend=False)
+    assert len(no) == 1
+
+
+# ------------------------------------------------------------------------------------ load_image
+
+def test_load_image_errors(tmp_path):
+    with pytest.raises(BadInput, match="does not exist"):
+        load_image(tmp_path / "nope.png")
+    with pytest.raises(BadInput, match="directory"):
+        load_image(tmp_path)
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(BadInput, match="empty"):
+        load_image(tmp_path / "empty.png")
+    (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n this is not really a png")
+    with pytest.raises(BadInput, match="is not an image OpenCV can read"):
+        load_image(tmp_path / "corrupt.png")
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(BadInput, match="is not an image OpenCV can read"):
+        load_image(tmp_path / "notes.txt")
+
+
+def test_load_image_formats(tmp_path):
+    img16 = _star_image([[30.2, 40.7]], [20000.0], noise=3.0)
+    cv2.imwrite(str(tmp_path / "a.png"), img16)
+    back = load_image(tmp_path / "a.png")
+    assert back.dtype == np.uint16 and np.array_equal(back, img16)
+    cv2.imwrite(str(tmp_path / "a.tif"), img16)
+    assert np.array_equal(load_image(tmp_path / "a.tif"), img16)
+    img8 = _star_image([[30.2, 40.7]], [5000.0], dtype=np.uint8, bias=10, noise=1.0)
+    cv2.imwrite(str(tmp_path / "c.jpg"), cv2.cvtColor(img8, cv2.COLOR_GRAY2BGR))
+    g = load_image(tmp_path / "c.jpg")
+    assert g.ndim == 2 and g.dtype == np.uint8
+    c = detect_centroids(g)
+    assert len(c) == 1 and np.linalg.norm(c.uv[0] - [30.2, 40.7]) < 0.15
+
+
+# ------------------------------------------------------------------------------------ bench
+
+def test_bench_small_run(cat):
+    r = measure_centroid_accuracy(n_images=2, seed=1, estimators=("fit", "cog"), catalog=cat)
+    assert set(r["estimators"]) == {"fit", "cog"}
+    json.dumps(r, allow_nan=False)
+    fit = r["estimators"]["fit"]
+    assert fit["snr_ge_20"]["n"] > 0 and fit["false_detections_per_image"] == 0
+    assert sum(b["n"] for b in fit["by_snr"]) > 0
+    md = format_markdown(r)
+    assert "| SNR |" in md and "`fit`" in md
