@@ -72,7 +72,7 @@ def _err_stats(err: np.ndarray) -> dict:
 
 
 def measure_centroid_accuracy(n_images: int = 100, seed: int = 0, fov_deg: float = 8.0, *, width: int = 1024,
-                              height: int | None = None, mag_limit: float = 7.5, sensor: SensorModel | None = None,
+                              height: int | None = None, mag_limit: float = 8.5, sensor: SensorModel | None = None,
                               estimators: Sequence[str] = ESTIMATORS, match_radius_px: float = 2.0,
                               k_sigma: float = 5.0, snr_bins: Sequence[float] = DEFAULT_SNR_BINS,
                               mag_bin_width: float = 0.5, n_false_stars: int = 0,
@@ -80,7 +80,7 @@ def measure_centroid_accuracy(n_images: int = 100, seed: int = 0, fov_deg: float
                               progress: Callable[[int, int], None] | None = None) -> dict:
     """Monte Carlo centroid accuracy; returns a JSON-ready dict (see the module docstring).
 
-    Stars down to mag_limit (default 7.5, fainter than the 6.0 identification limit, so that the
+    Stars down to mag_limit (default 8.5, fainter than the 6.0 identification limit, so that the
     low-SNR bins and the completeness roll-off are populated) are rendered with `sensor`
     (default SensorModel()); attitude k uses image seed `seed * 1_000_003 + k`.
     """

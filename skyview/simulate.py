@@ -573,13 +573,19 @@ _AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
 
 
 def turn_about_camera_axis(axis: str | Sequence[float], angle_rad: float) -> Turn:
-    """The camera body turns by +angle (right-handed) about one of its own axes ('x', 'y', 'z' or a vector).
+    """The camera body turns by +angle (right-handed) about one of its own axes ('x', 'y', 'z', 0, 1, 2
+    or a 3-vector in the camera frame).
 
     Stars then move the other way: dR_cam = Rot(axis, -angle). E.g. ('y', +a) pans the boresight
     towards +x (image right), so stars move left; ('x', +a) tilts it towards -y (image up), so
     stars move down; ('z', +a) rolls it so stars turn counter-clockwise in the displayed image.
     """
-    a = np.asarray(_AXES[axis] if isinstance(axis, str) and axis in _AXES else axis, dtype=np.float64)
+    if isinstance(axis, (int, np.integer)) and not isinstance(axis, bool) and 0 <= int(axis) <= 2:
+        axis = "xyz"[int(axis)]
+    try:
+        a = np.asarray(_AXES[axis] if isinstance(axis, str) and axis in _AXES else axis, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
     if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) == 0:
         raise BadInput(f"turn axis {axis!r} must be 'x', 'y', 'z' or a non-zero 3-vector")
     a = a / np.linalg.norm(a)

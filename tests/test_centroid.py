@@ -139,6 +139,29 @@ def test_hot_pixels_rejected_and_counted():
     assert np.linalg.norm(c2.uv[0] - [60.2, 70.6]) < 0.1
 
 
+def test_hot_pixel_touching_a_faint_star():
+    # the hot pixel joins the star's blob through a halo pixel: it must not become the centroid
+    rng = np.random.default_rng(7)
+    img = render_stars((96, 96), [[40.3, 50.6]], [3000.0], 1.1) + 200 + rng.normal(0, 10, (96, 96))
+    img[50, 43] = 200 + 4000  # 2.7 px from the star
+    img[51, 42] = max(img[51, 42], 260.0)  # a halo pixel above the threshold links them
+    c = detect_centroids(np.rint(img).astype(np.uint16))
+    assert len(c) == 1 and c.n_hot_pixels_rejected == 1
+    assert np.linalg.norm(c.uv[0] - [40.3, 50.6]) < 0.2
+
+
+def test_background_gradient():
+    rng = np.random.default_rng(3)
+    uv = np.column_stack([rng.uniform(10, 502, 25), rng.uniform(10, 502, 25)])
+    yy, xx = np.mgrid[0:512, 0:512]
+    sky = 100 + 600 * xx / 512 + 300 * np.exp(-((xx - 150) ** 2 + (yy - 350) ** 2) / (2 * 150.0 ** 2))
+    img = render_stars((512, 512), uv, np.full(25, 4000.0), 1.1) + sky + rng.normal(0, 10, (512, 512))
+    c = detect_centroids(np.rint(img).astype(np.uint16))
+    assert len(c) == 25  # every star, nothing from the gradient
+    assert _nearest_err(c.uv, uv).max() < 0.25
+    assert 9.0 < c.noise_sigma < 12.0
+
+
 def test_sorted_by_brightness_and_json():
     uv = np.array([[30.0, 30.0], [90.2, 40.1], [60.7, 100.3]])
     e = np.array([2000.0, 30000.0, 8000.0])

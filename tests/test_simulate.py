@@ -407,6 +407,16 @@ def test_betelgeuse_ra_sequence(cat, cam, tmp_path):
         save_sequence(seq, tmp_path / "nope" / "slew")
 
 
+def test_turn_axis_spellings():
+    a = turn_about_camera_axis("y", 0.1).matrix
+    assert np.allclose(turn_about_camera_axis(1, 0.1).matrix, a)
+    assert np.allclose(turn_about_camera_axis([0, 2.0, 0], 0.1).matrix, a)
+    with pytest.raises(BadInput):
+        turn_about_camera_axis("w", 0.1)
+    with pytest.raises(BadInput):
+        turn_about_camera_axis([0, 0, 0], 0.1)
+
+
 def test_turn_along_ra_is_icrs_turn():
     t = turn_along_ra(math.radians(10.0))
     assert t.frame == "icrs"
