@@ -11,7 +11,8 @@ import pytest
 from skyview.attitude import random_attitudes
 from skyview.camera import Camera
 from skyview.catalog import load_guide_catalog
-from skyview.centroid import DEFAULT_ESTIMATOR, ESTIMATORS, Centroids, detect_centroids, load_image
+from skyview.centroid import (DEFAULT_ESTIMATOR, ESTIMATORS, Centroids, detect_centroids, estimate_background,
+                              load_image)
 from skyview.centroid_bench import _match, format_markdown, measure_centroid_accuracy
 from skyview.errors import BadInput
 from skyview.simulate import SensorModel, render_stars, simulate_image
@@ -160,6 +161,16 @@ def test_background_gradient():
     assert len(c) == 25  # every star, nothing from the gradient
     assert _nearest_err(c.uv, uv).max() < 0.25
     assert 9.0 < c.noise_sigma < 12.0
+
+
+def test_flat_sky_uses_one_level():
+    rng = np.random.default_rng(5)
+    for noise, dtype in ((10.0, np.uint16), (1.0, np.uint8)):
+        img = _star_image(rng.uniform(10, 500, (30, 2)), np.full(30, 3000.0 * noise / 10), shape=(512, 512),
+                          bias=20, noise=noise, dtype=dtype, seed=int(noise))
+        bkg, level, sigma = estimate_background(img.astype(np.float32))
+        assert isinstance(bkg, float) and level == pytest.approx(20, abs=1)
+        assert sigma == pytest.approx(np.hypot(noise, 1 / np.sqrt(12)), rel=0.1)
 
 
 def test_sorted_by_brightness_and_json():
