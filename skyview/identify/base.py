@@ -5,6 +5,7 @@ Nothing in `skyview.identify` imports viser or rerun: the viewer and the recorde
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -86,3 +87,49 @@ class Identification:
     @property
     def identified(self) -> bool:
         return self.status == IDENTIFIED
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (steps included)."""
+        return {
+            "method": self.method, "status": self.status, "reason": self.reason,
+            "matches": {str(int(k)): int(v) for k, v in sorted(self.matches.items())},
+            "R": None if self.R is None else np.asarray(self.R).tolist(),
+            "attitude_covariance": (None if self.attitude_covariance is None
+                                    else np.asarray(self.attitude_covariance).tolist()),
+            "verification": _plain(self.verification), "stats": _plain(self.stats),
+            "database_key": self.database_key, "steps": [s.to_dict() for s in self.steps],
+        }
+
+
+class Identifier(ABC):
+    """An identification method bound to its database (catalog + camera configuration).
+
+    Subclasses set `name`, fill `database_key` (the key dict the database was built for; see
+    `skyview.identify.database`) and `database_info` (counts, bytes, build / load time), and
+    implement `identify`. Every method ends in `skyview.identify.verify.verify`.
+    """
+
+    name: str = ""
+    database_key: dict
+    database_info: dict
+
+    @abstractmethod
+    def identify(self, obs: Observation) -> Identification:
+        """Identify the observed stars of one frame."""
+
+
+def _plain(x: Any) -> Any:
+    """numpy scalars / arrays inside dicts and lists -> plain Python for JSON."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.floating):
+        return float(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x

@@ -1,0 +1,39 @@
+"""Star identification methods and what they share.
+
+`make_identifier("angle", catalog, camera, sigma_rad, **params)` builds (or loads from the cache) the
+method's database and returns an identifier with `name`, `database_key`, `database_info` and
+`identify(obs) -> Identification`. To add a method, write its module and add one line to METHODS.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+from skyview.camera import Camera
+from skyview.catalog import GuideCatalog
+from skyview.errors import BadInput
+from skyview.identify.angle import AngleMethod
+from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
+                                   Step)
+
+METHODS: dict[str, type[Identifier]] = {
+    "angle": AngleMethod,
+}
+
+
+def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_rad: float, **params) -> Identifier:
+    """An identifier for `method`; params are the method's keyword parameters (paper names)."""
+    cls = METHODS.get(method)
+    if cls is None:
+        raise BadInput(f"unknown method {method!r}: choose from {', '.join(METHODS)}")
+    sig = inspect.signature(cls.__init__)
+    allowed = [n for n, p in sig.parameters.items() if p.kind == inspect.Parameter.KEYWORD_ONLY]
+    unknown = sorted(set(params) - set(allowed))
+    if unknown:
+        raise BadInput(f"method {method!r} has no parameter {', '.join(map(repr, unknown))}: "
+                       f"its parameters are {', '.join(allowed)}")
+    return cls(catalog, camera, sigma_rad, **params)
+
+
+__all__ = ["METHODS", "make_identifier", "Identifier", "Identification", "Observation", "Step",
+           "IDENTIFIED", "INCONCLUSIVE", "FAILED"]

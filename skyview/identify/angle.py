@@ -1,0 +1,421 @@
+"""The angle method with pivoting (Cole & Crassidis 2006, section II).
+
+Database. Every catalog star pair whose separation can appear in one image: the paper uses a
+circular 8 deg FOV and keeps all angles <= 8 deg; our sensor is a rectangle, so the database covers
+pairs up to the image DIAGONAL (2 x camera.half_diagonal_rad). Pairs are sorted by angle and indexed
+with a k-vector (`skyview.identify.kvector`). The database is cached on disk
+(`skyview.identify.database`); its info reports the pairs within the FOV and the total.
+
+Look-up. A measured angle theta has the bound beta * sigma_p with sigma_p = sqrt(2) sigma (eq. 14)
+and beta = 3: the candidates are the catalog pairs with angle in [theta - beta sigma_p,
+theta + beta sigma_p], each in both orientations.
+
+Pivoting. A hypothesis assigns a catalog star to every observed star used so far. The first angle
+(the largest, or with order="fewest" the one with the fewest candidates: the paper's "ideal"
+ordering) gives one hypothesis per oriented candidate pair. Each pivot takes the next angle (largest
+/ fewest first) that shares a star with the previous angle and joins it with the hypotheses on the
+shared observed star: a hypothesis survives with every oriented candidate whose star on the shared
+side is the hypothesis' star; when both stars of the new angle are already assigned (a closed loop)
+the pair must be a candidate as it is. A catalog star is never assigned to two observed stars. The
+join is vectorised (sort + searchsorted). The chain stops when exactly one hypothesis remains, when
+no angle is left, or at the pivot limit (max_pivots = 9); an angle with more than
+max_candidates = 10,000 oriented candidates is skipped. Stopping with one hypothesis is not yet an
+identification: it goes to the shared verification (`skyview.identify.verify`), and only a verified
+hypothesis is reported as identified.
+
+Backtracking (option, default off as in the paper). When the hypotheses go to zero (a false star or an
+angle outside its bound was used) or the unique hypothesis fails verification, the paper's method has
+failed. With backtrack=True the chain is restarted without one suspect star: first the star whose
+angle emptied the set (the one just added, or the newer of the two in a closed loop), then the other
+stars of the chain, newest first; each restart again starts from the largest remaining angle. At
+most max_restarts restarts and max_dropped stars dropped at once. Every verification counts in the
+Bonferroni factor of the verification statistic, so no wrong attitude gets an easier pass.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from skyview.attitude import RAD_TO_ARCSEC, svd_attitude
+from skyview.camera import Camera
+from skyview.catalog import GuideCatalog
+from skyview.errors import BadInput
+from skyview.identify import database
+from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
+                                   Step)
+from skyview.identify.kvector import KVector
+from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius, verify
+
+ORDERS = ("largest", "fewest")
+CAP = 200  # catalog rows / groups kept in one step
+MAX_EQUIVALENT = 16  # at most this many hypotheses are compared for unresolved close pairs
+DATABASE_VERSION = 1
+
+
+def build_angle_database(catalog: GuideCatalog, max_sep_rad: float, fit: str = "line") -> dict[str, np.ndarray]:
+    """Catalog pairs with separation <= max_sep_rad, sorted by angle, with their k-vector."""
+    pairs = catalog.pairs_within(max_sep_rad)
+    i, j = pairs[:, 0], pairs[:, 1]
+    ang = angular_distance(catalog.xyz[i], catalog.xyz[j])
+    keep = ang <= max_sep_rad
+    i, j, ang = i[keep], j[keep], ang[keep]
+    order = np.lexsort((j, i, ang))
+    kv = KVector(ang[order], fit=fit, presorted=True)
+    return {"pair_i": i[order].astype(np.int32), "pair_j": j[order].astype(np.int32), **kv.to_arrays()}
+
+
+@dataclass
+class _Chain:
+    outcome: str  # "unique", "empty" or "ambiguous"
+    reason: str
+    used: list[int]
+    H: np.ndarray  # (n_hypotheses, len(used)) catalog rows
+    suspects: list[int] = field(default_factory=list)
+    pivots: int = 0
+    candidates: list[int] = field(default_factory=list)
+    hypotheses: list[int] = field(default_factory=list)
+    best: np.ndarray | None = None  # the hypothesis sent to verification
+
+
+class AngleMethod(Identifier):
+    """Cole & Crassidis' angle method with pivoting, ending in the shared verification."""
+
+    name = "angle"
+
+    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *, beta: float = 3.0,
+                 max_pivots: int | None = 9, max_candidates: int = 10_000, order: str = "largest",
+                 backtrack: bool = False, max_restarts: int = 10, max_dropped: int = 1,
+                 statistic: str = CALIBRATED, threshold: float | None = None,
+                 radius_sigmas: float = RADIUS_SIGMAS, kvector_fit: str = "line", close_loops: bool = False):
+        if not (np.isfinite(sigma_rad) and sigma_rad > 0):
+            raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
+        if not (np.isfinite(beta) and beta > 0):
+            raise BadInput(f"beta must be positive, not {beta!r}")
+        if max_pivots is not None and int(max_pivots) < 0:
+            raise BadInput("max_pivots must be >= 0 or None (unlimited)")
+        if int(max_candidates) < 1:
+            raise BadInput("max_candidates must be at least 1")
+        if order not in ORDERS:
+            raise BadInput(f"unknown order {order!r}: choose from {', '.join(ORDERS)}")
+        if statistic not in STATISTICS:
+            raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
+        if threshold is not None and not (0 < float(threshold) <= 1):
+            raise BadInput("threshold must be in (0, 1]")
+        if kvector_fit not in ("line", "parabola"):
+            raise BadInput("kvector_fit must be 'line' or 'parabola'")
+        if int(max_restarts) < 0 or int(max_dropped) < 0:
+            raise BadInput("max_restarts and max_dropped must be >= 0")
+        if not (np.isfinite(radius_sigmas) and radius_sigmas > 0):
+            raise BadInput("radius_sigmas must be positive")
+        self.catalog = catalog
+        self.camera = camera
+        self.sigma_rad = float(sigma_rad)
+        self.beta = float(beta)
+        self.max_pivots = None if max_pivots is None else int(max_pivots)
+        self.max_candidates = int(max_candidates)
+        self.order = order
+        self.backtrack = bool(backtrack)
+        self.max_restarts = int(max_restarts)
+        self.max_dropped = int(max_dropped)
+        self.statistic = statistic
+        self.threshold = threshold
+        self.radius_sigmas = float(radius_sigmas)
+        self.close_loops = bool(close_loops)
+
+        self.max_sep_rad = 2.0 * camera.half_diagonal_rad
+        params = {"max_sep_rad": self.max_sep_rad, "kvector_fit": kvector_fit, "version": DATABASE_VERSION}
+        self.database_key = database.make_key(self.name, params, catalog, camera)
+        arrays, info = database.load_or_build(
+            self.database_key, lambda: build_angle_database(catalog, self.max_sep_rad, kvector_fit))
+        self.pair_i = arrays["pair_i"].astype(np.int64)
+        self.pair_j = arrays["pair_j"].astype(np.int64)
+        self.kv = KVector.from_arrays(arrays)
+        fov = np.radians(camera.fov_deg)
+        n_fov = int(np.searchsorted(self.kv.sorted_values, fov, side="right"))
+        info.update(pairs=len(self.pair_i), pairs_within_fov=n_fov, fov_deg=float(camera.fov_deg),
+                    max_sep_deg=float(np.degrees(self.max_sep_rad)), catalog_stars=len(catalog))
+        self.database_info = info
+
+    @property
+    def database_key_string(self) -> str:
+        return database.key_string(self.database_key)
+
+    # ------------------------------------------------------------------ identify
+    def identify(self, obs: Observation) -> Identification:
+        t0 = time.perf_counter()
+        steps: list[Step] = []
+        n = len(obs)
+        sigma = float(obs.sigma_rad) if (obs.sigma_rad is not None and np.isfinite(obs.sigma_rad)
+                                         and obs.sigma_rad > 0) else self.sigma_rad
+        result = Identification(method=self.name, status=FAILED, matches={}, steps=steps,
+                                database_key=self.database_key_string)
+        if n < 3:
+            result.reason = f"the angle method needs at least 3 stars, the frame has {n}"
+            result.stats = {"stars": n, "time_s": time.perf_counter() - t0}
+            return result
+
+        V = np.asarray(obs.vectors, dtype=np.float64)
+        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
+            raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
+        ii, jj = np.triu_indices(n, 1)
+        theta = angular_distance(V[ii], V[jj])
+        bound = self.beta * np.sqrt(2.0) * sigma  # beta sigma_p, sigma_p = sqrt(2) sigma (eq. 14)
+        start, stop = self.kv.ranges(theta - bound, theta + bound)
+        counts = 2 * (stop - start)  # both orientations
+        if self.order == "largest":
+            rank = np.argsort(-theta, kind="stable")
+        else:
+            rank = np.lexsort((-theta, counts))
+        priority = np.empty(len(theta), dtype=np.int64)
+        priority[rank] = np.arange(len(theta))
+        ctx = dict(ii=ii, jj=jj, theta=theta, start=start, stop=stop, counts=counts, priority=priority,
+                   bound=bound, tol=2.0 * match_radius(sigma, self.radius_sigmas))
+
+        queue = deque([frozenset()])
+        seen = {frozenset()}
+        chains: list[_Chain] = []
+        n_verified = 0
+        reasons = []
+        budget = 1 + (self.max_restarts if self.backtrack else 0)
+        while queue and len(chains) < budget:
+            excluded = queue.popleft()
+            if excluded:
+                steps.append(Step("backtrack", f"restart without observed star(s) {sorted(excluded)}",
+                                  observed=sorted(excluded), numbers={"restart": len(chains)}))
+            chain = self._chain(V, excluded, ctx, steps)
+            chains.append(chain)
+            suspects: list[int] = []
+            if chain.outcome == "unique":
+                chain.best = self._best(V, chain.used, chain.H, sigma)
+                hyp = dict(zip(chain.used, chain.best.tolist()))
+                n_verified += 1
+                ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=n_verified,
+                             n_patterns=len(self.pair_i), statistic=self.statistic, threshold=self.threshold,
+                             radius_rad=match_radius(sigma, self.radius_sigmas))
+                vd = ver.to_dict()
+                steps.append(Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
+                                  observed=sorted(ver.matches or hyp),
+                                  catalog=[int(r) for _, r in sorted((ver.matches or hyp).items())][:CAP],
+                                  numbers={k: vd[k] for k in ("n_agree", "n_tested", "p_false", "threshold_effective",
+                                                             "radius_arcsec", "n_hypotheses", "p_single")}
+                                  | {"passed": float(ver.passed)}))
+                result.verification = vd
+                if ver.passed:
+                    result.status = IDENTIFIED
+                    result.matches = ver.matches
+                    result.R = ver.R
+                    result.attitude_covariance = ver.covariance
+                    result.reason = ""
+                    break
+                reasons.append(f"verification failed: {ver.reason}")
+                suspects = chain.used[::-1]
+            else:
+                reasons.append(chain.reason)
+                if chain.outcome == "empty":
+                    suspects = chain.suspects
+            if self.backtrack and len(excluded) < self.max_dropped:
+                for s in suspects:
+                    e2 = excluded | {int(s)}
+                    if e2 not in seen and n - len(e2) >= 3:
+                        seen.add(e2)
+                        queue.append(e2)
+        if result.status != IDENTIFIED:
+            result.status = INCONCLUSIVE
+            result.reason = reasons[0] if len(reasons) == 1 else "; ".join(
+                f"chain {k + 1}: {r}" for k, r in enumerate(reasons))
+        last = chains[-1]
+        first = chains[0]
+        result.stats = {
+            "stars": n,
+            "pivots": last.pivots,
+            "pivots_total": int(sum(c.pivots for c in chains)),
+            "stars_used": len(last.used),
+            "candidates": last.candidates,
+            "hypotheses": last.hypotheses,
+            "chains": len(chains),
+            "verifications": n_verified,
+            "bound_rad": float(bound),
+            "first_chain": {"outcome": first.outcome,
+                            "matches": ({int(o): int(c) for o, c in zip(first.used, first.best)}
+                                        if first.best is not None else {})},
+            "time_s": time.perf_counter() - t0,
+        }
+        return result
+
+    # ------------------------------------------------------------------ one pivoting chain
+    def _chain(self, V: np.ndarray, excluded: frozenset, ctx: dict, steps: list[Step]) -> _Chain:
+        ii, jj, theta, counts, priority = ctx["ii"], ctx["jj"], ctx["theta"], ctx["counts"], ctx["priority"]
+        bound = ctx["bound"]
+        avail = np.ones(len(theta), dtype=bool)
+        n_obs = len(V)
+        if excluded:
+            ex = np.zeros(len(V), dtype=bool)
+            ex[list(excluded)] = True
+            avail &= ~(ex[ii] | ex[jj])
+        done = ~avail
+        candidates: list[int] = []
+        hyps: list[int] = []
+
+        def angle_numbers(k):
+            return {"angle_deg": float(np.degrees(theta[k])), "bound_arcsec": float(bound * RAD_TO_ARCSEC),
+                    "candidates": int(counts[k])}
+
+        def pick_next(mask):
+            idx = np.flatnonzero(mask)
+            return int(idx[np.argmin(priority[idx])]) if len(idx) else -1
+
+        # first angle
+        while True:
+            k = pick_next(~done)
+            if k < 0:
+                return _Chain("ambiguous", "no angle with at most max_candidates candidates to start from", [],
+                              np.zeros((0, 0), dtype=np.int64))
+            done[k] = True
+            if counts[k] > self.max_candidates:
+                steps.append(Step("skip", f"skipped angle {ii[k]}-{jj[k]} ({np.degrees(theta[k]):.3f} deg): "
+                                  f"{counts[k]} candidates > {self.max_candidates}",
+                                  observed=[int(ii[k]), int(jj[k])],
+                                  numbers=angle_numbers(k) | {"max_candidates": self.max_candidates}))
+                continue
+            break
+        a, b = int(ii[k]), int(jj[k])
+        ci, cj = self._candidates(ctx, k)
+        H = np.concatenate([np.stack([ci, cj], axis=1), np.stack([cj, ci], axis=1)])
+        used = [a, b]
+        candidates.append(int(counts[k]))
+        hyps.append(len(H))
+        steps.append(Step("pick", f"picked angle {a}-{b} ({np.degrees(theta[k]):.3f} deg +- "
+                                  f"{bound * RAD_TO_ARCSEC:.1f}\"): {counts[k]} candidates",
+                          observed=used.copy(), catalog=_distinct(H), groups=_groups(ci, cj),
+                          numbers=angle_numbers(k) | {"hypotheses": len(H)},
+                          extra={"used": used.copy(), "hypotheses": H[:CAP].copy()}))
+        if len(H) == 0:
+            return _Chain("empty", f"no catalog pair matches the first angle {a}-{b}", used, H,
+                          suspects=[b, a], candidates=candidates, hypotheses=hyps)
+        prev = (a, b)
+        pivots = 0
+        while len(H) != 1 and not self._equivalent(H, ctx["tol"]):
+            if self.max_pivots is not None and pivots >= self.max_pivots:
+                steps.append(Step("stop", f"pivot limit {self.max_pivots} reached with {len(H)} hypotheses",
+                                  observed=used.copy(), catalog=_distinct(H), numbers={"hypotheses": len(H)}))
+                return _Chain("ambiguous", f"{len(H)} hypotheses left after {pivots} pivots (the limit)", used, H,
+                              pivots=pivots, candidates=candidates, hypotheses=hyps)
+            open_ = ~done
+            in_used = np.zeros(n_obs, dtype=bool)
+            in_used[used] = True
+            in_prev = np.zeros(n_obs, dtype=bool)
+            in_prev[list(prev)] = True
+            k = pick_next(open_ & in_used[ii] & in_used[jj]) if self.close_loops else -1
+            if k < 0:
+                k = pick_next(open_ & (in_prev[ii] | in_prev[jj]))
+            if k < 0:  # nothing shares a star with the previous angle: any angle touching a used star
+                k = pick_next(open_ & (in_used[ii] | in_used[jj]))
+            if k < 0:
+                steps.append(Step("stop", f"no angle left to pivot to; {len(H)} hypotheses",
+                                  observed=used.copy(), catalog=_distinct(H), numbers={"hypotheses": len(H)}))
+                return _Chain("ambiguous", f"{len(H)} hypotheses left and no angle to pivot to", used, H,
+                              pivots=pivots, candidates=candidates, hypotheses=hyps)
+            done[k] = True
+            p, q = int(ii[k]), int(jj[k])
+            if counts[k] > self.max_candidates:
+                steps.append(Step("skip", f"skipped angle {p}-{q} ({np.degrees(theta[k]):.3f} deg): "
+                                  f"{counts[k]} candidates > {self.max_candidates}", observed=[p, q],
+                                  numbers=angle_numbers(k) | {"max_candidates": self.max_candidates}))
+                continue
+            ci, cj = self._candidates(ctx, k)
+            before = len(H)
+            H, used, new = _join(H, used, p, q, ci, cj)
+            pivots += 1
+            candidates.append(int(counts[k]))
+            hyps.append(len(H))
+            steps.append(Step("pivot", f"pivoted to angle {p}-{q} ({np.degrees(theta[k]):.3f} deg): "
+                                       f"{counts[k]} candidates, {before} -> {len(H)} hypotheses",
+                              observed=[p, q], catalog=_distinct(H), groups=_groups(ci, cj),
+                              numbers=angle_numbers(k) | {"hypotheses_before": before, "hypotheses_after": len(H),
+                                                          "pivot": pivots, "new_star": -1 if new is None else new},
+                              extra={"used": used.copy(), "hypotheses": H[:CAP].copy()}))
+            if len(H) == 0:
+                if new is not None:
+                    first_suspect = new
+                else:  # closed loop: the newer of the two stars first
+                    first_suspect = p if used.index(p) > used.index(q) else q
+                rest = [s for s in used[::-1] if s != first_suspect]
+                return _Chain("empty", f"no hypothesis survives angle {p}-{q}", used, H,
+                              suspects=[first_suspect] + rest, pivots=pivots, candidates=candidates,
+                              hypotheses=hyps)
+            prev = (p, q)
+        return _Chain("unique", "one hypothesis left" if len(H) == 1 else
+                      f"{len(H)} hypotheses left that differ only by unresolved close pairs",
+                      used, H, pivots=pivots, candidates=candidates, hypotheses=hyps)
+
+    def _equivalent(self, H: np.ndarray, tol: float) -> bool:
+        """A few hypotheses that put every observed star on catalog stars closer than tol to each other.
+
+        Catalog stars closer than the match radius cannot be told apart at this noise (unresolved
+        close pairs): such hypotheses are one pattern. Verification leaves their stars out of the
+        reported matches.
+        """
+        if len(H) < 2 or len(H) > MAX_EQUIVALENT:
+            return False
+        xyz = self.catalog.xyz
+        return bool(np.all(angular_distance(xyz[H], xyz[H[:1]]) <= tol))
+
+    def _best(self, V: np.ndarray, used: list[int], H: np.ndarray, sigma: float) -> np.ndarray:
+        """Among equivalent hypotheses, the one that fits the observed stars best."""
+        if len(H) == 1:
+            return H[0]
+        b = V[used]
+        losses = [svd_attitude(b, self.catalog.xyz[h], sigma).loss for h in H]
+        return H[int(np.argmin(losses))]
+
+    def _candidates(self, ctx: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
+        s, e = int(ctx["start"][k]), int(ctx["stop"][k])
+        return self.pair_i[s:e], self.pair_j[s:e]
+
+
+# ---------------------------------------------------------------------- helpers
+
+def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np.ndarray):
+    """Join hypotheses with the oriented candidates of angle (p, q) on the shared observed star(s).
+
+    Returns (H', used', new): new is the observed star added (None for a closed loop).
+    """
+    cp = np.concatenate([ci, cj])  # catalog star of observed star p
+    cq = np.concatenate([cj, ci])  # catalog star of observed star q
+    if p in used and q in used:  # closed loop: the pair (H[p], H[q]) must be a candidate as it is
+        m = max(int(H.max(initial=0)), int(cp.max(initial=0))) + 1
+        ip, iq = used.index(p), used.index(q)
+        keep = np.isin(H[:, ip] * m + H[:, iq], cp * m + cq)
+        return H[keep], used, None
+    if q in used:  # make p the shared star
+        p, q = q, p
+        cp, cq = cq, cp
+    if p not in used:
+        raise ValueError("a pivot angle must share a star with the hypotheses")
+    ip = used.index(p)
+    o = np.argsort(cp, kind="stable")
+    cps, cqs = cp[o], cq[o]
+    v = H[:, ip]
+    lo = np.searchsorted(cps, v, side="left")
+    hi = np.searchsorted(cps, v, side="right")
+    cnt = hi - lo
+    total = int(cnt.sum())
+    rows = np.repeat(np.arange(len(H)), cnt)
+    offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    newq = cqs[np.repeat(lo, cnt) + offs]
+    Hn = H[rows]
+    ok = ~np.any(Hn == newq[:, None], axis=1)  # a catalog star is never two observed stars
+    H2 = np.concatenate([Hn[ok], newq[ok, None]], axis=1)
+    return H2, used + [q], q
+
+
+def _distinct(H: np.ndarray) -> list[int]:
+    return np.unique(H).astype(int)[:CAP].tolist() if H.size else []
+
+
+def _groups(ci: np.ndarray, cj: np.ndarray) -> list[tuple[int, int]]:
+    return list(map(tuple, np.stack([ci[:CAP], cj[:CAP]], axis=1).tolist()))

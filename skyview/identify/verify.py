@@ -1,0 +1,411 @@
+"""The verification every identification method ends in.
+
+Given a hypothesis (observed index -> catalog row):
+
+1. estimate the attitude R from the hypothesis alone (Markley's SVD method), with its covariance P;
+2. reject it if any hypothesis star lies farther than the match radius r from its catalog star
+   (a hypothesis that does not even fit itself);
+3. reproject the catalog with R and count the observed stars that are NOT in the hypothesis and land
+   within their match radius r_i of a catalog star (one-to-one, nearest first, catalog stars of the
+   hypothesis excluded);
+4. compute P(false), the probability that at least that many agreements happen by chance, and accept
+   when P(false) < threshold;
+5. on success, extend the matches to every observed star that agrees, re-estimate R with all of them
+   (twice, re-matching with the better attitude) and return the attitude, its covariance and the
+   matches. A star with two catalog stars within its radius (an unresolved close pair such as
+   HIP 88817 / 88818, 14" apart), or a catalog star with two observed stars within it (a false star
+   next to a real one) is never reported: its identity cannot be told.
+
+Match radius. r = RADIUS_SIGMAS * sigma with RADIUS_SIGMAS = 3 sqrt(2) (the same beta sigma_p,
+beta = 3, as the angle bound of Cole & Crassidis). The distance between an observed star and its
+reprojected catalog star has two tangent-plane components of standard deviation sigma, so its square
+over sigma^2 is chi-square with 2 degrees of freedom and P(d > r) = exp(-r^2 / (2 sigma^2)) = exp(-9)
+= 1.2e-4: a true star is missed about once in 8,000. At 87 microradians r = 369 microradians = 76"
+(2.7 pixels for 8 deg over 1024 pixels). The attitude of a hypothesis is itself uncertain, most of
+all in roll when its stars are close together, and the error of a predicted position grows with the
+distance from the hypothesis stars. So each tested star gets its own radius
+r_i = r sqrt(1 + lambda_i / sigma^2), lambda_i the largest eigenvalue of [b_i]x P [b_i]x^T (the
+predicted position's covariance), capped at MAX_RADIUS_RAD. Without this a hypothesis made of three
+stars 2' apart in the Pleiades "verified" with two cluster stars that happened to land near others.
+
+Statistic "calibrated" (default; see NOTES.md "Verification statistic"). A random (unrelated)
+observed direction lands within r_i of a catalog star with probability p_i = rho_i pi r_i^2: the
+catalog density times the match area. rho_i is the frame's density n_frame / Omega_frame (n_frame
+counts the stars on the sensor grown by r, Omega_frame is the sensor's solid angle: slightly
+conservative), or the local density within LOCAL_RADIUS_RAD = 1 deg of the tested star where that
+is higher and rests on at least LOCAL_MIN_COUNT = 3 stars (the star it landed on left out): in the
+Pleiades a wrong hypothesis maps cluster stars onto cluster stars, at 10-30 times the frame's
+average density. The
+hypothesis stars were used to make R, so they are no evidence; only the
+n_tested other observed stars are tested, and under the null hypothesis (R is wrong) the number
+that agree is a sum of independent Bernoulli(p_i) (Poisson-binomial; Binomial(n_tested, p) when the
+radii are equal). P(false) = T * P[agreements >= n_agree], where T is the number of hypotheses the
+method has verified for this frame so far (Bonferroni). A hypothesis with no other star to test
+cannot be verified and is not identified.
+
+Threshold. DEFAULT_THRESHOLD = 1e-3. At mag 6 and 8 deg an image holds about 4-10 catalog stars,
+p_i = 1e-4 ... 3e-4 per tested star at sigma = 87 microradians, so ONE agreeing star gives P(false)
+of order 1e-4 to 3e-4, two give 1e-8. A threshold of 1e-4 would reject most single-agreement frames,
+exactly the sparse (4-6 star) fields that must stay solvable (the measurement in measure.py: 15-50 %
+of all identifications have 1e-4 <= P(false) < 1e-3); 1e-3 accepts them. It bounds the rate of wrong
+answers by P(a wrong hypothesis reaches verification) x 1e-3: that first factor is below 0.2 even
+with a false star (Cole & Crassidis: 17 % incorrect without verification), so wrong attitudes stay
+near 2e-4 at worst, inside the project's 0.1 %.
+
+Statistic "tetra3": the classic tetra3 form for comparison: per star p1 = N_nearby (r / FOV)^2
+(r as a fraction of the horizontal FOV, no pi), P = BinomCDF(n_obs - (n_matched - 2), n_obs, 1 - p1)
+over ALL observed stars and ALL matches (hypothesis included, minus two degrees of freedom), and the
+threshold (tetra3's 1e-3) divided by the number of patterns in the method's database.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.stats import binom
+
+from skyview.attitude import RAD_TO_ARCSEC, svd_attitude
+from skyview.camera import Camera
+from skyview.catalog import GuideCatalog, chord
+
+CALIBRATED = "calibrated"
+TETRA3 = "tetra3"
+STATISTICS = (CALIBRATED, TETRA3)
+RADIUS_SIGMAS = 3.0 * np.sqrt(2.0)
+DEFAULT_THRESHOLD = {CALIBRATED: 1e-3, TETRA3: 1e-3}
+MAX_RADIUS_RAD = float(np.radians(1.0))  # a prediction worse than this is no evidence at all
+LOCAL_RADIUS_RAD = float(np.radians(1.0))  # neighbourhood for the local catalog density
+LOCAL_MIN_COUNT = 3  # fewer stars than this in the neighbourhood: too few to estimate a density
+
+
+def local_density(catalog: GuideCatalog, directions_icrs: np.ndarray, leave_out: np.ndarray | None = None,
+                  radius_rad: float = LOCAL_RADIUS_RAD, min_count: int = LOCAL_MIN_COUNT) -> np.ndarray:
+    """Catalog stars per steradian within radius_rad of each direction, 0 where fewer than min_count.
+
+    leave_out: how many stars to discount per direction (the star it landed on). With fewer than
+    min_count stars the count is Poisson noise (0.35 expected within 1 deg at mag 6), not a density.
+    """
+    d = np.atleast_2d(np.asarray(directions_icrs, dtype=np.float64))
+    if len(d) == 0:
+        return np.zeros(0)
+    n = catalog.tree.query_ball_point(d, float(chord(radius_rad)), return_length=True).astype(np.float64)
+    if leave_out is not None:
+        n = np.maximum(n - leave_out, 0.0)
+    n[n < min_count] = 0.0
+    return n / (2.0 * np.pi * (1.0 - np.cos(radius_rad)))
+
+
+def match_radius(sigma_rad: float, k: float = RADIUS_SIGMAS) -> float:
+    """The match radius r = k sigma (radians)."""
+    return float(k * sigma_rad)
+
+
+def p_single(n_frame: int, frame_solid_angle_sr: float, radius_rad) -> float | np.ndarray:
+    """Chance that an unrelated direction lands within r of one of n_frame catalog stars."""
+    p = np.minimum(1.0, n_frame / frame_solid_angle_sr * np.pi * np.asarray(radius_rad, dtype=np.float64) ** 2)
+    return float(p) if np.ndim(p) == 0 else p
+
+
+def poisson_binomial_sf(k: int, ps) -> float:
+    """P[sum of independent Bernoulli(p_i) >= k] (exact; no cancellation for tiny tails)."""
+    ps = np.asarray(ps, dtype=np.float64).ravel()
+    if k <= 0:
+        return 1.0
+    if k > len(ps):
+        return 0.0
+    dist = np.zeros(len(ps) + 1)
+    dist[0] = 1.0
+    for p in ps:
+        dist[1:] = dist[1:] * (1.0 - p) + dist[:-1] * p
+        dist[0] *= 1.0 - p
+    return float(min(1.0, dist[k:].sum()))
+
+
+def p_false_calibrated(n_agree: int, n_tested: int, p, n_hypotheses: int = 1) -> float:
+    """T * P[at least n_agree of the n_tested stars land on a catalog star by chance], capped at 1.
+
+    p: one probability for every tested star (binomial) or one per star (Poisson-binomial).
+    1 when nothing was tested or nothing agreed.
+    """
+    if n_tested <= 0 or n_agree <= 0:
+        return 1.0
+    ps = np.broadcast_to(np.asarray(p, dtype=np.float64), (n_tested,))
+    if np.all(ps == ps[0]):
+        tail = float(binom.sf(n_agree - 1, n_tested, ps[0]))
+    else:
+        tail = poisson_binomial_sf(n_agree, ps)
+    return float(min(1.0, max(1, n_hypotheses) * tail))
+
+
+def p_false_tetra3(n_matched: int, n_observed: int, n_nearby: int, radius_fraction: float) -> float:
+    """tetra3's mismatch probability: BinomCDF(n_obs - (n_matched - 2), n_obs, 1 - N_nearby r^2)."""
+    p1 = min(1.0, n_nearby * radius_fraction ** 2)
+    return float(binom.cdf(n_observed - (n_matched - 2), n_observed, 1.0 - p1))
+
+
+def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Largest standard deviation of the predicted position R r_i caused by the attitude error.
+
+    A small attitude error dphi (camera frame, covariance P) moves a direction b by dphi x b, whose
+    covariance is [b]x P [b]x^T; this returns the square root of its largest eigenvalue per star.
+    """
+    b = np.atleast_2d(np.asarray(vectors, dtype=np.float64))
+    if len(b) == 0:
+        return np.zeros(0)
+    K = np.zeros((len(b), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -b[:, 2], b[:, 1], -b[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = b[:, 2], -b[:, 1], b[:, 0]
+    C = K @ np.asarray(covariance) @ K.transpose(0, 2, 1)
+    return np.sqrt(np.maximum(np.linalg.eigvalsh(C)[:, -1], 0.0))
+
+
+def star_radii(vectors: np.ndarray, covariance: np.ndarray, sigma_rad: float, radius_rad: float) -> np.ndarray:
+    """Per-star match radius r_i = r sqrt(1 + s_i^2 / sigma^2), s_i = predicted_sigma, capped."""
+    s = predicted_sigma(vectors, covariance)
+    return np.minimum(radius_rad * np.sqrt(1.0 + (s / sigma_rad) ** 2), max(MAX_RADIUS_RAD, radius_rad))
+
+
+@dataclass
+class Verification:
+    passed: bool
+    reason: str
+    statistic: str
+    threshold: float  # as given
+    threshold_effective: float  # the value P(false) is compared with (tetra3: / n_patterns)
+    radius_rad: float  # the base match radius r
+    n_hypothesis: int = 0
+    n_agree: int = 0
+    n_tested: int = 0
+    n_frame: int = 0
+    n_hypotheses: int = 1
+    p_single: float = float("nan")  # density x pi r^2 for the base radius
+    p_tested: list[float] = field(default_factory=list)  # p_i of each tested star
+    radius_max_rad: float = float("nan")  # the largest r_i of the tested stars
+    p_false: float = 1.0
+    max_residual_rad: float = float("nan")
+    R: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    matches: dict[int, int] = field(default_factory=dict)
+    agreeing: dict[int, int] = field(default_factory=dict)  # the other stars that agreed with R(hypothesis)
+    ambiguous: list[int] = field(default_factory=list)  # observed stars left out: two catalog stars within r
+
+    def to_dict(self) -> dict:
+        return {
+            "passed": bool(self.passed), "reason": self.reason, "statistic": self.statistic,
+            "threshold": float(self.threshold), "threshold_effective": float(self.threshold_effective),
+            "radius_rad": float(self.radius_rad), "radius_arcsec": float(self.radius_rad * RAD_TO_ARCSEC),
+            "radius_max_arcsec": float(self.radius_max_rad * RAD_TO_ARCSEC),
+            "n_hypothesis": int(self.n_hypothesis), "n_agree": int(self.n_agree), "n_tested": int(self.n_tested),
+            "n_frame": int(self.n_frame), "n_hypotheses": int(self.n_hypotheses),
+            "p_single": float(self.p_single), "p_tested": [float(p) for p in self.p_tested],
+            "p_false": float(self.p_false),
+            "max_residual_arcsec": float(self.max_residual_rad * RAD_TO_ARCSEC),
+            "n_matches": len(self.matches), "ambiguous": [int(i) for i in self.ambiguous],
+        }
+
+
+def angular_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle between unit vectors (rows), accurate for small angles."""
+    return 2.0 * np.arcsin(np.clip(np.linalg.norm(np.asarray(a) - np.asarray(b), axis=-1) / 2.0, 0.0, 1.0))
+
+
+def match_one_to_one(query: np.ndarray, ref: np.ndarray, radius_rad
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs (query index, ref index, distance) within the radius, each ref used once (nearest wins).
+
+    radius_rad: one radius, or one per query. Every query takes its nearest ref star; when two
+    queries want the same ref star the closer one keeps it and the other is left unmatched. Also
+    returns the queries that are AMBIGUOUS: two or more ref stars lie within their radius (an
+    unresolved close pair), whose identity cannot be told.
+    """
+    e = np.zeros(0, dtype=np.int64)
+    if len(query) == 0 or len(ref) == 0:
+        return e, e, np.zeros(0), e
+    rq = np.broadcast_to(np.asarray(radius_rad, dtype=np.float64), (len(query),))
+    cq = chord(rq)
+    tree = cKDTree(ref)
+    k = 2 if len(ref) > 1 else 1
+    d, j = tree.query(query, k=k, distance_upper_bound=float(cq.max()))
+    d, j = d.reshape(len(query), k), j.reshape(len(query), k)
+    ambiguous = np.flatnonzero(d[:, -1] <= cq) if k == 2 else e
+    ok = d[:, 0] <= cq
+    qi = np.flatnonzero(ok)
+    rj = j[ok, 0].astype(np.int64)
+    dist = 2.0 * np.arcsin(np.clip(d[ok, 0] / 2.0, 0.0, 1.0))
+    order = np.argsort(dist, kind="stable")
+    qi, rj, dist = qi[order], rj[order], dist[order]
+    _, first = np.unique(rj, return_index=True)
+    first = np.sort(first)
+    return qi[first], rj[first], dist[first], ambiguous
+
+
+def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
+    """Catalog rows that land on the sensor for attitude R (the sensor grown by margin_rad)."""
+    return _Frame(catalog, camera, R, margin_rad, margin_rad).rows
+
+
+class _Frame:
+    """The catalog reprojected with one attitude: the stars on the sensor grown by r (n_frame, the
+    density), and the pool of stars an observed star may match (grown by the largest radius)."""
+
+    def __init__(self, catalog: GuideCatalog, camera: Camera, R: np.ndarray, r: float, r_pool: float):
+        R = np.asarray(R, dtype=np.float64)
+        grow = max(float(r), float(r_pool), 0.0)
+        near = catalog.within(R[2], camera.half_diagonal_rad + grow + 1e-9)
+        v = catalog.xyz[near] @ R.T
+        f = max(camera.fx, camera.fy)
+        if len(near):
+            uv, front = camera.project(v)
+            pool = front & camera.in_image(uv, margin=-grow * f)
+            self.n_frame = int(np.sum(front & camera.in_image(uv, margin=-max(float(r), 0.0) * f)))
+        else:
+            pool = np.zeros(0, dtype=bool)
+            self.n_frame = 0
+        self.rows = near[pool]
+        self.v = v[pool]
+        self._tree = cKDTree(self.v) if len(self.rows) > 1 else None
+
+    def ambiguous(self, q: np.ndarray, radii) -> np.ndarray:
+        """Mask of observed vectors with two or more catalog stars within their radius."""
+        if self._tree is None or len(q) == 0:
+            return np.zeros(len(q), dtype=bool)
+        cq = chord(np.broadcast_to(np.asarray(radii, dtype=np.float64), (len(q),)))
+        d, _ = self._tree.query(q, k=2, distance_upper_bound=float(cq.max()))
+        return d[:, 1] <= cq
+
+    def agreeing(self, vectors: np.ndarray, others: np.ndarray, exclude_rows: np.ndarray, radii
+                 ) -> tuple[dict[int, int], set[int]]:
+        """Observed stars among `others` within their radius of a catalog star not in exclude_rows
+        (one-to-one), and those with two or more catalog stars within it (ambiguous: not in the dict)."""
+        if len(others) == 0:
+            return {}, set()
+        keep = ~np.isin(self.rows, exclude_rows)
+        qi, rj, _, _ = match_one_to_one(vectors[others], self.v[keep], radii)
+        pool = self.rows[keep]
+        # ambiguity is judged against every catalog star, those of the hypothesis included
+        amb = set(np.flatnonzero(self.ambiguous(vectors[others], radii)).tolist())
+        agree = {int(others[q]): int(pool[j]) for q, j in zip(qi, rj) if q not in amb}
+        return agree, {int(others[q]) for q in amb}
+
+
+def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalog, camera: Camera,
+           sigma_rad: float, *, n_hypotheses: int = 1, n_patterns: int = 1, statistic: str = CALIBRATED,
+           threshold: float | None = None, radius_rad: float | None = None) -> Verification:
+    """Verify a hypothesis (observed index -> catalog row) against the whole frame.
+
+    vectors: (N, 3) camera-frame unit vectors of ALL observed stars. n_hypotheses: how many
+    hypotheses have been verified for this frame, this one included (Bonferroni factor of the
+    calibrated statistic). n_patterns: the size of the method's pattern database (the tetra3
+    statistic divides its threshold by it). radius_rad: the base match radius (default 3 sqrt(2) sigma).
+    """
+    if statistic not in STATISTICS:
+        raise ValueError(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
+    thr = DEFAULT_THRESHOLD[statistic] if threshold is None else float(threshold)
+    thr_eff = thr / max(1, int(n_patterns)) if statistic == TETRA3 else thr
+    r = match_radius(sigma_rad) if radius_rad is None else float(radius_rad)
+    vectors = np.asarray(vectors, dtype=np.float64)
+    n_obs = len(vectors)
+    out = Verification(passed=False, reason="", statistic=statistic, threshold=thr, threshold_effective=thr_eff,
+                       radius_rad=r, n_hypothesis=len(hypothesis), n_hypotheses=int(n_hypotheses))
+    if len(hypothesis) < 2:
+        out.reason = "a hypothesis needs at least two stars to give an attitude"
+        return out
+    h_obs = np.array(sorted(hypothesis), dtype=np.int64)
+    h_cat = np.array([hypothesis[i] for i in h_obs], dtype=np.int64)
+    if np.any(h_obs < 0) or np.any(h_obs >= n_obs):
+        raise ValueError("hypothesis refers to an observed star that does not exist")
+    if len(np.unique(h_cat)) != len(h_cat):
+        out.reason = "the hypothesis assigns one catalog star to two observed stars"
+        return out
+
+    est = svd_attitude(vectors[h_obs], catalog.xyz[h_cat], sigma_rad)
+    R = est.R
+    resid = angular_distance(vectors[h_obs], catalog.xyz[h_cat] @ R.T)
+    out.max_residual_rad = float(resid.max())
+    if out.max_residual_rad > r:
+        out.reason = (f"the hypothesis does not fit itself: a residual of {out.max_residual_rad * RAD_TO_ARCSEC:.1f}\" "
+                      f"exceeds the match radius {r * RAD_TO_ARCSEC:.1f}\"")
+        return out
+
+    others = np.setdiff1d(np.arange(n_obs), h_obs)
+    out.n_tested = int(len(others))
+    radii = star_radii(vectors[others], est.covariance, sigma_rad, r)
+    out.radius_max_rad = float(radii.max()) if len(radii) else r
+    frame = _Frame(catalog, camera, R, r, out.radius_max_rad)
+    out.n_frame = frame.n_frame
+    out.p_single = p_single(out.n_frame, camera.solid_angle_sr, r)
+    agree, amb = frame.agreeing(vectors, others, h_cat, radii)
+    out.n_agree = len(agree) + len(amb)  # an unresolved close pair still is a catalog star
+    out.agreeing = agree
+    # density: the frame's, or the local one around each tested star where that is higher (a
+    # cluster); the star a tested star landed on is left out of its own neighbourhood
+    landed = np.array([o in agree or o in amb for o in others.tolist()], dtype=np.float64)
+    dens = np.maximum(out.n_frame / camera.solid_angle_sr,
+                      local_density(catalog, vectors[others] @ R, leave_out=landed))
+    ps = np.minimum(1.0, dens * np.pi * radii ** 2)
+    out.p_tested = [float(p) for p in ps]
+    if statistic == CALIBRATED:
+        out.p_false = p_false_calibrated(out.n_agree, out.n_tested, ps, n_hypotheses)
+    else:
+        fov_rad = np.radians(camera.fov_deg)
+        out.p_false = p_false_tetra3(len(hypothesis) + out.n_agree, n_obs, out.n_frame, r / fov_rad)
+    if out.n_tested == 0:
+        out.reason = "no observed star is left outside the hypothesis to test it"
+        return out
+    if out.n_agree == 0:
+        out.reason = f"none of the {out.n_tested} other observed stars lands on a catalog star"
+        return out
+    if not out.p_false < thr_eff:
+        out.reason = (f"{out.n_agree} of {out.n_tested} other stars agree, P(false) = {out.p_false:.2e} "
+                      f"is not below {thr_eff:.2e}")
+        return out
+
+    # accepted: extend to every observed star that agrees and re-estimate with all of them (twice,
+    # re-matching with the better attitude), leaving out of the reported matches every star whose
+    # identity is ambiguous
+    hyp = dict(zip(h_obs.tolist(), h_cat.tolist()))
+    current = {**hyp, **agree}
+    for _ in range(2):
+        est = _estimate(vectors, current, catalog, sigma_rad)
+        radii = star_radii(vectors[others], est.covariance, sigma_rad, r)
+        frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r)
+        agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii)
+        current = {**hyp, **agree_i}
+    h_amb = frame.ambiguous(vectors[h_obs], star_radii(vectors[h_obs], est.covariance, sigma_rad, r))
+    final = {int(o): int(c) for o, c, a in zip(h_obs, h_cat, h_amb) if not a}
+    final.update(agree_i)
+    ambiguous = set(h_obs[h_amb].tolist()) | amb_i
+    if len(final) >= 2:
+        est = _estimate(vectors, final, catalog, sigma_rad)
+        f_obs = np.array(sorted(final), dtype=np.int64)
+        f_cat = np.array([final[o] for o in f_obs], dtype=np.int64)
+        rad = star_radii(vectors[f_obs], est.covariance, sigma_rad, r)
+        pred = catalog.xyz[f_cat] @ est.R.T
+        # every reported star must fit the final attitude (a hypothesis star that only just fitted
+        # its own attitude may not) ...
+        misfit = angular_distance(vectors[f_obs], pred) > rad
+        # ... and a catalog star with two observed stars within the radius (a false star or a hot
+        # pixel next to a star) may belong to either, so neither is reported
+        crowd = cKDTree(vectors).query_ball_point(pred, chord(rad), return_length=True) >= 2
+        for o in f_obs[misfit | crowd].tolist():
+            final.pop(int(o))
+        ambiguous |= set(f_obs[crowd].tolist())
+    out.ambiguous = sorted(ambiguous)
+    if len(final) < 2:
+        out.reason = "fewer than two observed stars have an unambiguous identity"
+        return out
+    est = _estimate(vectors, final, catalog, sigma_rad)
+    out.passed = True
+    out.reason = f"{out.n_agree} of {out.n_tested} other stars agree, P(false) = {out.p_false:.2e}"
+    out.R = est.R
+    out.covariance = est.covariance
+    out.matches = {int(k): int(v) for k, v in sorted(final.items())}
+    return out
+
+
+def _estimate(vectors, matches, catalog, sigma_rad):
+    idx = np.array(sorted(matches), dtype=np.int64)
+    rows = np.array([matches[i] for i in idx], dtype=np.int64)
+    return svd_attitude(vectors[idx], catalog.xyz[rows], sigma_rad)

@@ -1,0 +1,220 @@
+"""The shared verification: correct hypotheses pass, wrong ones fail, P(false) is what it says."""
+
+from itertools import combinations, permutations
+from math import comb
+
+import numpy as np
+import pytest
+
+from scipy.stats import binom
+
+from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes, svd_attitude
+from skyview.camera import Camera
+from skyview.catalog import load_guide_catalog
+from skyview.identify.synthetic import synthetic_frame
+from skyview.identify.verify import (CALIBRATED, DEFAULT_THRESHOLD, TETRA3, angular_distance, match_one_to_one,
+                                     match_radius, p_false_calibrated, p_false_tetra3, poisson_binomial_sf, verify)
+
+SIGMA = 87e-6
+
+
+@pytest.fixture(scope="module")
+def cat():
+    return load_guide_catalog().brighter_than(6.0)
+
+
+@pytest.fixture(scope="module")
+def cam():
+    return Camera.from_fov(8.0, 1024)
+
+
+def frame_with(cat, cam, n_min, seed, n_max=99):
+    rng = np.random.default_rng(seed)
+    while True:
+        R = random_attitudes(1, rng)[0]
+        f = synthetic_frame(cat, cam, R, SIGMA, rng)
+        if n_min <= len(f.obs) <= n_max:
+            return f
+
+
+def test_correct_hypothesis_passes_and_extends(cat, cam):
+    f = frame_with(cat, cam, 7, seed=1)
+    hyp = {i: int(f.truth[i]) for i in range(3)}
+    v = verify(f.obs.vectors, hyp, cat, cam, SIGMA)
+    assert v.passed, v.reason
+    assert v.n_tested == len(f.obs) - 3
+    assert v.n_agree == v.n_tested
+    assert v.p_false < DEFAULT_THRESHOLD[CALIBRATED]
+    # extended to every observed star, all correct
+    assert v.matches == {i: int(f.truth[i]) for i in range(len(f.obs))}
+    assert attitude_error_arcsec(v.R, f.R)["boresight"] < 60.0
+    d = v.to_dict()
+    assert d["passed"] and d["n_matches"] == len(f.obs) and d["statistic"] == CALIBRATED
+
+
+def test_shuffled_hypothesis_fails(cat, cam):
+    f = frame_with(cat, cam, 7, seed=2)
+    rows = [int(f.truth[i]) for i in range(4)]
+    for perm in ([1, 0, 2, 3], [1, 2, 3, 0], [3, 2, 1, 0]):
+        hyp = {i: rows[p] for i, p in enumerate(perm)}
+        v = verify(f.obs.vectors, hyp, cat, cam, SIGMA)
+        assert not v.passed
+        assert "does not fit" in v.reason
+
+
+def test_pattern_from_elsewhere_fails(cat, cam):
+    """Three stars of frame B (a self-consistent pattern) among the other stars of frame A."""
+    a = frame_with(cat, cam, 7, seed=3)
+    b = frame_with(cat, cam, 4, seed=4)
+    assert a.R[2] @ b.R[2] < np.cos(np.radians(20))  # far apart on the sky
+    vectors = np.concatenate([b.obs.vectors[:3], a.obs.vectors[3:]])
+    hyp = {i: int(b.truth[i]) for i in range(3)}
+    v = verify(vectors, hyp, cat, cam, SIGMA)
+    assert not v.passed
+    assert v.max_residual_rad < match_radius(SIGMA)  # the pattern itself fits ...
+    assert v.n_tested == len(a.obs) - 3 and v.n_agree == 0  # ... but nothing else does
+    # random catalog stars for a true frame's stars do not even fit
+    rng = np.random.default_rng(5)
+    hyp = {i: int(r) for i, r in enumerate(rng.choice(len(cat), 3, replace=False))}
+    assert not verify(a.obs.vectors, hyp, cat, cam, SIGMA).passed
+
+
+def test_no_other_star_cannot_be_verified(cat, cam):
+    f = frame_with(cat, cam, 4, seed=6, n_max=4)
+    hyp = {i: int(f.truth[i]) for i in range(4)}
+    v = verify(f.obs.vectors, hyp, cat, cam, SIGMA)
+    assert not v.passed and v.n_tested == 0
+    assert "no observed star" in v.reason
+    v = verify(f.obs.vectors, {0: int(f.truth[0])}, cat, cam, SIGMA)
+    assert not v.passed  # one star gives no attitude
+
+
+def test_p_false_by_hand(cat, cam):
+    # the formula
+    p, n, k, T = 0.01, 5, 2, 3
+    tail = sum(comb(n, j) * p ** j * (1 - p) ** (n - j) for j in range(k, n + 1))
+    assert p_false_calibrated(k, n, p, T) == pytest.approx(T * tail, rel=1e-12)
+    assert p_false_calibrated(0, 5, p) == 1.0 and p_false_calibrated(1, 0, p) == 1.0
+    assert p_false_calibrated(3, 3, 0.5, 100) == 1.0  # capped
+    # the tetra3 form: BinomCDF(n_obs - (m - 2), n_obs, 1 - N r^2)
+    p1 = 8 * 0.01 ** 2
+    expected = sum(comb(6, j) * (1 - p1) ** j * p1 ** (6 - j) for j in range(0, 6 - (5 - 2) + 1))
+    assert p_false_tetra3(5, 6, 8, 0.01) == pytest.approx(expected, rel=1e-12)
+
+    # the Poisson-binomial tail (unequal p) by enumeration
+    ps = [0.01, 0.2, 0.05, 0.3]
+    tail = 0.0
+    for mask in range(16):
+        bits = [(mask >> i) & 1 for i in range(4)]
+        if sum(bits) >= 2:
+            tail += np.prod([p if bit else 1 - p for p, bit in zip(ps, bits)])
+    assert p_false_calibrated(2, 4, ps, 5) == pytest.approx(5 * tail, rel=1e-12)
+    assert poisson_binomial_sf(2, [0.1] * 6) == pytest.approx(binom.sf(1, 6, 0.1), rel=1e-12)
+
+    # what verify reports, recomputed by hand from its counts
+    f = frame_with(cat, cam, 5, seed=7, n_max=6)
+    hyp = {i: int(f.truth[i]) for i in range(3)}
+    v = verify(f.obs.vectors, hyp, cat, cam, SIGMA, n_hypotheses=2)
+    r = 3 * np.sqrt(2) * SIGMA
+    assert v.radius_rad == pytest.approx(r)
+    dens = v.n_frame / cam.solid_angle_sr
+    assert v.p_single == pytest.approx(dens * np.pi * r ** 2, rel=1e-12)
+    n, k = v.n_tested, v.n_agree
+    assert n == len(f.obs) - 3 and k == n and len(v.p_tested) == n
+    # each tested star's radius grows with the attitude uncertainty of the 3-star hypothesis
+    est = svd_attitude(f.obs.vectors[:3], cat.xyz[[hyp[0], hyp[1], hyp[2]]], SIGMA)
+    for t, o in enumerate(range(3, len(f.obs))):
+        b = f.obs.vectors[o]
+        B = np.stack([np.cross(e, b) for e in np.eye(3)], axis=1)  # dphi -> dphi x b
+        lam = np.linalg.eigvalsh(B @ est.covariance @ B.T)[-1]
+        r_i = r * np.sqrt(1 + lam / SIGMA ** 2)
+        assert r_i > r
+        # density: the frame's (sparse field: no denser neighbourhood), times pi r_i^2
+        assert v.p_tested[t] == pytest.approx(dens * np.pi * r_i ** 2, rel=1e-9)
+    tail = 1.0
+    for p in v.p_tested:  # k == n: every tested star agreed
+        tail *= p
+    assert v.p_false == pytest.approx(2 * tail, rel=1e-9)
+    # n_frame: the catalog stars on the sensor (grown by r) at the attitude of the hypothesis
+    idx, _ = cam.visible(est.R, cat.xyz, margin=-r * cam.fx)
+    assert len(cam.visible(est.R, cat.xyz)[0]) <= v.n_frame == len(idx)
+
+    vt = verify(f.obs.vectors, hyp, cat, cam, SIGMA, statistic=TETRA3, n_patterns=1000)
+    m, n_obs = len(vt.matches), len(f.obs)
+    expected = p_false_tetra3(m, n_obs, vt.n_frame, r / np.radians(cam.fov_deg))
+    assert vt.p_false == pytest.approx(expected) and vt.threshold_effective == pytest.approx(1e-3 / 1000)
+
+
+def test_cluster_wrong_hypotheses_fail(cat, cam):
+    """In the Pleiades every 3-star hypothesis whose sides match within the angle bound is tried:
+    the true ones pass, the wrong ones (mirror images, cluster stars mapped onto cluster stars at
+    ~20x the average density) all fail."""
+    alcyone = cat.index_of(17702)
+    ra, dec = cat.ra_dec
+    R = R_from_radec_roll(ra[alcyone], dec[alcyone], 0.0)
+    idx, _ = cam.visible(R, cat.xyz)
+    v = cat.xyz[idx] @ R.T  # noise-free
+    cl = np.flatnonzero(angular_distance(cat.xyz[idx], cat.xyz[alcyone]) < np.radians(1.0))
+    D = angular_distance(v[:, None], v[None, :])
+    T = np.array(list(combinations(cl, 3)))
+    P = np.array(list(permutations(cl, 3)))
+    bound = 3 * np.sqrt(2) * SIGMA
+    ok = np.ones((len(T), len(P)), dtype=bool)
+    for x, y in ((0, 1), (1, 2), (0, 2)):
+        ok &= np.abs(D[T[:, x], T[:, y]][:, None] - D[P[:, x], P[:, y]][None, :]) < bound
+    n_right = n_wrong = 0
+    for t, p in zip(*np.nonzero(ok)):
+        obs, rows = T[t], P[p]
+        right = bool(np.all(obs == rows))
+        res = verify(v, {int(o): int(idx[c]) for o, c in zip(obs, rows)}, cat, cam, SIGMA)
+        assert res.passed == right, (obs, rows, res.reason)
+        n_right += right
+        n_wrong += not right
+    assert n_right > 50 and n_wrong > 20
+
+
+def test_threshold_decides(cat, cam):
+    f = frame_with(cat, cam, 4, seed=8, n_max=4)  # one star to test: P(false) ~ 1e-4
+    hyp = {i: int(f.truth[i]) for i in range(3)}
+    v = verify(f.obs.vectors, hyp, cat, cam, SIGMA)
+    assert v.passed and v.n_agree == 1 and 1e-5 < v.p_false < 1e-3
+    v = verify(f.obs.vectors, hyp, cat, cam, SIGMA, threshold=v.p_false / 2)
+    assert not v.passed and "not below" in v.reason
+    v = verify(f.obs.vectors, hyp, cat, cam, SIGMA, n_hypotheses=100)  # Bonferroni
+    assert not v.passed
+
+
+def test_match_one_to_one_and_ambiguity():
+    ref = np.array([[0, 0, 1.0], [1e-3, 0, 1.0], [1e-3 + 2e-5, 0, 1.0]])
+    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+    q = np.array([[1e-5, 0, 1.0], [2e-5, 0, 1.0], [5e-3, 0, 1.0], [1.005e-3, 0, 1.0]])
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    qi, rj, d, amb = match_one_to_one(q, ref, 1e-4)
+    assert dict(zip(qi.tolist(), rj.tolist())) == {0: 0, 3: 1}  # query 1 loses ref 0 to the closer query 0
+    assert np.all(d < 1e-4)
+    assert amb.tolist() == [3]  # two ref stars within the radius
+
+
+def test_unresolved_close_pair_is_not_reported(cat, cam):
+    """HIP 88817 / 88818 are 14" apart: below the noise, their identity is never reported."""
+    i, j = cat.index_of(88817), cat.index_of(88818)
+    ra, dec = cat.ra_dec
+    R = R_from_radec_roll(ra[i] + np.radians(1.0), dec[i] + np.radians(0.5), 0.3)
+    rng = np.random.default_rng(9)
+    f = synthetic_frame(cat, cam, R, SIGMA, rng)
+    assert {i, j} <= set(f.truth.tolist())
+    others = [k for k in range(len(f.obs)) if f.truth[k] not in (i, j)]
+    hyp = {k: int(f.truth[k]) for k in others[:3]}
+    v = verify(f.obs.vectors, hyp, cat, cam, SIGMA)
+    assert v.passed, v.reason
+    pair_obs = {k for k in range(len(f.obs)) if f.truth[k] in (i, j)}
+    assert pair_obs <= set(v.ambiguous)
+    assert not (pair_obs & set(v.matches))
+    assert all(f.truth[o] == c for o, c in v.matches.items())
+    assert len(v.matches) == len(f.obs) - 2
+
+
+def test_unknown_statistic(cat, cam):
+    f = frame_with(cat, cam, 5, seed=10)
+    with pytest.raises(ValueError):
+        verify(f.obs.vectors, {0: int(f.truth[0]), 1: int(f.truth[1])}, cat, cam, SIGMA, statistic="magic")
