@@ -23,6 +23,11 @@ max_candidates = 10,000 oriented candidates is skipped. Stopping with one hypoth
 identification: it goes to the shared verification (`skyview.identify.verify`), and only a verified
 hypothesis is reported as identified.
 
+Loop closing (option, default off). With close_loops=True a pivot first takes an angle between two
+stars already assigned (closing a triangle: no new star, strong pruning) before adding a star, so the
+chain usually ends unique with three stars and leaves the others to verify with; the paper's chain
+often consumes every star of a sparse field, and a hypothesis with no star left cannot be verified.
+
 Backtracking (option, default off as in the paper). When the hypotheses go to zero (a false star or an
 angle outside its bound was used) or the unique hypothesis fails verification, the paper's method has
 failed. With backtrack=True the chain is restarted without one suspect star: first the star whose
@@ -51,6 +56,11 @@ from skyview.identify.kvector import KVector
 from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius, verify
 
 ORDERS = ("largest", "fewest")
+# The paper's method is the default. These options (not in the paper) identify ~80 % of random 8 deg /
+# mag 6 fields instead of ~54 %, and ~79 % instead of ~32 % with a false star, never wrongly
+# (python -m skyview.identify.measure): close triangles first so that stars are left to verify
+# with, and restart without a suspect star when a chain fails.
+IMPROVED_PARAMS = {"close_loops": True, "backtrack": True}
 CAP = 200  # catalog rows / groups kept in one step
 MAX_EQUIVALENT = 16  # at most this many hypotheses are compared for unresolved close pairs
 DATABASE_VERSION = 1
