@@ -42,7 +42,9 @@ class SolveResult:
     time_ms: dict[str, float] = field(default_factory=dict)
     database_key: dict[str, Any] = field(default_factory=dict)
     epoch: float = DEFAULT_EPOCH
-    sigma_rad: float = 0.0
+    sigma_rad: float = 0.0  # assumed per-star direction sigma
+    sigma_measured_rad: float | None = None  # from the match residuals (a posteriori)
+    residuals_arcsec: list[float] = field(default_factory=list)
 
     @property
     def solved(self) -> bool:
@@ -74,7 +76,9 @@ class SolveResult:
             "time_ms": {k: round(v, 3) for k, v in self.time_ms.items()},
             "database_key": self.database_key,
             "epoch": self.epoch,
-            "sigma_input_arcsec": self.sigma_rad * RAD_TO_ARCSEC,
+            "sigma_assumed_arcsec": self.sigma_rad * RAD_TO_ARCSEC,
+            "sigma_measured_arcsec": (None if self.sigma_measured_rad is None
+                                      else self.sigma_measured_rad * RAD_TO_ARCSEC),
             "camera": self.camera.to_dict(),
         })
         return out
@@ -160,14 +164,25 @@ class Solver:
         if ident.identified:
             idx = np.array(sorted(ident.matches))
             rows = np.array([ident.matches[i] for i in idx])
-            est = ESTIMATORS[self.estimator](obs.vectors[idx], self.catalog.xyz[rows], self.sigma_rad)
+            b, r = obs.vectors[idx], self.catalog.xyz[rows]
+            est = ESTIMATORS[self.estimator](b, r, self.sigma_rad)
             result.status, result.reason = SOLVED, ""
             result.R = est.R
-            result.sigma_boresight_arcsec = est.sigma_boresight_arcsec
-            result.sigma_roll_arcsec = est.sigma_roll_arcsec
+            # The reported 1-sigma uses the noise measured from the residuals when there are enough
+            # matches (2n - 3 degrees of freedom >= 5), else the assumed sigma.
+            resid = np.linalg.norm(np.cross(b, r @ est.R.T), axis=1)
+            dof = 2 * len(idx) - 3
+            scale = 1.0
+            if dof >= 5:
+                result.sigma_measured_rad = float(np.sqrt(np.sum(resid ** 2) / dof))
+                scale = result.sigma_measured_rad / self.sigma_rad
+            result.sigma_boresight_arcsec = est.sigma_boresight_arcsec * scale
+            result.sigma_roll_arcsec = est.sigma_roll_arcsec * scale
+            result.residuals_arcsec = (resid * RAD_TO_ARCSEC).tolist()
             result.matches = [{"index": int(i), "u": float(obs.uv[i, 0]), "v": float(obs.uv[i, 1]),
-                               "hip": int(self.catalog.hip[r]), "mag": float(self.catalog.mag[r])}
-                              for i, r in zip(idx, rows)]
+                               "hip": int(self.catalog.hip[k]), "mag": float(self.catalog.mag[k]),
+                               "residual_arcsec": float(e * RAD_TO_ARCSEC)}
+                              for i, k, e in zip(idx, rows, resid)]
         t2 = time.perf_counter()
         result.time_ms = {"identify": (t1 - t0) * 1e3, "attitude": (t2 - t1) * 1e3, "solve": (t2 - t0) * 1e3}
         return result
