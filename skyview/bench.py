@@ -46,7 +46,7 @@ class Progress:
         frac = done / max(self.total, 1)
         rate = done / max(time.perf_counter() - self.t0, 1e-9)
         eta = (self.total - done) / max(rate, 1e-9)
-        tally = " ".join(f"{k[:4]}={counts.get(k, 0)}" for k in OUTCOMES)
+        tally = " ".join(f"{label}={counts.get(k, 0)}" for k, label in zip(OUTCOMES, ("ok", "inconcl", "WRONG")))
         line = f"{self.label} [{'#' * int(30 * frac):<30}] {done}/{self.total} {tally} {rate:.1f}/s eta {eta:.0f}s"
         if self.tty:
             sys.stderr.write("\r" + line + ("\n" if done == self.total else ""))
@@ -82,7 +82,7 @@ def _stats(values) -> dict:
 
 
 def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_params: dict | None = None,
-              sensor: SensorModel | None = None, progress: bool = True) -> dict:
+              variant: str = "paper", sensor: SensorModel | None = None, progress: bool = True) -> dict:
     if n < 1:
         raise BadInput("the number of trials (-n) must be at least 1")
     rng = np.random.default_rng(seed)
@@ -90,13 +90,13 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     camera = scenario.camera()
     t0 = time.perf_counter()
     solver = Solver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
-                    catalog=catalog, method_params=method_params)
+                    catalog=catalog, method_params=method_params, variant=variant)
     setup_ms = (time.perf_counter() - t0) * 1e3
     sensor = sensor or SensorModel()
     attitudes = random_attitudes(n, rng)
     seeds = rng.integers(0, 2**31 - 1, size=n)
     trials, counts = [], Counter()
-    bar = Progress(n, f"{method}/{scenario.name}", progress)
+    bar = Progress(n, f"{method}({variant})/{scenario.name}", progress)
     for k in range(n):
         ts = time.perf_counter()
         frame = simulate_image(catalog, camera, attitudes[k], sensor, seed=int(seeds[k]),
@@ -154,6 +154,9 @@ def summarize(method: str, scenario: Scenario, seed: int, trials: list[dict], se
         }
     return {
         "method": method,
+        "variant": solver.variant,
+        "method_params": {**(solver.identifier.improved_params if solver.variant == "improved" else {}),
+                          **solver.method_params},
         "scenario": scenario.to_dict(),
         "n": n,
         "seed": seed,
@@ -180,7 +183,7 @@ def format_markdown(s: dict) -> str:
     sc = s["scenario"]
     pct = {k: f"{100 * v:.1f} %" for k, v in s["rates"].items()}
     lines = [
-        f"# {s['method']} on {sc['name']} ({s['n']} attitudes, seed {s['seed']})",
+        f"# {s['method']} ({s['variant']}) on {sc['name']} ({s['n']} attitudes, seed {s['seed']})",
         "",
         f"{sc['description']}; identifier sigma {s['sigma_assumed_urad']:.1f} urad.",
         "",

@@ -158,7 +158,8 @@ def cmd_solve(a) -> int:
         raise BadInput(f"{output} exists; use --force to overwrite it")
     result = solve_image(image, a.fov_deg, a.method, mag_limit=a.mag_limit, epoch=a.epoch,
                          estimator=a.estimator, max_stars=a.max_stars, k_sigma=a.k_sigma,
-                         distortion=tuple(a.distortion), method_params=method_params or None, **params)
+                         distortion=tuple(a.distortion), method_params=method_params or None,
+                         variant=a.variant, **params)
     truth = None
     if a.truth:
         truth = Path(a.truth)
@@ -193,7 +194,7 @@ def cmd_demo(a) -> int:
     frame = simulate_image(catalog, camera, R, SensorModel(), seed=a.seed, mag_limit=6.0)
     print(f"simulated a {camera.width}x{camera.height} image, FOV {a.fov_deg:g} deg, pointing RA {a.ra:g} "
           f"Dec {a.dec:+g} roll {a.roll:g} deg: {len(frame.truth['stars'])} stars of Hp <= 6.0")
-    solver = Solver(camera, a.method, catalog=catalog)
+    solver = Solver(camera, a.method, catalog=catalog, variant=a.variant)
     print(f"loaded the catalog and the {a.method} database in "
           f"{solver.setup_ms['catalog_load'] + solver.setup_ms['database_load']:.0f} ms "
           f"(first run builds and caches it; total {1e3 * (time.perf_counter() - t0):.0f} ms so far)")
@@ -239,10 +240,10 @@ def cmd_bench(a) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise BadInput(f"{out_dir} is not a folder")
     summary = run_bench(a.method, scenario, a.n, seed=a.seed, method_params=method_params or None,
-                        progress=not a.quiet)
+                        variant=a.variant, progress=not a.quiet)
     md = format_markdown(summary)
     print(md)
-    tag = f"-{a.statistic}" if a.statistic else ""
+    tag = (f"-{a.variant}" if a.variant != "paper" else "") + (f"-{a.statistic}" if a.statistic else "")
     j, m = save_results(summary, out_dir, f"{a.method}{tag}-{scenario.name}-n{a.n}-seed{a.seed}")
     print(f"saved {j} and {m}")
     return EXIT_SOLVED
@@ -295,6 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--fov-deg", type=_float, default=8.0)
     d.add_argument("--seed", type=int, default=1)
     d.add_argument("--method", default="angle")
+    d.add_argument("--variant", choices=("paper", "improved"), default="paper",
+                   help="the paper's parameters, or the method's improvements (see docs/methods.md)")
     d.add_argument("--json", action="store_true", help="also print the result as JSON")
     d.set_defaults(func=cmd_demo)
 
@@ -325,6 +328,8 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("image")
     v.add_argument("--fov-deg", type=_float, required=True, help="horizontal full field of view, deg")
     v.add_argument("--method", default="angle")
+    v.add_argument("--variant", choices=("paper", "improved"), default="paper",
+                   help="the paper's parameters, or the method's improvements (see docs/methods.md)")
     v.add_argument("--json", action="store_true", help="print one JSON object")
     v.add_argument("--sigma-arcsec", type=_float, default=None,
                    help="1-sigma centroid direction error (default: half a pixel)")
@@ -343,6 +348,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="Monte Carlo identification statistics for a method and scenario")
     b.add_argument("--method", default="angle")
+    b.add_argument("--variant", choices=("paper", "improved"), default="paper",
+                   help="the paper's parameters, or the method's improvements (see docs/methods.md)")
     b.add_argument("--scenario", default="cole8")
     b.add_argument("-n", type=int, default=100, help="number of random attitudes")
     b.add_argument("--seed", type=int, default=0)

@@ -32,6 +32,7 @@ class SolveResult:
     status: str  # "solved" | "failed"
     reason: str
     method: str
+    variant: str
     camera: Camera
     centroids: Centroids
     identification: Identification | None
@@ -67,6 +68,7 @@ class SolveResult:
         ident = self.identification
         out.update({
             "method": self.method,
+            "variant": self.variant,
             "matches": self.matches,
             "n_centroids": len(self.centroids),
             "n_matches": len(self.matches),
@@ -104,7 +106,7 @@ class Solver:
     def __init__(self, camera: Camera, method: str = "angle", *, mag_limit: float = 6.0,
                  sigma_rad: float | None = None, epoch: float = DEFAULT_EPOCH,
                  catalog: GuideCatalog | None = None, estimator: str = "svd", max_stars: int = 40,
-                 k_sigma: float = 5.0, method_params: dict | None = None):
+                 k_sigma: float = 5.0, method_params: dict | None = None, variant: str = "paper"):
         if estimator not in ESTIMATORS:
             raise BadInput(f"unknown estimator {estimator!r}: choose from {', '.join(ESTIMATORS)}")
         if sigma_rad is not None and not (np.isfinite(sigma_rad) and sigma_rad > 0):
@@ -123,7 +125,10 @@ class Solver:
         self.max_stars = int(max_stars)
         self.k_sigma = float(k_sigma)
         self.sigma_rad = float(sigma_rad) if sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
-        self.identifier = make_identifier(method, self.catalog, camera, self.sigma_rad, **(method_params or {}))
+        self.variant = variant
+        self.method_params = dict(method_params or {})
+        self.identifier = make_identifier(method, self.catalog, camera, self.sigma_rad, variant=variant,
+                                          **(method_params or {}))
         t2 = time.perf_counter()
         self.setup_ms = {"catalog_load": (t1 - t0) * 1e3, "database_load": (t2 - t1) * 1e3}
 
@@ -150,7 +155,7 @@ class Solver:
 
     def solve_centroids(self, centroids: Centroids) -> SolveResult:
         t0 = time.perf_counter()
-        common = dict(method=self.method, camera=self.camera, centroids=centroids,
+        common = dict(method=self.method, variant=self.variant, camera=self.camera, centroids=centroids,
                       database_key=self.identifier.database_key, epoch=self.catalog.epoch,
                       sigma_rad=self.sigma_rad)
         if len(centroids) == 0:
@@ -198,7 +203,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float, method: str = "a
     """Solve one image (a path or a 2-D array) for a camera of horizontal FOV `fov_deg`.
 
     Keyword arguments go to `Solver` (mag_limit, sigma_rad, epoch, estimator, max_stars, k_sigma,
-    method_params) plus `distortion=(k1, k2)`. Solvers are cached per configuration, so a second
+    method_params, variant) plus `distortion=(k1, k2)`. Solvers are cached per configuration, so a second
     call reuses the loaded database.
     """
     img = load_image(image) if not isinstance(image, np.ndarray) else image

@@ -21,11 +21,23 @@ METHODS: dict[str, type[Identifier]] = {
 }
 
 
-def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_rad: float, **params) -> Identifier:
-    """An identifier for `method`; params are the method's keyword parameters (paper names)."""
+VARIANTS = ("paper", "improved")
+
+
+def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *,
+                    variant: str = "paper", **params) -> Identifier:
+    """An identifier for `method`; params are the method's keyword parameters (paper names).
+
+    variant="paper" keeps the paper's defaults; "improved" applies the method's `improved_params`
+    first (explicit params still win).
+    """
     cls = METHODS.get(method)
     if cls is None:
         raise BadInput(f"unknown method {method!r}: choose from {', '.join(METHODS)}")
+    if variant not in VARIANTS:
+        raise BadInput(f"unknown variant {variant!r}: choose from {', '.join(VARIANTS)}")
+    if variant == "improved":
+        params = {**cls.improved_params, **params}
     sig = inspect.signature(cls.__init__)
     allowed = [n for n, p in sig.parameters.items() if p.kind == inspect.Parameter.KEYWORD_ONLY]
     unknown = sorted(set(params) - set(allowed))
@@ -35,5 +47,5 @@ def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_ra
     return cls(catalog, camera, sigma_rad, **params)
 
 
-__all__ = ["METHODS", "make_identifier", "Identifier", "Identification", "Observation", "Step",
+__all__ = ["METHODS", "VARIANTS", "make_identifier", "Identifier", "Identification", "Observation", "Step",
            "IDENTIFIED", "INCONCLUSIVE", "FAILED"]

@@ -95,6 +95,7 @@ class AngleMethod(Identifier):
     """Cole & Crassidis' angle method with pivoting, ending in the shared verification."""
 
     name = "angle"
+    improved_params = IMPROVED_PARAMS
 
     def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *, beta: float = 3.0,
                  max_pivots: int | None = 9, max_candidates: int = 10_000, order: str = "largest",

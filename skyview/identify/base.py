@@ -110,6 +110,8 @@ class Identifier(ABC):
     """
 
     name: str = ""
+    # Options beyond the paper that make the method better; `variant="improved"` applies them.
+    improved_params: dict = {}
     database_key: dict
     database_info: dict
 
