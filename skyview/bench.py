@@ -56,21 +56,47 @@ class Progress:
             sys.stderr.write(line + "\n")
 
 
+def _truth_points(truth: dict) -> tuple[cKDTree | None, list[int]]:
+    pts = [(s["u_noisy"], s["v_noisy"]) for s in truth["stars"]] + [(f["u"], f["v"]) for f in truth["false_stars"]]
+    hips = [s["hip"] for s in truth["stars"]] + [-1] * len(truth["false_stars"])
+    return (cKDTree(np.array(pts)) if pts else None), hips
+
+
+def wrong_matches(matches: list[tuple[int, float, float, int]], truth: dict) -> list[int]:
+    """Indices of (index, u, v, hip) matches that are not the star rendered at (u, v)."""
+    tree, hips = _truth_points(truth)
+    wrong = []
+    for index, u, v, hip in matches:
+        if tree is None:
+            wrong.append(index)
+            continue
+        d, j = tree.query([u, v])
+        if d > MATCH_RADIUS_PX or hips[j] != hip:
+            wrong.append(index)
+    return wrong
+
+
 def score_trial(result, truth: dict) -> tuple[str, list[int]]:
     """Outcome of one solve against the truth sidecar, and the wrong match indices."""
     if not result.solved:
         return "inconclusive", []
-    pts = [(s["u_noisy"], s["v_noisy"]) for s in truth["stars"]] + [(f["u"], f["v"]) for f in truth["false_stars"]]
-    hips = [s["hip"] for s in truth["stars"]] + [-1] * len(truth["false_stars"])
-    if not pts:
-        return "incorrect", [m["index"] for m in result.matches]
-    tree = cKDTree(np.array(pts))
-    wrong = []
-    for m in result.matches:
-        d, j = tree.query([m["u"], m["v"]])
-        if d > MATCH_RADIUS_PX or hips[j] != m["hip"]:
-            wrong.append(m["index"])
+    wrong = wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in result.matches], truth)
     return ("incorrect" if wrong else "correct"), wrong
+
+
+def score_unverified(result, truth: dict, catalog_hip: np.ndarray) -> str | None:
+    """The paper's own criterion: the method's first answer before verification (when it reports one)."""
+    ident = result.identification
+    first = ident.stats.get("first_chain") if ident else None
+    if first is None:
+        return None
+    matches = first.get("matches") or {}
+    if not matches:
+        return "inconclusive"
+    cents = result.centroids.uv
+    wrong = wrong_matches([(int(o), cents[int(o), 0], cents[int(o), 1], int(catalog_hip[int(c)]))
+                           for o, c in matches.items()], truth)
+    return "incorrect" if wrong else "correct"
 
 
 def _stats(values) -> dict:
@@ -106,12 +132,14 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
         sim_ms = (time.perf_counter() - ts) * 1e3
         result = solver.solve_array(frame.image)
         outcome, wrong = score_trial(result, frame.truth)
+        unverified = score_unverified(result, frame.truth, solver.catalog.hip)
         counts[outcome] += 1
         ident = result.identification
         err = attitude_error_arcsec(result.R, attitudes[k]) if result.solved else None
         trials.append({
             "trial": k, "seed": int(seeds[k]), "outcome": outcome,
             "status": ident.status if ident else "failed", "reason": result.reason,
+            "unverified_outcome": unverified,
             "stars_in_fov": len(frame.truth["stars"]), "centroids": len(result.centroids),
             "matches": len(result.matches), "wrong_matches": wrong,
             "pivots": (ident.stats.get("pivots") if ident else None),
@@ -163,6 +191,8 @@ def summarize(method: str, scenario: Scenario, seed: int, trials: list[dict], se
         "sigma_assumed_urad": scenario.sigma_rad * 1e6,
         "rates": rates,
         "counts": {o: sum(t["outcome"] == o for t in trials) for o in OUTCOMES},
+        "unverified_counts": ({o: sum(t["unverified_outcome"] == o for t in trials) for o in OUTCOMES}
+                              if any(t["unverified_outcome"] is not None for t in trials) else None),
         "by_stars_in_fov": {str(k) + ("+" if k == 15 else ""): {o: c.get(o, 0) for o in OUTCOMES}
                             for k, c in sorted(by_stars.items())},
         "pivots": dict(sorted(Counter(t["pivots"] for t in trials if t["pivots"] is not None).items())),
@@ -191,6 +221,12 @@ def format_markdown(s: dict) -> str:
         "|---|---|---|",
         f"| {pct['correct']} ({s['counts']['correct']}) | {pct['inconclusive']} ({s['counts']['inconclusive']}) "
         f"| {pct['incorrect']} ({s['counts']['incorrect']}) |",
+    ]
+    if s.get("unverified_counts"):
+        u = s["unverified_counts"]
+        lines += ["", "The method's first answer before verification (the paper's own criterion): "
+                  + ", ".join(f"{o} {100 * u[o] / s['n']:.1f} %" for o in OUTCOMES) + "."]
+    lines += [
         "",
         "## By number of catalog stars in the image",
         "",
@@ -210,8 +246,11 @@ def format_markdown(s: dict) -> str:
         if st.get("n"):
             lines.append(f"| {stage} | {st['median']:.2f} | {st['p95']:.2f} | {st['mean']:.2f} |")
     lines += ["", f"Setup (once): " + ", ".join(f"{k} {v:.1f} ms" for k, v in s["setup_ms"].items())]
-    if s["database"]:
-        lines += ["", "Database: " + ", ".join(f"{k} {v}" for k, v in s["database"].items())]
+    db = s["database"]
+    if db:
+        shown = {k: v for k, v in db.items() if k not in ("key", "path") and not isinstance(v, (dict, list))}
+        lines += ["", "Database: " + ", ".join(
+            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in shown.items())]
     acc = s["attitude_accuracy"]
     if acc:
         lines += [
