@@ -18,7 +18,6 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from skyview.attitude import attitude_error_arcsec, random_attitudes
 from skyview.catalog import load_guide_catalog
@@ -26,9 +25,9 @@ from skyview.errors import BadInput
 from skyview.pipeline import Solver
 from skyview.scenarios import Scenario
 from skyview.simulate import SensorModel, simulate_image
+from skyview.truth import wrong_matches
 
 OUTCOMES = ("correct", "inconclusive", "incorrect")
-MATCH_RADIUS_PX = 3.0
 
 
 class Progress:
@@ -54,26 +53,6 @@ class Progress:
         elif int(frac * 10) > self.last_decile:
             self.last_decile = int(frac * 10)
             sys.stderr.write(line + "\n")
-
-
-def _truth_points(truth: dict) -> tuple[cKDTree | None, list[int]]:
-    pts = [(s["u_noisy"], s["v_noisy"]) for s in truth["stars"]] + [(f["u"], f["v"]) for f in truth["false_stars"]]
-    hips = [s["hip"] for s in truth["stars"]] + [-1] * len(truth["false_stars"])
-    return (cKDTree(np.array(pts)) if pts else None), hips
-
-
-def wrong_matches(matches: list[tuple[int, float, float, int]], truth: dict) -> list[int]:
-    """Indices of (index, u, v, hip) matches that are not the star rendered at (u, v)."""
-    tree, hips = _truth_points(truth)
-    wrong = []
-    for index, u, v, hip in matches:
-        if tree is None:
-            wrong.append(index)
-            continue
-        d, j = tree.query([u, v])
-        if d > MATCH_RADIUS_PX or hips[j] != hip:
-            wrong.append(index)
-    return wrong
 
 
 def score_trial(result, truth: dict) -> tuple[str, list[int]]:

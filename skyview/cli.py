@@ -89,6 +89,7 @@ def _turn(a):
 
 def _result_with_truth(result, truth_path: Path | None) -> dict:
     from skyview.attitude import attitude_error_arcsec
+    from skyview.truth import wrong_matches
 
     out = result.to_dict()
     if truth_path is None:
@@ -102,16 +103,7 @@ def _result_with_truth(result, truth_path: Path | None) -> dict:
              "roll_deg": truth.get("roll_deg")}
     if result.R is not None:
         entry["error_arcsec"] = attitude_error_arcsec(result.R, R_true)
-        pts = np.array([[s.get("u_noisy", s["u"]), s.get("v_noisy", s["v"])] for s in truth.get("stars", [])])
-        ids = [s["hip"] for s in truth.get("stars", [])]
-        wrong = 0
-        for m in result.matches:
-            if len(pts) == 0:
-                wrong += 1
-                continue
-            d = np.hypot(pts[:, 0] - m["u"], pts[:, 1] - m["v"])
-            j = int(np.argmin(d))
-            wrong += int(d[j] > 3.0 or ids[j] != m["hip"])
+        wrong = len(wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in result.matches], truth))
         entry["wrong_matches"] = wrong
     out["truth"] = entry
     return out
@@ -203,12 +195,9 @@ def cmd_demo(a) -> int:
 
     out = result.to_dict()
     if result.R is not None:
-        wrong = 0
-        truth_uv = np.array([[s["u_noisy"], s["v_noisy"]] for s in frame.truth["stars"]])
-        ids = [s["hip"] for s in frame.truth["stars"]]
-        for m in result.matches:
-            d = np.hypot(truth_uv[:, 0] - m["u"], truth_uv[:, 1] - m["v"])
-            wrong += int(d.min() > 3 or ids[int(np.argmin(d))] != m["hip"])
+        from skyview.truth import wrong_matches
+
+        wrong = len(wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in result.matches], frame.truth))
         out["truth"] = {"error_arcsec": attitude_error_arcsec(result.R, R), "wrong_matches": wrong}
     _print_human(out)
     if a.json:

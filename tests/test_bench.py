@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from skyview.bench import format_markdown, run_bench, score_trial, wrong_matches
+from skyview.bench import format_markdown, run_bench, score_trial
+from skyview.truth import centroid_truth, wrong_matches
 from skyview.scenarios import SCENARIOS
 
 
@@ -35,3 +36,8 @@ def test_scoring_catches_a_wrong_match():
     assert score_trial(R, truth) == ("incorrect", [0])
     R.solved = False
     assert score_trial(R, truth) == ("inconclusive", [])
+
+
+def test_centroid_truth_labels_stars_false_stars_and_nothing():
+    truth = {"stars": [{"hip": 10, "u": 100.0, "v": 200.0}], "false_stars": [{"u": 700.0, "v": 700.0}]}
+    assert centroid_truth(np.array([[100.4, 200.2], [700.0, 701.0], [5.0, 5.0]]), truth) == [10, -1, None]
