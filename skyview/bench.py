@@ -16,6 +16,7 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -87,7 +88,10 @@ def _stats(values) -> dict:
 
 
 def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_params: dict | None = None,
-              variant: str = "paper", sensor: SensorModel | None = None, progress: bool = True) -> dict:
+              variant: str = "paper", sensor: SensorModel | None = None, progress: bool = True,
+              on_trial: Callable | None = None) -> dict:
+    """Run n trials; on_trial(trial, frame, result, solver), when given, is called after each trial is scored
+    (e.g. skyview.record.FailureRecorder); the trial's own timings are taken before it runs."""
     if n < 1:
         raise BadInput("the number of trials (-n) must be at least 1")
     rng = np.random.default_rng(seed)
@@ -131,6 +135,8 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
             "time_ms": {"simulate": sim_ms, **result.time_ms},
             "quaternion_true": [float(x) for x in np.asarray(frame.truth["quaternion"])],
         })
+        if on_trial is not None:
+            on_trial(trials[-1], frame, result, solver)
         bar.update(k + 1, counts)
     return summarize(method, scenario, seed, trials, setup_ms, solver)
 

@@ -1,4 +1,4 @@
-"""`skyview` command line: demo, simulate, solve, bench, catalog.
+"""`skyview` command line: demo, simulate, solve, bench, record, replay, catalog.
 
 Exit codes: 0 success (solved), 1 ran but did not solve, 2 bad input. Errors are one line on stderr;
 set SKYVIEW_DEBUG=1 to see a traceback for an unexpected error.
@@ -148,6 +148,10 @@ def cmd_solve(a) -> int:
     output = Path(a.output) if a.output else None
     if output is not None and output.exists() and not a.force:
         raise BadInput(f"{output} exists; use --force to overwrite it")
+    if a.record:  # check the recording's path before solving (the recorder is imported only when asked)
+        from skyview.record import check_output_path
+
+        check_output_path(a.record, a.force)
     result = solve_image(image, a.fov_deg, a.method, mag_limit=a.mag_limit, epoch=a.epoch,
                          estimator=a.estimator, max_stars=a.max_stars, k_sigma=a.k_sigma,
                          distortion=tuple(a.distortion), method_params=method_params or None,
@@ -159,6 +163,8 @@ def cmd_solve(a) -> int:
         truth = path.with_suffix(".json")
     out = _result_with_truth(result, truth)
     out["image"] = str(path)
+    if a.record:
+        _record_solve(a, result, image, truth, path)
     text = json.dumps(out, indent=1 if a.json else None)
     if output is not None:
         _write_text_new(output, text + "\n", a.force)
@@ -170,6 +176,18 @@ def cmd_solve(a) -> int:
         print(f"skyview: not solved: {result.reason}", file=sys.stderr)
         return EXIT_NOT_SOLVED
     return EXIT_SOLVED
+
+
+def _record_solve(a, result, image, truth_path: Path | None, image_path: Path) -> None:
+    from skyview.catalog import load_guide_catalog
+    from skyview.record import record_solve
+
+    truth = json.loads(Path(truth_path).read_text()) if truth_path is not None else None
+    catalog = load_guide_catalog(epoch=a.epoch).brighter_than(a.mag_limit)  # the rows the solver used
+    info = record_solve(a.record, result, image, catalog=catalog, truth=truth, force=a.force,
+                        meta={"image": str(image_path), "fov_deg": a.fov_deg, "truth": str(truth_path or "-")})
+    print(f"recorded {info.path} ({info.steps} steps, {info.bytes / 1e6:.2f} MB, written in {info.write_ms:.0f} ms)",
+          file=sys.stderr)
 
 
 def cmd_demo(a) -> int:
@@ -228,14 +246,47 @@ def cmd_bench(a) -> int:
     out_dir = Path(a.out)
     if out_dir.exists() and not out_dir.is_dir():
         raise BadInput(f"{out_dir} is not a folder")
+    on_trial = None
+    if a.record_failures:  # the recorder is imported only when asked: unrecorded benches stay as fast
+        from skyview.record import FailureRecorder
+
+        on_trial = FailureRecorder(a.record_failures, method=a.method, variant=a.variant, scenario=scenario.name,
+                                   seed=a.seed)
     summary = run_bench(a.method, scenario, a.n, seed=a.seed, method_params=method_params or None,
-                        variant=a.variant, progress=not a.quiet)
+                        variant=a.variant, progress=not a.quiet, on_trial=on_trial)
     md = format_markdown(summary)
     print(md)
     tag = (f"-{a.variant}" if a.variant != "paper" else "") + (f"-{a.statistic}" if a.statistic else "")
     j, m = save_results(summary, out_dir, f"{a.method}{tag}-{scenario.name}-n{a.n}-seed{a.seed}")
     print(f"saved {j} and {m}")
+    if on_trial is not None:
+        print(f"recorded {len(on_trial.written)} failed trials into {on_trial.folder}")
     return EXIT_SOLVED
+
+
+def cmd_record(a) -> int:
+    if a.examples:
+        from skyview.record import MANIFEST, record_examples
+
+        out = Path(a.out) if a.out else Path("recordings")
+        entries = record_examples(out, force=a.force)
+        print(f"wrote {len(entries)} example recordings and {out / MANIFEST}")
+        return EXIT_SOLVED
+    from skyview.record import record_case
+
+    out = Path(a.out) if a.out else Path(f"{a.method}-{a.scenario}-{a.seed}.rrd")
+    info, case = record_case(out, a.method, a.scenario, a.seed, variant=a.variant, force=a.force)
+    r = case.result
+    print(f"recorded {info.path}: {a.method} ({a.variant}) on {a.scenario}, seed {a.seed}: {r.status}"
+          f"{'' if r.solved else ' (' + r.reason + ')'}, {case.outcome} against truth; {info.steps} steps, "
+          f"{info.bytes / 1e6:.2f} MB written in {info.write_ms:.0f} ms (solve {r.time_ms.get('total', 0.0):.0f} ms)")
+    return EXIT_SOLVED
+
+
+def cmd_replay(a) -> int:
+    from skyview.record_replay import replay
+
+    return replay(a.recording, web=True if a.web else None, host=a.host, port=a.port, grpc_port=a.grpc_port)
 
 
 def cmd_catalog(a) -> int:
@@ -333,6 +384,8 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--no-truth", action="store_true", help="do not look for a truth sidecar")
     v.add_argument("--output", default=None, help="also write the JSON result to this file")
     v.add_argument("--force", action="store_true")
+    v.add_argument("--record", default=None, metavar="PATH.rrd",
+                   help="also save the solve as a Rerun recording (open it with 'skyview replay')")
     v.set_defaults(func=cmd_solve)
 
     b = sub.add_parser("bench", help="Monte Carlo identification statistics for a method and scenario")
@@ -347,7 +400,31 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--centroids", action="store_true", help="measure centroid accuracy instead")
     b.add_argument("--out", default="bench-results", help="folder for the JSON and Markdown results")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.add_argument("--record-failures", default=None, metavar="DIR",
+                   help="save a Rerun recording of every trial that is not correct into DIR (created if missing)")
     b.set_defaults(func=cmd_bench)
+
+    r = sub.add_parser("record", help="simulate a scenario case, solve it and save it as a Rerun recording (.rrd)")
+    r.add_argument("--method", default="angle")
+    r.add_argument("--variant", choices=("paper", "improved"), default="paper",
+                   help="the paper's parameters, or the method's improvements (see docs/methods.md)")
+    r.add_argument("--scenario", default="cole8")
+    r.add_argument("--seed", type=int, default=0, help="the case: its attitude and image noise")
+    r.add_argument("--out", default=None,
+                   help="the .rrd file (default METHOD-SCENARIO-SEED.rrd); with --examples the folder (default recordings)")
+    r.add_argument("--force", action="store_true", help="overwrite existing recordings")
+    r.add_argument("--examples", action="store_true",
+                   help="regenerate the example recordings: each method on its paper's scenario, and one failure")
+    r.set_defaults(func=cmd_record)
+
+    rp = sub.add_parser("replay", help="open a recording in the Rerun viewer (the web viewer when there is no desktop)")
+    rp.add_argument("recording", help="a .rrd file")
+    rp.add_argument("--web", action="store_true", help="serve the web viewer even when there is a desktop")
+    rp.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
+    rp.add_argument("--port", type=int, default=9090, help="web viewer HTTP port (0: any free port)")
+    rp.add_argument("--grpc-port", type=int, default=0,
+                    help="port that serves the recording to the viewer (default: any free port)")
+    rp.set_defaults(func=cmd_replay)
 
     c = sub.add_parser("catalog", help="build or describe the guide catalog")
     csub = c.add_subparsers(dest="action", required=True, parser_class=_Parser)
