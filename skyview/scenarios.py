@@ -45,6 +45,9 @@ SCENARIOS: dict[str, Scenario] = {
                  fov_deg=8.0, width=1024, height=1024, mag_limit=6.0, noise_rad=87e-6),
         Scenario("cole8-false", "cole8 with one false star (debris) within half the FOV of the boresight",
                  fov_deg=8.0, width=1024, height=1024, mag_limit=6.0, noise_rad=87e-6, n_false_stars=1),
+        Scenario("juang8", "Juang, Kim & Junkins: 8x8 deg FOV, 1024x1024, Hp <= 7.3 (the paper: 7.3 Mv), 87 urad "
+                 "noise (the paper states none: cole8's, same camera)",
+                 fov_deg=8.0, width=1024, height=1024, mag_limit=7.3, noise_rad=87e-6),
     ]
 }
 

@@ -15,9 +15,11 @@ from skyview.errors import BadInput
 from skyview.identify.angle import AngleMethod
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
+from skyview.identify.svd import SVDMethod
 
 METHODS: dict[str, type[Identifier]] = {
     "angle": AngleMethod,
+    "svd": SVDMethod,
 }
 
 
