@@ -320,6 +320,15 @@ def cmd_catalog(a) -> int:
     return EXIT_SOLVED
 
 
+def cmd_view(a) -> int:
+    from skyview.viewer.app import serve
+
+    if not 0 <= a.port <= 65535:
+        raise BadInput(f"--port {a.port} is not a TCP port (0-65535)")
+    return serve(host=a.host, port=a.port, image=a.image, fov_deg=a.fov_deg,
+                 say=lambda line: print(line, flush=True))
+
+
 # ----------------------------------------------------------------------------- parser
 
 def build_parser() -> argparse.ArgumentParser:
@@ -435,6 +444,15 @@ def build_parser() -> argparse.ArgumentParser:
     ci = csub.add_parser("info", help="describe a guide catalog")
     ci.add_argument("path", nargs="?")
     c.set_defaults(func=cmd_catalog)
+
+    w = sub.add_parser("view", help="the browser viewer: sky, field of view, image, identification steps")
+    w.add_argument("--image", default=None, help="start on this image (PNG / JPEG) instead of a simulated sky")
+    w.add_argument("--fov-deg", type=_float, default=None,
+                   help="horizontal full field of view of --image, deg (without --image: of the simulated camera)")
+    w.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default: this machine only; 0.0.0.0 opens it to the network)")
+    w.add_argument("--port", type=int, default=8080, help="HTTP port (the next free one if it is taken)")
+    w.set_defaults(func=cmd_view)
     return p
 
 

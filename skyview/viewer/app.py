@@ -1,0 +1,109 @@
+"""The viewer server: one `Session` (panel + scene + worker) per browser tab, and `skyview view`.
+
+`ViewerApp` starts a viser server (on 127.0.0.1 unless told otherwise) and gives each connecting tab
+its own session, so tabs do not fight over controls; solvers are shared.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import viser
+
+from skyview.camera import Camera
+from skyview.centroid import load_image
+from skyview.errors import BadInput
+from skyview.viewer.run import SceneConfig, Solvers, Source, check_fov
+from skyview.viewer.session import Session
+
+
+def load_initial_image(path: str | Path, fov_deg: float | None) -> Source:
+    """The `--image` / `--fov-deg` pair of `skyview view`, checked (BadInput with one line)."""
+    if fov_deg is None:
+        raise BadInput("--image needs --fov-deg (the image's horizontal field of view in degrees)")
+    fov = check_fov(fov_deg)
+    image = load_image(path)
+    Camera.from_fov(fov, image.shape[1], image.shape[0])
+    return Source(image=image, fov_deg=fov, name=Path(path).name)
+
+
+class ViewerApp:
+    """The viser server and its sessions (one per connected tab)."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, *, initial: Source | None = None,
+                 config: SceneConfig | None = None):
+        self.solvers = Solvers()
+        self.initial = initial
+        self.config = (config or SceneConfig()).checked()
+        self.sessions: dict[int, Session] = {}
+        self._lock = threading.Lock()
+        self.solvers.base_catalog  # load once before the first tab arrives
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner
+            self.server = viser.ViserServer(host=host, port=port, label="skyview", verbose=False)
+        self.host = host
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    @property
+    def url(self) -> str:
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "::", "") else self.host
+        return f"http://{host}:{self.port}"
+
+    def _connect(self, client: viser.ClientHandle) -> None:
+        session = Session(client, self.solvers, initial=self.initial, config=self.config)
+        with self._lock:
+            self.sessions[client.client_id] = session
+
+    def _disconnect(self, client: viser.ClientHandle) -> None:
+        with self._lock:
+            session = self.sessions.pop(client.client_id, None)
+        if session is not None:
+            session.close()
+
+    def stop(self) -> None:
+        with self._lock:
+            sessions = list(self.sessions.values())
+            self.sessions.clear()
+        for s in sessions:
+            s.close()
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
+
+
+def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, fov_deg: float | None = None,
+          say: Callable[[str], None] = print) -> int:
+    """`skyview view`: run the viewer until Ctrl-C."""
+    initial = load_initial_image(image, fov_deg) if image is not None else None
+    config = SceneConfig(fov_deg=check_fov(fov_deg)) if fov_deg is not None and image is None else None
+    app = ViewerApp(host, port, initial=initial, config=config)
+    say(f"skyview viewer: {app.url}  (Ctrl-C stops it)")
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        say(f"listening on {host}: other machines can reach it")
+
+    def _terminate(_signum, _frame):
+        raise KeyboardInterrupt
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)  # a plain `kill` stops it as cleanly as Ctrl-C
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        app.stop()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    say("skyview viewer stopped")
+    return 0

@@ -1,0 +1,183 @@
+"""The sensor image for display: stretched to 8 bit, centroids marked, numbered and coloured.
+
+Pure OpenCV / numpy: the viewer puts the result in its side panel and on the camera frustum.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from skyview.centroid import to_gray
+from skyview.errors import BadInput
+
+# RGB per centroid outcome (see steps.centroid_outcomes).
+OUTCOME_RGB = {
+    "identified": (90, 230, 130),
+    "unidentified": (120, 170, 255),
+    "false star": (255, 150, 40),
+    "wrong match": (255, 40, 90),
+    "not used": (110, 110, 120),
+}
+HIGHLIGHT_RGB = (255, 230, 60)
+MAX_UPLOAD_BYTES = 64 * 1024 * 1024
+
+
+def _levels(f: np.ndarray) -> tuple[float, float, float]:
+    """Background median, noise sigma (MAD) and maximum, from a subsample."""
+    sample = np.asarray(f[:: max(1, f.shape[0] // 256), :: max(1, f.shape[1] // 256)], dtype=np.float64)
+    bg = float(np.median(sample))
+    sigma = 1.4826 * float(np.median(np.abs(sample - bg)))
+    hi = float(np.max(f))
+    if sigma <= 0:
+        sigma = max((hi - bg) / 1000.0, 1e-6)
+    return bg, sigma, hi
+
+
+def _curve(x: np.ndarray, bg: float, sigma: float, hi: float, floor_sigmas: float) -> np.ndarray:
+    soft = 3.0 * sigma
+    top = max(min(hi - bg, 400.0 * sigma) + floor_sigmas * sigma, soft)  # the brightest stars may saturate
+    y = np.arcsinh(np.maximum(x - bg + floor_sigmas * sigma, 0.0) / soft) / np.arcsinh(top / soft)
+    return np.clip(y * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def stretch(image: np.ndarray, floor_sigmas: float = 2.0) -> np.ndarray:
+    """8-bit display version of an 8- or 16-bit (or float) star image.
+
+    asinh stretch: the background sits just above black, noise stays visible, stars do not all
+    saturate; works the same for a 16-bit simulator frame and an 8-bit photograph. Integer images go
+    through a look-up table (a 1024x1024 16-bit frame takes a few milliseconds). floor_sigmas: how
+    many noise sigmas below the background map to black (negative: the background itself is black).
+    """
+    a = np.asarray(image)
+    if a.size == 0:
+        raise BadInput("the image is empty")
+    bg, sigma, hi = _levels(a)
+    if a.dtype in (np.uint8, np.uint16):
+        lut = _curve(np.arange(256 if a.dtype == np.uint8 else 65536, dtype=np.float64), bg, sigma, hi, floor_sigmas)
+        return lut[a]
+    return _curve(a.astype(np.float64), bg, sigma, hi, floor_sigmas)
+
+
+def decode_image_bytes(data: bytes, name: str = "upload") -> np.ndarray:
+    """A grey image from the bytes of an uploaded PNG / JPEG (or any format OpenCV decodes)."""
+    if not data:
+        raise BadInput(f"{name} is empty (0 bytes)")
+    if len(data) > MAX_UPLOAD_BYTES:
+        raise BadInput(f"{name} is {len(data) / 1e6:.0f} MB: the viewer takes images up to "
+                       f"{MAX_UPLOAD_BYTES // (1024 * 1024)} MB")
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    if img is None:
+        raise BadInput(f"{name} is not an image (PNG or JPEG expected)")
+    img = to_gray(img)
+    if img.ndim != 2 or img.size == 0:
+        raise BadInput(f"{name} is not a usable image (shape {img.shape})")
+    if img.shape[0] < 16 or img.shape[1] < 16:
+        raise BadInput(f"{name} is {img.shape[1]}x{img.shape[0]}: too small (at least 16x16 pixels)")
+    return img
+
+
+def texture(image: np.ndarray, max_side: int = 1024, floor: int = 14) -> np.ndarray:
+    """RGB texture of the sensor image for the 3-D frustum, at most max_side pixels a side.
+
+    The background noise is cut (it would triple the JPEG for nothing at this scale): black below
+    2.5 sigma above the background, lifted to a flat `floor` grey so that the sensor stays visible.
+    """
+    g = np.maximum(stretch(image, floor_sigmas=-2.5), floor).astype(np.uint8)
+    h, w = g.shape
+    shrink = min(1.0, max_side / max(h, w))
+    # a star is a few pixels wide: widen it so that it survives the texture's shrink on screen
+    g = cv2.dilate(g, np.ones((3, 3) if shrink > 0.6 else (5, 5), np.uint8))
+    return cv2.cvtColor(_fit(g, max_side), cv2.COLOR_GRAY2RGB)
+
+
+def _fit(gray8: np.ndarray, max_side: int) -> np.ndarray:
+    h, w = gray8.shape
+    s = min(1.0, max_side / max(h, w))
+    if s >= 1.0:
+        return gray8
+    return cv2.resize(gray8, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+
+
+def panel_base(gray8: np.ndarray, size: int = 560) -> np.ndarray:
+    """The stretched image resized for the side panel (largest side `size`); annotate draws on it."""
+    h, w = gray8.shape
+    s = size / max(h, w)
+    if s < 0.75:  # keep faint stars: spread each over the pixels the shrink will average
+        k = int(min(5, round(1.0 / s)))
+        gray8 = cv2.dilate(gray8, np.ones((k, k), np.uint8))
+    return cv2.resize(gray8, (max(1, round(w * s)), max(1, round(h * s))),
+                      interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+
+
+def annotate(base: np.ndarray, source_shape: tuple[int, int], uv: np.ndarray, outcomes: list[str], *,
+             highlight=(), pattern=None, max_numbers: int = 40) -> np.ndarray:
+    """RGB panel image: centroids ringed in their outcome colour and numbered by brightness.
+
+    base: `panel_base` of the image; source_shape: (H, W) of the sensor image the centroids are in;
+    highlight: centroid indices the current step uses (thick yellow ring); pattern: (E, 2) centroid
+    index pairs joined by a line (the pair / triangle the step measured).
+    """
+    img = base
+    size = max(img.shape)
+    s = img.shape[1] / source_shape[1]
+    rgb = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    p = (uv + 0.5) * s - 0.5  # pixel centres scale about the sensor edge
+    hl = {int(i) for i in highlight}
+    r = max(5, round(size / 90))
+    if pattern is not None:
+        for a, b in np.asarray(pattern, dtype=np.int64).reshape(-1, 2):
+            if a < len(p) and b < len(p):
+                cv2.line(rgb, _pt(p[a]), _pt(p[b]), HIGHLIGHT_RGB, 1, cv2.LINE_AA)
+    scale = max(0.35, size / 1400)
+    for i in range(len(p)):
+        c = OUTCOME_RGB.get(outcomes[i] if i < len(outcomes) else "unidentified", OUTCOME_RGB["unidentified"])
+        cv2.circle(rgb, _pt(p[i]), r, c, 1, cv2.LINE_AA)
+        if i in hl:
+            cv2.circle(rgb, _pt(p[i]), r + 3, HIGHLIGHT_RGB, 2, cv2.LINE_AA)
+        if i < max_numbers:
+            _label(rgb, str(i), int(round(p[i, 0] + r + 1)), int(round(p[i, 1] - r + 2)), scale, c)
+    return rgb
+
+
+@lru_cache(maxsize=512)
+def _text_masks(text: str, scale: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Coverage masks (fill, dark outline) of a short text, and its baseline offset; rendered once."""
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    pad = 2
+    m = np.zeros((h + base + 2 * pad, w + 2 * pad), np.uint8)
+    cv2.putText(m, text, (pad, pad + h), cv2.FONT_HERSHEY_SIMPLEX, scale, 255, 1, cv2.LINE_AA)
+    outline = cv2.dilate(m, np.ones((3, 3), np.uint8))
+    return m, outline, pad + h
+
+
+def _label(rgb: np.ndarray, text: str, x: int, y: int, scale: float, color) -> None:
+    """Draw `text` with its baseline-left at (x, y) in `color` over a dark outline (clipped to the image)."""
+    fill, outline, top = _text_masks(text, round(scale, 3))
+    y0, x0 = y - top, x
+    H, W = rgb.shape[:2]
+    ya, xa = max(0, y0), max(0, x0)
+    yb, xb = min(H, y0 + fill.shape[0]), min(W, x0 + fill.shape[1])
+    if ya >= yb or xa >= xb:
+        return
+    sl = (slice(ya - y0, yb - y0), slice(xa - x0, xb - x0))
+    region = rgb[ya:yb, xa:xb].astype(np.float32)
+    o = outline[sl][:, :, None].astype(np.float32) / 255.0
+    f = fill[sl][:, :, None].astype(np.float32) / 255.0
+    region *= 1.0 - 0.85 * o
+    region = region * (1.0 - f) + np.asarray(color, np.float32) * f
+    rgb[ya:yb, xa:xb] = region.astype(np.uint8)
+
+
+def _pt(xy) -> tuple[int, int]:
+    return int(round(float(xy[0]))), int(round(float(xy[1])))

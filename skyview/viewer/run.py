@@ -1,0 +1,274 @@
+"""What the viewer runs: a scenario or an image, solved by the same `Solver` as the CLI.
+
+No identification logic here: a `Run` is the simulator's image and truth, the pipeline's
+`SolveResult`, and what `steps` derives from them for drawing. Solvers (catalog + method database)
+are cached and shared by every browser tab; one solve at a time per solver.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, radec_roll_from_R, random_attitudes
+from skyview.camera import Camera, check_fov_deg
+from skyview.catalog import GuideCatalog, load_guide_catalog
+from skyview.errors import BadInput
+from skyview.identify import METHODS, VARIANTS
+from skyview.pipeline import DEFAULT_CENTROID_SIGMA_PX, SolveResult, Solver
+from skyview.simulate import SensorModel, simulate_image
+from skyview.viewer.steps import StepDrawable, centroid_outcomes, match_groups, step_drawables
+
+ARCSEC = math.pi / 180.0 / 3600.0
+RESOLUTIONS = ("512x512", "1024x1024", "1280x1024", "2048x2048")
+FOV_RANGE_DEG = (0.5, 90.0)
+MAG_RANGE = (2.0, 7.5)
+
+
+def _num(name: str, value, lo: float, hi: float) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise BadInput(f"{name} {value!r} is not a number") from None
+    if not math.isfinite(v) or not lo <= v <= hi:
+        raise BadInput(f"{name} {value} is outside [{lo:g}, {hi:g}]")
+    return v
+
+
+def _count(name: str, value, hi: int) -> int:
+    v = _num(name, value, 0, hi)
+    if v != int(v):
+        raise BadInput(f"{name} {value} is not a whole number")
+    return int(v)
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(p) for p in str(text).lower().split("x"))
+    except ValueError:
+        raise BadInput(f"resolution {text!r} is not WIDTHxHEIGHT") from None
+    if not (64 <= w <= 4096 and 64 <= h <= 4096):
+        raise BadInput(f"resolution {text} is outside 64..4096 pixels a side")
+    return w, h
+
+
+def check_fov(fov_deg) -> float:
+    check_fov_deg(fov_deg)
+    return _num("FOV (deg)", fov_deg, *FOV_RANGE_DEG)
+
+
+def check_method(method, variant) -> tuple[str, str]:
+    if method not in METHODS:
+        raise BadInput(f"unknown method {method!r}: choose from {', '.join(METHODS)}")
+    if variant not in VARIANTS:
+        raise BadInput(f"unknown variant {variant!r}: choose from {', '.join(VARIANTS)}")
+    return str(method), str(variant)
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """A simulated scene: attitude, camera, catalog limit and disturbances (degrees / arcsec at the UI)."""
+
+    ra_deg: float = 83.8
+    dec_deg: float = -5.4
+    roll_deg: float = 30.0
+    fov_deg: float = 8.0
+    resolution: str = "1024x1024"
+    mag_limit: float = 6.0
+    noise_arcsec: float = 0.0
+    false_stars: int = 0
+    dropped: int = 0
+    seed: int = 1
+
+    def checked(self) -> "SceneConfig":
+        """The same config with every field validated (BadInput names the bad one)."""
+        parse_resolution(self.resolution)
+        return replace(
+            self,
+            ra_deg=_num("RA (deg)", self.ra_deg, 0.0, 360.0),
+            dec_deg=_num("Dec (deg)", self.dec_deg, -90.0, 90.0),
+            roll_deg=_num("roll (deg)", self.roll_deg, -180.0, 180.0),
+            fov_deg=check_fov(self.fov_deg),
+            mag_limit=_num("magnitude limit", self.mag_limit, *MAG_RANGE),
+            noise_arcsec=_num("centroid noise (arcsec)", self.noise_arcsec, 0.0, 600.0),
+            false_stars=_count("false stars", self.false_stars, 50),
+            dropped=_count("dropped stars", self.dropped, 50),
+            seed=_count("seed", self.seed, 2**31 - 1),
+        )
+
+    @property
+    def R(self) -> np.ndarray:
+        return R_from_radec_roll(math.radians(self.ra_deg), math.radians(self.dec_deg), math.radians(self.roll_deg))
+
+    def camera(self) -> Camera:
+        w, h = parse_resolution(self.resolution)
+        return Camera.from_fov(self.fov_deg, w, h)
+
+
+def random_pointing(rng: np.random.Generator) -> tuple[float, float, float]:
+    """(RA, Dec, roll) in degrees of an attitude drawn uniformly over the rotations."""
+    ra, dec, roll = radec_roll_from_R(random_attitudes(1, rng)[0])
+    return round(math.degrees(ra), 2) % 360.0, round(math.degrees(dec), 2), round(math.degrees(roll), 2)
+
+
+@dataclass
+class Source:
+    """The image being solved, with its FOV and, when simulated, its truth."""
+
+    image: np.ndarray
+    fov_deg: float
+    name: str
+    truth: dict | None = None
+    config: SceneConfig | None = None
+    simulate_ms: float = 0.0
+
+    @property
+    def camera(self) -> Camera:
+        return Camera.from_fov(self.fov_deg, self.image.shape[1], self.image.shape[0])
+
+
+@dataclass
+class Run:
+    """One solved image and everything the viewer draws from it."""
+
+    source: Source
+    result: SolveResult
+    catalog: GuideCatalog  # the solver's guide catalog: step rows index it
+    n_used: int  # centroids given to the identifier (the brightest max_stars)
+    outcomes: list[str]
+    drawables: list[StepDrawable]
+    matches: dict[int, int]  # observed index -> catalog row
+    match_groups: list[tuple[int, ...]]
+    error_arcsec: dict | None = None
+    wrong_matches: int | None = None
+    time_ms: dict = field(default_factory=dict)
+
+    @property
+    def R_true(self) -> np.ndarray | None:
+        t = self.source.truth
+        return None if not t else np.asarray(t["R"], dtype=np.float64)
+
+    @property
+    def R_shown(self) -> np.ndarray | None:
+        """The attitude the camera is drawn at: the estimate, else the truth, else unknown."""
+        return self.result.R if self.result.R is not None else self.R_true
+
+
+class Solvers:
+    """Solvers keyed by camera, method, variant, catalog limit and sigma; at most `size` kept."""
+
+    def __init__(self, size: int = 12):
+        self._size = size
+        self._lock = threading.Lock()
+        self._items: OrderedDict[tuple, tuple[Solver, threading.Lock]] = OrderedDict()
+        self._building: dict[tuple, threading.Lock] = {}
+        self._catalog: GuideCatalog | None = None
+
+    @property
+    def base_catalog(self) -> GuideCatalog:
+        with self._lock:
+            if self._catalog is None:
+                self._catalog = load_guide_catalog()
+            return self._catalog
+
+    def get(self, camera: Camera, method: str, variant: str, mag_limit: float,
+            sigma_rad: float) -> tuple[Solver, threading.Lock]:
+        key = (camera, method, variant, round(float(mag_limit), 3), round(float(sigma_rad), 12))
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+            build_lock = self._building.setdefault(key, threading.Lock())
+        catalog = self.base_catalog
+        with build_lock:
+            with self._lock:
+                if key in self._items:
+                    return self._items[key]
+            solver = Solver(camera, method, catalog=catalog, mag_limit=mag_limit, sigma_rad=sigma_rad,
+                            variant=variant)
+            with self._lock:
+                self._items[key] = (solver, threading.Lock())
+                self._building.pop(key, None)
+                while len(self._items) > self._size:
+                    self._items.popitem(last=False)
+                return self._items[key]
+
+    def cached(self, camera: Camera, method: str, variant: str, mag_limit: float, sigma_rad: float) -> bool:
+        key = (camera, method, variant, round(float(mag_limit), 3), round(float(sigma_rad), 12))
+        with self._lock:
+            return key in self._items
+
+
+def simulate(config: SceneConfig, catalog: GuideCatalog) -> Source:
+    config = config.checked()
+    camera = config.camera()
+    t0 = time.perf_counter()
+    frame = simulate_image(catalog, camera, config.R, SensorModel(), seed=config.seed, mag_limit=config.mag_limit,
+                           n_false_stars=config.false_stars, n_dropped=config.dropped,
+                           position_noise_rad=config.noise_arcsec * ARCSEC)
+    name = f"simulated: RA {config.ra_deg:g}°, Dec {config.dec_deg:+g}°, roll {config.roll_deg:g}°"
+    return Source(image=frame.image, fov_deg=config.fov_deg, name=name, truth=frame.truth, config=config,
+                  simulate_ms=(time.perf_counter() - t0) * 1e3)
+
+
+def sigma_for(source: Source) -> float:
+    """The per-star sigma the solver assumes: half a pixel (the CLI's default) plus the simulated noise."""
+    pix = DEFAULT_CENTROID_SIGMA_PX * source.camera.pixel_scale_rad
+    noise = source.config.noise_arcsec * ARCSEC if source.config else 0.0
+    return float(math.hypot(pix, noise))
+
+
+def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: Solvers) -> Run:
+    """Centroid and identify `source` with `method`; derive the drawables."""
+    method, variant = check_method(method, variant)
+    mag_limit = _num("magnitude limit", mag_limit, *MAG_RANGE)
+    camera = source.camera
+    solver, lock = solvers.get(camera, method, variant, mag_limit, sigma_for(source))
+    with lock:
+        result = solver.solve_array(source.image)
+    ident = result.identification
+    catalog = solver.catalog
+    uv = result.centroids.uv
+    n_used = min(len(uv), solver.max_stars)
+    matches = dict(ident.matches) if ident is not None and ident.identified else {}
+    outcomes = centroid_outcomes(len(uv), n_used, matches, uv, catalog.hip, source.truth)
+    drawables = step_drawables(ident.steps if ident else [], catalog.xyz, n_used, catalog.hip)
+    run = Run(source=source, result=result, catalog=catalog, n_used=n_used, outcomes=outcomes,
+              drawables=drawables, matches=matches, match_groups=match_groups(matches, uv),
+              time_ms={"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms))
+    if source.truth and result.R is not None:
+        run.error_arcsec = attitude_error_arcsec(result.R, np.asarray(source.truth["R"]))
+        run.wrong_matches = sum(o == "wrong match" for o in outcomes)
+    return run
+
+
+def compare(source: Source, mag_limit: float, solvers: Solvers, progress=None, methods=None) -> list[dict]:
+    """Every method in METHODS (or `methods`), both variants, on the same image: one row each."""
+    rows = []
+    jobs = [(m, v) for m in (METHODS if methods is None else methods) for v in VARIANTS]
+    for k, (m, v) in enumerate(jobs):
+        if progress is not None:
+            progress(k, len(jobs), f"{m} ({v})")
+        t0 = time.perf_counter()
+        try:
+            run = solve(source, m, v, mag_limit, solvers)
+        except Exception as exc:  # one method's failure is a row of the table, not the end of the comparison
+            reason = str(exc) if isinstance(exc, BadInput) else f"{type(exc).__name__}: {exc}"
+            rows.append({"method": m, "variant": v, "status": "error", "reason": reason, "steps": 0,
+                         "time_ms": (time.perf_counter() - t0) * 1e3, "error_arcsec": None, "matches": 0,
+                         "wrong_matches": None})
+            continue
+        r = run.result
+        rows.append({"method": m, "variant": v, "status": r.status, "reason": r.reason,
+                     "steps": len(r.identification.steps) if r.identification else 0,
+                     "time_ms": r.time_ms.get("total", float("nan")),
+                     "error_arcsec": run.error_arcsec, "matches": len(r.matches),
+                     "wrong_matches": run.wrong_matches})
+    if progress is not None:
+        progress(len(jobs), len(jobs), "done")
+    return rows

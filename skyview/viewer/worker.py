@@ -1,0 +1,71 @@
+"""A background thread per viewer session: slow work off the GUI callbacks, the latest request wins."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable
+
+
+class Worker:
+    """One background thread; a new request replaces a pending one (the latest wins)."""
+
+    def __init__(self, on_error: Callable[[Exception], None]):
+        self._cv = threading.Condition()
+        self._job: tuple[str, Callable[[], None]] | None = None
+        self._on_error = on_error
+        self._closed = False
+        self.busy: tuple[str, float] | None = None  # (label, start time)
+        self.progress: float | None = None  # 0..100 when the job knows, else None
+        self._thread = threading.Thread(target=self._loop, name="skyview-viewer-worker", daemon=True)
+        self._thread.start()
+
+    def submit(self, label: str, fn: Callable[[], None]) -> None:
+        with self._cv:
+            self._job = (label, fn)
+            self._cv.notify_all()
+
+    @property
+    def superseded(self) -> bool:
+        """A newer request is waiting: the running job's result would be stale."""
+        with self._cv:
+            return self._job is not None or self._closed
+
+    def idle(self) -> bool:
+        with self._cv:
+            return self._job is None and self.busy is None
+
+    def wait_idle(self, timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        with self._cv:
+            while self._job is not None or self.busy is not None:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cv.wait(left)
+        return True
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._job = None
+            self._cv.notify_all()
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                while self._job is None and not self._closed:
+                    self._cv.wait()
+                if self._closed:
+                    return
+                label, fn = self._job
+                self._job = None
+                self.busy, self.progress = (label, time.monotonic()), None
+            try:
+                fn()
+            except Exception as exc:  # noqa: BLE001 - shown in the panel, the thread lives on
+                self._on_error(exc)
+            finally:
+                with self._cv:
+                    self.busy = None
+                    self._cv.notify_all()
