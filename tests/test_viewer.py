@@ -3,7 +3,8 @@ UI, the `skyview view` command, and a real headless-Chromium load of it.
 
 The browser test starts `skyview view` on a free local port, loads it in Debian's chromium (through the
 playwright package, never `playwright install`) with software WebGL, waits until the scene has
-rendered, screenshots it and checks that stars are visible. Screenshots are kept in the test's tmp
+rendered, screenshots it and checks that stars are visible, steps through the identification, uploads
+an image and opens a second tab. Screenshots are kept in the test's tmp
 folder and copied to test-artifacts/ (gitignored). Figures (time to first render, bytes, step update
 time) are printed with -s and written to test-artifacts/viewer-figures.json.
 """
@@ -273,8 +274,16 @@ def test_upload_solves_the_users_image(session):
     assert s.run.source.name == "mine.png" and s.run.source.truth is None and s.run.result.solved
     err = np.degrees(np.arccos(np.clip(s.run.result.R[2] @ np.asarray(frame.truth["R"])[2], -1, 1))) * 3600
     assert err < 60 and "mine.png" in s.panel.result.content and s.panel.back.visible
+    # an image with no stars: not solved, no pose, no camera or fine grid drawn, no steps to play
+    noise = np.random.default_rng(3).normal(500, 5, (480, 640)).astype(np.uint16)
+    ok, png = cv2.imencode(".png", noise)
+    s._guard(s._on_upload)(SimpleNamespace(target=SimpleNamespace(value=SimpleNamespace(name="dark.png",
+                                                                                         content=png.tobytes()))))
+    assert s.wait_idle(30) and s.error == "" and not s.run.result.solved
+    assert _node(server, "frustum") is None and _node(server, "fine_grid") is None
+    assert s.panel.step.disabled and "No steps" in s.panel.step_text.content and "not solved" in s.panel.status.content
     s.use_simulation()
-    assert s.wait_idle(30) and s.run.source.truth is not None
+    assert s.wait_idle(30) and s.run.source.truth is not None and _node(server, "frustum") is not None
 
 
 def test_clicking_a_star_names_it(session):
@@ -494,6 +503,24 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                 pg.screenshot(path=str(wide))
                 _keep(wide)
                 assert _not_blank(wide, 1000) > 0.002
+
+                # upload an image through the page, with its FOV, and solve it
+                frame = simulate(SceneConfig(ra_deg=250.0, dec_deg=30.0, roll_deg=-40.0, fov_deg=12.0,
+                                             resolution="1280x1024"), Solvers().base_catalog)
+                png = tmp_path / "mine.png"
+                cv2.imwrite(str(png), frame.image)
+                pg.get_by_role("tab", name="Scenario").click()
+                fov_box = pg.locator("label", has_text="Image FOV").first.locator(
+                    "xpath=ancestor::div[contains(@class,'Flex-root')][1]").locator("input").first
+                fov_box.fill("12")
+                fov_box.press("Enter")
+                pg.wait_for_timeout(300)
+                t = time.perf_counter()
+                pg.locator("input[type=file]").first.set_input_files(str(png))
+                pg.get_by_role("tab", name="Result").click()
+                pg.get_by_text("image: mine.png, FOV 12°", exact=False).first.wait_for(timeout=30000)
+                FIGURES["upload_to_result_s"] = round(time.perf_counter() - t, 2)
+                pg.get_by_text("Solved by", exact=False).first.wait_for(timeout=10000)
 
                 # a second tab gets its own session and renders too
                 pg2 = _open(browser, url)

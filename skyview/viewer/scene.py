@@ -301,6 +301,11 @@ class SkyScene:
         self._tex = tex
         self._sized["run"] = []
         if R is None:  # an image that did not solve: no pose to draw it at
+            for hd in self.h.pop("fine_labels", []):
+                hd.remove()
+            if "fine_grid" in self.h:
+                self.h.pop("fine_grid").remove()
+            self._grid_key = None
             self._run = None
             self.show_step(run, None)
             return

@@ -77,6 +77,7 @@ class Session:
             # the sky before the first solve: the guide catalog at the scenario's limit
             self.sky.draw_catalog(solvers.base_catalog.brighter_than(float(self.panel.mag.value)))
         self._wire()
+        self.panel.back.visible = initial is not None
         self.worker = Worker(self._show_exception)
         self._ticker = threading.Thread(target=self._tick, name="skyview-viewer-ticker", daemon=True)
         self._ticker.start()
