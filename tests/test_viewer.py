@@ -243,6 +243,28 @@ def test_step_slider_changes_the_candidates(session):
     FIGURES["server_step_update_ms_median"] = round(float(np.median(times[1:])), 2)
 
 
+def test_play_runs_through_the_steps_and_pause_stops(session, monkeypatch):
+    import skyview.viewer.session as session_mod
+
+    server, s = session
+    monkeypatch.setattr(session_mod, "PLAY_INTERVAL_S", 0.05)
+    n = len(s.run.drawables)
+    s.panel.step.value = n - 1
+    s.toggle_play()  # from the last step, Play starts again at the first
+    assert s.panel.play.label == "Pause"
+    deadline = time.monotonic() + 10
+    while s._playing and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert s.step_index == n - 1 and s.panel.play.label == "Play the steps"
+    monkeypatch.setattr(session_mod, "PLAY_INTERVAL_S", 5.0)
+    s.toggle_play()
+    time.sleep(0.2)
+    assert s.step_index == 0
+    s.toggle_play()  # pause
+    time.sleep(0.1)
+    assert not s._playing and s.panel.play.label == "Play the steps"
+
+
 def test_bad_input_in_the_ui_shows_an_error_and_the_server_keeps_running(session):
     server, s = session
     s.panel.method.value = "no-such-method"  # what a crafted message could set

@@ -59,6 +59,7 @@ class Session:
         self._closed = False
         self._mute = False  # programmatic control changes do not trigger solves
         self._playing = False
+        self._play_id = 0
         self._panel_base: np.ndarray | None = None
         self._camera_pending: tuple[str, np.ndarray] | None = None
         self._view_applied: tuple | None = None
@@ -369,16 +370,21 @@ class Session:
         if run is None or not run.drawables:
             return
         self._playing = True
+        self._play_id += 1
+        me = self._play_id  # a Pause then Play starts a new player; the old one stops at its next tick
         self.panel.play.label = "Pause"
         start = 0 if self.step_index is None or self.step_index >= len(run.drawables) - 1 else self.step_index + 1
 
+        def playing() -> bool:
+            return self._playing and self._play_id == me and self.run is run and not self._closed
+
         def play():
             k = start
-            while self._playing and self.run is run and k < len(run.drawables) and not self._closed:
+            while playing() and k < len(run.drawables):
                 self.panel.step.value = k  # fires set_step
                 k += 1
                 time.sleep(PLAY_INTERVAL_S)
-            if self.run is run:
+            if self._play_id == me and self.run is run:
                 self._playing = False
                 self.panel.play.label = "Play the steps"
 
