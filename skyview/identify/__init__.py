@@ -15,10 +15,12 @@ from skyview.errors import BadInput
 from skyview.identify.angle import AngleMethod
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
+from skyview.identify.genetic import GeneticMethod
 from skyview.identify.svd import SVDMethod
 
 METHODS: dict[str, type[Identifier]] = {
     "angle": AngleMethod,
+    "genetic": GeneticMethod,
     "svd": SVDMethod,
 }
 

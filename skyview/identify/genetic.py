@@ -1,0 +1,1011 @@
+"""Genetic-algorithm star pattern recognition (Paladugu, Williams & Schoen), taken to the real sky.
+
+The paper. A chromosome is a candidate bore-sight position on the star map. Its fitness is the cost
+of eq. 3: the distances R_k from the candidate position to the m stars nearest to it (m = 15-20;
+only the m closest when the FOV holds more, zeros added at the BEGINNING of the vector when it holds
+fewer), sorted nearest first into D_i, against the same vector D_a of the image (distances from the
+image centre): C_i = sum_k |D_a[k] - D_i[k]|. A first GA (300 random chromosomes, 150 kept as the
+steady-state population, 80 survive each generation, the rest are offspring of rank-weighted pairs,
+6 % of the genes mutate) runs until its best cost is <= delta_1 = 3.0; a second, "spiral" GA (100 /
+50 / 30) searches a square of +-Delta around the best chromosome until its best cost is <= delta_2
+(the paper's example: delta_2 = 1.0 with Delta = 2.40075 = 1.1 x the first GA's best cost 2.1825,
+so Delta = box_factor x previous best cost, box_factor = 1.1); the statistics of the paper use
+0.001882, taken here as a third spiral level: deltas = (3.0, 1.0, 0.001882). A last GA (120 / 60 /
+30) finds the roll phi: the angles theta_k of the same stars (counter-clockwise from the x axis)
+must differ from the image's by one constant, eq. 4: C_i = sum_k |theta_a[k] + phi - theta_i[k]|
+(differences wrapped to (-pi, pi]). A stage that does not converge within max_generations = 600
+generations restarts the whole search with new chromosomes. The GA is Haupt & Haupt's continuous GA
+(the paper's reference 3): rank-weighted pairing, one crossover gene blended with a random beta and
+the genes after it swapped, mutation replacing random genes of all but the best chromosome with
+random values. `skyview.identify.genetic_map` reproduces the paper on its own synthetic map.
+
+The real sky (the paper's future work). Stage 1 chromosomes are (RA, Dec) boresights over the whole
+sphere (Dec sampled uniformly in sin Dec, so the population is uniform on the sky). The image side
+of eq. 3 is the observed stars within the circle inscribed in the sensor (radius r_c, roll-free, as
+the paper's distance vector must be), at most m of them, nearest first: their angles from the
+camera axis +z. The catalog side is, for every chromosome, the same number of catalog stars nearest
+to it within r_c grown by 3 sigma sqrt(2) (a star on the edge may fall on either side with noise),
+found for the whole population at once with one cKDTree query (the catalog's tree on unit vectors:
+chord distances, converted to angles on the sphere). The spiral stages search a square of +-Delta in
+the gnomonic (tangent) plane around the previous best position (genes xi, eta: a true square on the
+sky, even at the poles). The roll GA compares position angles in the tangent plane: theta_a = atan2
+(y, x) of the camera-frame direction, theta_i = atan2(north, east) of the catalog star at the found
+boresight, and theta_i = theta_a + phi gives the attitude (x = cos phi east + sin phi north,
+y = boresight x x). Stars are paired in distance order as in eq. 4; two stars whose distances agree
+within the noise may be in either order, so a star's term is the smaller of the two pairings.
+
+Thresholds on the sky. The paper's deltas are in map units for a 25-unit FOV (delta_fov); on the sky
+they scale with the FOV (delta x fov / 25: 3.0 -> 0.96 deg for an 8 deg FOV) and never go below the
+noise floor, the sum of n half-normal distance errors: sigma (n sqrt(2/pi) + 4 sqrt(n (1 - 2/pi))).
+The roll GA converges when its cost is below sum_k min(pi, (3 sqrt(2) sigma + eps_b) / R_k) with
+eps_b = 3 C / n from the final position cost C (the angle error of a star at R_k from a position
+error eps_b and noise).
+
+Magnitude pre-filter (the paper's proposal): a chromosome whose nearest catalog star is not within
+mag_tolerance = 1 magnitude of the observed star nearest the boresight gets no cost (infinite).
+Instrument brightness is used as relative magnitude only: both sides are taken relative to the
+brightest star of their own circle. mag_tolerance=None switches it off.
+
+Verification (the identifier contract). The GA's answer (boresight + roll) is refined with the
+paired stars (SVD, outliers dropped), every observed star is matched to the catalog within the
+match radius, and the two brightest matched stars form the hypothesis sent to the shared
+verification, which tests every other observed star. The number of hypotheses of the verification
+statistic is the number of oriented catalog pairs whose separation agrees with that pair's within
+2 r (r the match radius): whatever way the GA chose its answer, it is one of those, so the union
+bound over them covers the selection. It accumulates over restarts. A restart also follows a
+rejected answer; after max_restarts the frame is inconclusive: a failure is better than a mismatch.
+The database of the method is those catalog pair separations, sorted (cached on disk).
+
+Speed. A generation evaluates only its new chromosomes (offspring and mutated ones), all at once:
+one cKDTree query for the population, numpy for the rest. workers=2 runs two restarts at a time in
+forked processes; attempts are verified in restart order with per-restart seeds, so the answer is
+the same as with workers=1.
+
+Step record. One step per generation (kind "generation"): numbers best_cost, threshold, stage,
+generation, evaluations, box_half_width_deg; extra["population"] is the population as (P, 3) ICRS
+unit vectors (float32) — for the roll GA the direction of image-up at half the circle radius from
+the boresight, one per roll chromosome, with extra["roll_rad"] the rolls (skyview's convention);
+extra["box"] the search box: {"kind": "sky" | "square" | "roll", "center", "half_width_rad",
+"corners" ((4, 3) ICRS, square only)}. Steps "converged", "restart", "answer" and "verify" mark the
+stages.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import time
+import zlib
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from skyview.attitude import RAD_TO_ARCSEC, east_north, radec_roll_from_R, svd_attitude
+from skyview.camera import Camera
+from skyview.catalog import GuideCatalog, chord, radec_to_vec, vec_to_radec
+from skyview.errors import BadInput
+from skyview.identify import database
+from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
+                                   Step)
+from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_one_to_one,
+                                     match_radius, verify)
+
+# ------------------------------------------------------------------ the paper's parameters
+PAPER_M = 20  # stars in the distance vector (the paper: m = 15 to 20; its example uses 20)
+PAPER_FIRST = (300, 150, 80)  # first GA: initial, steady-state population, survivors
+PAPER_SPIRAL = (100, 50, 30)  # second ("spiral") GA
+PAPER_ROLL = (120, 60, 30)  # roll-angle GA
+PAPER_MUTATION_RATE = 0.06
+PAPER_MAX_GENERATIONS = 600
+PAPER_DELTAS = (3.0, 1.0, 0.001882)  # convergence costs, map units
+PAPER_FOV = 25.0  # the map FOV the deltas are given for (units)
+PAPER_BOX_FACTOR = 1.1  # Delta = 1.1 x previous best cost (2.40075 = 1.1 x 2.1825 in the paper)
+PAPER_MAG_TOLERANCE = 1.0  # the pre-filter's +-1 magnitude
+
+# Options beyond the paper (variant "improved"): the first GA starts from 60,000 chromosomes placed at
+# the observed nearest-star distance from random catalog stars ("rings") instead of 300 uniform ones,
+# and a stage whose best cost has not improved for 60 generations restarts at once instead of waiting
+# for generation 600.
+IMPROVED_PARAMS = {"seeding": "rings", "initial": 60_000, "stall_generations": 60, "max_restarts": 30}
+SEEDINGS = ("uniform", "rings")
+DATABASE_VERSION = 1
+HALF_NORMAL_MEAN = math.sqrt(2.0 / math.pi)
+HALF_NORMAL_SD = math.sqrt(1.0 - 2.0 / math.pi)
+
+
+# ================================================================== the continuous GA (Haupt & Haupt)
+
+@dataclass(frozen=True)
+class Sizes:
+    """Population sizes of one GA: initial random chromosomes, steady-state population, survivors."""
+
+    initial: int
+    population: int
+    survivors: int
+
+    def __post_init__(self):
+        if not (2 <= self.survivors < self.population <= self.initial):
+            raise BadInput(f"GA sizes need 2 <= survivors < population <= initial, got {self.initial} / "
+                           f"{self.population} / {self.survivors}")
+
+
+@dataclass(frozen=True)
+class GeneSpace:
+    """Where the genes live: a box [lo, hi] per gene; periodic genes wrap (RA, roll); `sine` genes are
+    latitudes sampled uniformly in sin (uniform on the sphere)."""
+
+    lo: tuple[float, ...]
+    hi: tuple[float, ...]
+    periodic: tuple[bool, ...] = ()
+    sine: tuple[bool, ...] = ()
+
+    @property
+    def d(self) -> int:
+        return len(self.lo)
+
+    def _flag(self, flags, j) -> bool:
+        return bool(flags[j]) if len(flags) > j else False
+
+    def sample_gene(self, j: int, n: int, rng: np.random.Generator) -> np.ndarray:
+        lo, hi = self.lo[j], self.hi[j]
+        if self._flag(self.sine, j):
+            return np.arcsin(rng.uniform(np.sin(lo), np.sin(hi), size=n))
+        return rng.uniform(lo, hi, size=n)
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        return np.stack([self.sample_gene(j, n, rng) for j in range(self.d)], axis=1)
+
+    def blend(self, a: np.ndarray, b: np.ndarray, beta: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """a - beta (a - b) for gene j of each pair (the shorter way round for periodic genes)."""
+        diff = a - b
+        if not any(self.periodic):
+            return a - beta * diff
+        per = np.array([self._flag(self.periodic, k) for k in range(self.d)])[j]
+        lo = np.asarray(self.lo)[j]
+        span = (np.asarray(self.hi) - np.asarray(self.lo))[j]
+        diff = np.where(per, (diff + span / 2) % span - span / 2, diff)
+        out = a - beta * diff
+        return np.where(per, lo + (out - lo) % span, out)
+
+
+@dataclass
+class GAResult:
+    genes: np.ndarray  # the best chromosome
+    cost: float
+    converged: bool
+    generations: int
+    evaluations: int
+    history: list[float]  # best cost after the initial population (index 0) and each generation
+    population: np.ndarray  # final population, best first
+    costs: np.ndarray
+    stalled: bool = False
+
+
+def run_ga(cost: Callable[[np.ndarray], np.ndarray], space: GeneSpace, sizes: Sizes, rng: np.random.Generator, *,
+           mutation_rate: float, threshold: float, max_generations: int, stall_generations: int | None = None,
+           initial: np.ndarray | None = None, stop: Callable[[], bool] | None = None,
+           on_generation: Callable[[int, np.ndarray, np.ndarray, int], None] | None = None) -> GAResult:
+    """Minimise `cost` (population (P, d) -> (P,)) with Haupt & Haupt's continuous GA.
+
+    The initial `sizes.initial` random chromosomes (or the given `initial` ones) are evaluated and the
+    best `sizes.population` kept. Each generation the best `sizes.survivors` survive; the rest of the
+    population are offspring of pairs drawn by rank weighting (P_n = (N_keep - n + 1) / sum); a
+    pair's crossover gene is blended with a random beta and the genes after it are swapped; then
+    ceil(mutation_rate x (population - 1) x genes) genes of all but the best chromosome (drawn with
+    replacement, as Haupt's code) are replaced by random values. Only new or changed chromosomes are
+    evaluated. Converged when the best cost is <= threshold (checked after the initial population and
+    after every generation). stall_generations: give up when the best cost has not improved for that
+    many generations. stop(): checked every generation, True abandons the run (not converged).
+    on_generation(g, population, costs, evaluations) sees every generation, best first.
+    """
+    d = space.d
+    pop = space.sample(sizes.initial, rng) if initial is None else np.asarray(initial, dtype=np.float64)
+    c = np.asarray(cost(pop), dtype=np.float64)
+    evaluations = len(pop)
+    order = np.argsort(c, kind="stable")[:sizes.population]
+    pop, c = pop[order], c[order]
+    history = [float(c[0])]
+    if on_generation is not None:
+        on_generation(0, pop, c, evaluations)
+    keep = sizes.survivors
+    n_off = sizes.population - keep
+    n_pairs = (n_off + 1) // 2
+    ranks = np.arange(1, keep + 1)
+    cdf = np.cumsum((keep - ranks + 1) / np.sum(ranks))
+    cdf[-1] = 1.0
+    n_mut = int(math.ceil(mutation_rate * (sizes.population - 1) * d))
+    rows = np.arange(n_pairs)
+    gene_index = np.arange(d)[None, :]
+    gen = 0
+    best_at = 0
+    stalled = False
+    while c[0] > threshold and gen < max_generations:
+        if stall_generations is not None and gen - best_at >= stall_generations:
+            stalled = True
+            break
+        if stop is not None and stop():
+            break
+        gen += 1
+        u = rng.random((2, n_pairs))
+        mom, dad = pop[np.searchsorted(cdf, u[0])], pop[np.searchsorted(cdf, u[1])]
+        alpha = rng.integers(0, d, size=n_pairs) if d > 1 else np.zeros(n_pairs, dtype=np.int64)
+        beta = rng.random(n_pairs)
+        after = gene_index > alpha[:, None]
+        k1 = np.where(after, dad, mom)
+        k2 = np.where(after, mom, dad)
+        ma_, da_ = mom[rows, alpha], dad[rows, alpha]
+        k1[rows, alpha] = space.blend(ma_, da_, beta, alpha)
+        k2[rows, alpha] = space.blend(da_, ma_, -beta, alpha)  # d + beta (m - d)
+        pop = np.concatenate([pop[:keep], k1, k2[:n_off - n_pairs]])
+        changed = np.zeros(sizes.population, dtype=bool)
+        changed[keep:] = True
+        if n_mut:
+            mr = rng.integers(1, sizes.population, size=n_mut)
+            mg = rng.integers(0, d, size=n_mut) if d > 1 else np.zeros(n_mut, dtype=np.int64)
+            for j in range(d):
+                sel = mr[mg == j]
+                if len(sel):
+                    pop[sel, j] = space.sample_gene(j, len(sel), rng)
+            changed[mr] = True
+        todo = np.flatnonzero(changed)
+        c = c.copy()
+        c[todo] = cost(pop[todo])
+        evaluations += len(todo)
+        order = np.argsort(c, kind="stable")
+        pop, c = pop[order], c[order]
+        if c[0] < history[-1]:
+            best_at = gen
+        history.append(float(c[0]))
+        if on_generation is not None:
+            on_generation(gen, pop, c, evaluations)
+    return GAResult(genes=pop[0].copy(), cost=float(c[0]), converged=bool(c[0] <= threshold), generations=gen,
+                    evaluations=evaluations, history=history, population=pop, costs=c, stalled=stalled)
+
+
+# ================================================================== the costs (eq. 3 and eq. 4)
+
+def distance_vector(R: np.ndarray, m: int) -> np.ndarray:
+    """The paper's distance vector(s): the m smallest distances, sorted, zeros added at the beginning.
+
+    R: (..., k) distances with inf (or nan) for "no star". Returns (..., m).
+    """
+    R = np.asarray(R, dtype=np.float64)
+    R = np.where(np.isfinite(R), R, np.inf)
+    k = R.shape[-1]
+    if k > m:
+        R = np.sort(R, axis=-1)[..., :m]
+    elif k < m:
+        R = np.concatenate([R, np.full(R.shape[:-1] + (m - k,), np.inf)], axis=-1)
+    return np.sort(np.where(np.isinf(R), 0.0, R), axis=-1)
+
+
+def distance_cost(D_a: np.ndarray, D_i: np.ndarray) -> np.ndarray:
+    """Eq. 3: sum_k |D_a[k] - D_i[k]| for each candidate row of D_i."""
+    return np.sum(np.abs(np.asarray(D_i) - np.asarray(D_a)), axis=-1)
+
+
+def wrap_angle(x: np.ndarray) -> np.ndarray:
+    """Angles wrapped into (-pi, pi]."""
+    return np.pi - (np.pi - np.asarray(x)) % (2.0 * np.pi)
+
+
+def angle_partners(D_a: np.ndarray, D_i: np.ndarray, tol: float = 0.0) -> np.ndarray:
+    """Which candidate stars each image star may pair with in eq. 4, (m, J) indices (-1 = none).
+
+    D_a, D_i: distance vectors (zero-padded at the beginning). Star k of the image pairs with star k
+    of the candidate (the paper's order); when tol > 0 also with every candidate star whose distance
+    agrees within tol (two stars at nearly the same distance may swap places with noise). Padded
+    (zero) entries have no partner.
+    """
+    D_a, D_i = np.asarray(D_a, dtype=np.float64), np.asarray(D_i, dtype=np.float64)
+    m = len(D_a)
+    real_a, real_i = D_a > 0, D_i > 0
+    cols = []
+    for k in range(m):
+        if not real_a[k]:
+            cols.append([])
+            continue
+        js = {k} if real_i[k] else set()
+        if tol > 0:
+            js |= set(np.flatnonzero(real_i & (np.abs(D_i - D_a[k]) <= tol)).tolist())
+        cols.append(sorted(js))
+    J = max(1, max(len(c) for c in cols))
+    out = -np.ones((m, J), dtype=np.int64)
+    for k, js in enumerate(cols):
+        out[k, :len(js)] = js
+    return out
+
+
+def angle_cost(theta_a: np.ndarray, theta_i: np.ndarray, phi: np.ndarray, partners: np.ndarray | None = None
+               ) -> np.ndarray:
+    """Eq. 4 for each roll phi: sum_k |theta_a[k] + phi - theta_i[k]| (differences wrapped).
+
+    theta_a, theta_i: (m,) angles in distance order (entries without a partner are ignored). With
+    partners (angle_partners) a star's term is its best pairing; a star with no partner adds pi.
+    """
+    theta_a = np.asarray(theta_a, dtype=np.float64)
+    theta_i = np.asarray(theta_i, dtype=np.float64)
+    phi = np.atleast_1d(np.asarray(phi, dtype=np.float64))
+    if partners is None:
+        partners = np.arange(len(theta_a))[:, None]
+    has = partners >= 0
+    ti = theta_i[np.clip(partners, 0, None)]  # (m, J)
+    diff = np.abs(wrap_angle(theta_a[None, :, None] + phi[:, None, None] - ti[None]))  # (P, m, J)
+    diff = np.where(has[None], diff, np.inf)
+    term = diff.min(axis=2)
+    used = has.any(axis=1)
+    term = np.where(used[None], term, 0.0)
+    return term.sum(axis=1)
+
+
+def noise_floor(n: int, sigma: float) -> float:
+    """Mean + 4 sd of the eq. 3 cost at the truth: n half-normal distance errors of sigma."""
+    return float(sigma * (n * HALF_NORMAL_MEAN + 4.0 * math.sqrt(n) * HALF_NORMAL_SD))
+
+
+def roll_threshold(R_a: np.ndarray, sigma: float, position_cost: float) -> float:
+    """Convergence cost of the roll GA: sum_k min(pi, (3 sqrt(2) sigma + eps_b) / R_k), eps_b = 3 C / n."""
+    R_a = np.asarray(R_a, dtype=np.float64)
+    R_a = R_a[R_a > 0]
+    if len(R_a) == 0:
+        return 0.0
+    eps_b = 3.0 * position_cost / len(R_a)
+    return float(np.sum(np.minimum(np.pi, (RADIUS_SIGMAS * sigma + eps_b) / R_a)))
+
+
+# ================================================================== geometry on the sky
+
+def tangent_basis(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(east, north) at unit vector b (skyview's convention)."""
+    return east_north(b)
+
+
+def box_vectors(center: np.ndarray, xi: np.ndarray, eta: np.ndarray,
+                basis: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Unit vectors at gnomonic offsets (xi east, eta north) around `center`."""
+    e, n = tangent_basis(center) if basis is None else basis
+    v = center[None, :] + np.asarray(xi)[:, None] * e[None, :] + np.asarray(eta)[:, None] * n[None, :]
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def attitude_from_phi(b: np.ndarray, phi: float) -> np.ndarray:
+    """R (v_cam = R v_icrs) with boresight b and theta_catalog = theta_image + phi."""
+    e, n = tangent_basis(b)
+    x = np.cos(phi) * e + np.sin(phi) * n
+    y = np.cross(b, x)
+    return np.stack([x, y, b])
+
+
+def position_angles(vectors: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Position angles atan2(north, east) of ICRS vectors around b."""
+    e, n = tangent_basis(b)
+    return np.arctan2(vectors @ n, vectors @ e)
+
+
+def ring_seeds(catalog_xyz: np.ndarray, radius: float, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n directions, each at `radius` from a random catalog star in a random direction."""
+    c = catalog_xyz[rng.integers(0, len(catalog_xyz), size=n)]
+    e = np.stack([-c[:, 1], c[:, 0], np.zeros(n)], axis=1)
+    norm = np.linalg.norm(e, axis=1, keepdims=True)
+    e = np.where(norm > 1e-9, e / np.maximum(norm, 1e-300), np.array([1.0, 0.0, 0.0]))
+    nn = np.cross(c, e)
+    psi = rng.uniform(0.0, 2.0 * np.pi, size=n)
+    v = np.cos(radius) * c + np.sin(radius) * (np.cos(psi)[:, None] * e + np.sin(psi)[:, None] * nn)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _corners(center: np.ndarray, half: float) -> np.ndarray:
+    s = np.array([-1.0, 1.0, 1.0, -1.0]) * half
+    t = np.array([-1.0, -1.0, 1.0, 1.0]) * half
+    return box_vectors(center, s, t)
+
+
+def inscribed_radius(camera: Camera) -> float:
+    """Angle from the boresight to the nearest sensor edge (the circle inside the image)."""
+    mid = np.array([[-0.5, camera.cy], [camera.width - 0.5, camera.cy], [camera.cx, -0.5],
+                    [camera.cx, camera.height - 0.5]])
+    return float(np.min(np.arccos(np.clip(camera.unproject(mid)[:, 2], -1.0, 1.0))))
+
+
+# ================================================================== the sky problem of one frame
+
+def brightness_cut(stars: np.ndarray, m_inst: np.ndarray, min_stars: int) -> tuple[np.ndarray, float]:
+    """Of observed `stars` (a brightness-limited set: the pipeline passes the brightest centroids), the
+    ones brighter than the widest gap in instrument magnitude among the fainter half (at least
+    min_stars kept), and that cut relative to the brightest (magnitudes)."""
+    o = stars[np.argsort(m_inst[stars], kind="stable")]
+    mags = m_inst[o]
+    lo = max(min_stars, (len(o) + 1) // 2)
+    gaps = np.diff(mags)[lo - 1:]  # gap after the k-th brightest, k = lo .. len - 1
+    k = lo + int(np.argmax(gaps))
+    return np.sort(o[:k]), float(0.5 * (mags[k - 1] + mags[k]) - mags[0])
+
+
+class SkyField:
+    """What eq. 3 and 4 need from one frame, and the population cost on the sphere.
+
+    Image side: the N observed stars within r_circle of the camera axis. When the observation may
+    have been cut at some brightness (complete=False: the pipeline passes the brightest centroids
+    only; a real sensor also sees stars below the catalog's limit), only the stars brighter than the
+    widest magnitude gap of the fainter half are used (brightness_cut), and the catalog side applies
+    the same cut relative to its own brightest star: a cut in a gap survives magnitude errors. Their
+    m nearest (n = min(m, N)) give the distances D_a, nearest first, the position angles theta_a and
+    (pre-filter) the relative magnitude of the nearest star against the brightest of the N. Catalog
+    side, for every chromosome: the n nearest catalog stars within r_catalog of it (after the cut),
+    zero-padded at the beginning when fewer. k_max: the most catalog stars any circle of r_catalog
+    holds (rows that reach it are completed one by one).
+    """
+
+    def __init__(self, catalog: GuideCatalog, V: np.ndarray, brightness: np.ndarray, r_circle: float,
+                 r_catalog: float, m: int, mag_tolerance: float | None, k_max: int, complete: bool = True,
+                 min_stars: int = 3):
+        self.catalog = catalog
+        self.r_circle, self.r_catalog = float(r_circle), float(r_catalog)
+        ang = np.arccos(np.clip(V[:, 2], -1.0, 1.0)) if len(V) else np.zeros(0)
+        inside = np.flatnonzero(ang <= r_circle)
+        b = np.asarray(brightness, dtype=np.float64)
+        m_inst = -2.5 * np.log10(np.where(np.isfinite(b) & (b > 0), b, np.nan)) if len(b) else b
+        self.cut_rel_mag = None
+        if not complete and len(inside) > min_stars and np.all(np.isfinite(m_inst[inside])):
+            inside, self.cut_rel_mag = brightness_cut(inside, m_inst, min_stars)
+        self.n_circle = len(inside)
+        order = inside[np.argsort(ang[inside], kind="stable")][:m]
+        self.obs_index = order  # observed star of each entry, nearest first
+        self.n = len(order)
+        self.R_a = ang[order]
+        self.D_a = self.R_a.copy()  # the image's own n entries (no padding needed)
+        self.theta_a = np.arctan2(V[order, 1], V[order, 0]) if self.n else np.zeros(0)
+        self.chord_catalog = float(chord(r_catalog))
+        self.complete = self.cut_rel_mag is None
+        if self.complete:  # the paper's rule: the n nearest
+            self.k_max = self.k_first = max(self.n, 1)
+        else:  # every star of the circle is needed to apply the cut
+            expected = len(catalog) / (4.0 * np.pi) * 2.0 * np.pi * (1.0 - np.cos(r_catalog))
+            self.k_max = max(int(k_max), self.n_circle + 1)
+            self.k_first = min(self.k_max, max(self.n_circle + 8, int(np.ceil(1.5 * expected)) + 10))
+        self.mag_tolerance = mag_tolerance
+        self.rel_mag_a = None
+        if mag_tolerance is not None and self.n and np.all(np.isfinite(m_inst[inside])):
+            self.rel_mag_a = float(m_inst[order[0]] - m_inst[inside].min())
+        self.cat_mag = catalog.mag.astype(np.float64)
+
+    def _query(self, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        tree = self.catalog.tree
+        d, idx = tree.query(B, k=self.k_first, distance_upper_bound=self.chord_catalog)
+        d, idx = d.reshape(len(B), -1), idx.reshape(len(B), -1)
+        if self.complete:
+            return d, idx
+        full = np.flatnonzero(np.isfinite(d[:, -1]))
+        if len(full) and self.k_first < self.k_max:
+            d2, i2 = tree.query(B[full], k=self.k_max, distance_upper_bound=self.chord_catalog)
+            d2, i2 = d2.reshape(len(full), -1), i2.reshape(len(full), -1)
+            pad = self.k_max - self.k_first
+            d = np.concatenate([d, np.full((len(B), pad), np.inf)], axis=1)
+            idx = np.concatenate([idx, np.full((len(B), pad), len(self.catalog))], axis=1)
+            d[full], idx[full] = d2, i2
+            full = full[np.isfinite(d2[:, -1])]
+        for r in full:  # more stars than k_max: take them all
+            near = np.asarray(tree.query_ball_point(B[r], self.chord_catalog), dtype=np.int64)
+            dd = np.linalg.norm(self.catalog.xyz[near] - B[r], axis=1)
+            o = np.argsort(dd)
+            if len(o) > d.shape[1]:
+                pad = len(o) - d.shape[1]
+                d = np.concatenate([d, np.full((len(B), pad), np.inf)], axis=1)
+                idx = np.concatenate([idx, np.full((len(B), pad), len(self.catalog))], axis=1)
+            d[r, :len(o)], idx[r, :len(o)] = dd[o], near[o]
+        return d, idx
+
+    def neighbours(self, B: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For chromosomes B (P, 3): (P, n) angles (inf: none) and catalog rows (-1) of the stars that make
+        D_i, nearest first, and the magnitude of the brightest catalog star within r_catalog.
+
+        Complete image: the n nearest catalog stars (the paper's rule). Cut image: the n nearest of
+        the catalog stars within the same relative magnitude of the brightest as the image's cut."""
+        B = np.atleast_2d(B)
+        d, idx = self._query(B)
+        found = np.isfinite(d)
+        mags = np.where(found, self.cat_mag[np.where(found, idx, 0)], np.inf)
+        brightest = mags.min(axis=1)
+        if not self.complete:
+            keep = found & (mags <= brightest[:, None] + self.cut_rel_mag)
+            d = np.where(keep, d, np.inf)
+            o = np.argsort(d, axis=1, kind="stable")[:, :self.n]
+            d, idx = np.take_along_axis(d, o, axis=1), np.take_along_axis(idx, o, axis=1)
+            found = np.isfinite(d)
+        ang = np.where(found, 2.0 * np.arcsin(np.clip(np.where(found, d, 0.0) / 2.0, 0.0, 1.0)), np.inf)
+        return ang, np.where(found, idx, -1), brightest
+
+    def cost(self, B: np.ndarray) -> np.ndarray:
+        """Eq. 3 for chromosomes B (P, 3): sum |D_a - D_i| over the n entries (+ the pre-filter)."""
+        ang, idx, brightest = self.neighbours(B)
+        c = distance_cost(self.D_a, distance_vector(ang, self.n))
+        if self.rel_mag_a is not None:
+            near = idx[:, 0] >= 0
+            rel = np.where(near, self.cat_mag[np.clip(idx[:, 0], 0, None)] - np.where(near, brightest, 0.0), np.inf)
+            c = np.where(np.abs(rel - self.rel_mag_a) <= self.mag_tolerance, c, np.inf)
+        return c
+
+
+# ================================================================== the database: pair separations
+
+def build_pair_separations(catalog: GuideCatalog, max_sep_rad: float) -> dict[str, np.ndarray]:
+    pairs = catalog.pairs_within(max_sep_rad)
+    sep = angular_distance(catalog.xyz[pairs[:, 0]], catalog.xyz[pairs[:, 1]])
+    return {"separations": np.sort(sep[sep <= max_sep_rad])}
+
+
+# ================================================================== the identifier
+
+@dataclass
+class _Attempt:
+    """One run of the search (stage 1, spiral stages, roll) and its answer."""
+
+    index: int
+    steps: list[Step] = field(default_factory=list)
+    outcome: str = ""  # "answer" or the stage that did not converge
+    reason: str = ""
+    b: np.ndarray | None = None
+    phi: float | None = None
+    R: np.ndarray | None = None
+    matches: dict[int, int] = field(default_factory=dict)  # the GA's answer (observed -> catalog row)
+    generations: list[int] = field(default_factory=list)
+    evaluations: int = 0
+    costs: list[float] = field(default_factory=list)
+    time_s: float = 0.0
+
+
+class GeneticMethod(Identifier):
+    """Paladugu, Williams & Schoen's spiral GA on the celestial sphere, ending in the shared verification."""
+
+    name = "genetic"
+    improved_params = IMPROVED_PARAMS
+
+    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *, m: int = PAPER_M,
+                 initial: int = PAPER_FIRST[0], population: int = PAPER_FIRST[1], survivors: int = PAPER_FIRST[2],
+                 spiral_initial: int = PAPER_SPIRAL[0], spiral_population: int = PAPER_SPIRAL[1],
+                 spiral_survivors: int = PAPER_SPIRAL[2], roll_initial: int = PAPER_ROLL[0],
+                 roll_population: int = PAPER_ROLL[1], roll_survivors: int = PAPER_ROLL[2],
+                 mutation_rate: float = PAPER_MUTATION_RATE, max_generations: int = PAPER_MAX_GENERATIONS,
+                 deltas: tuple[float, ...] = PAPER_DELTAS, delta_fov: float = PAPER_FOV,
+                 box_factor: float = PAPER_BOX_FACTOR, mag_tolerance: float | None = PAPER_MAG_TOLERANCE,
+                 max_restarts: int = 20, stall_generations: int | None = None, seeding: str = "uniform",
+                 min_stars: int = 3, complete_below: int = 40,
+                 seed: int = 0, workers: int = 1, statistic: str = CALIBRATED, threshold: float | None = None,
+                 radius_sigmas: float = RADIUS_SIGMAS):
+        if not (np.isfinite(sigma_rad) and sigma_rad > 0):
+            raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
+        if int(m) < 2:
+            raise BadInput("m (stars in the distance vector) must be at least 2")
+        if not (0.0 <= float(mutation_rate) <= 1.0):
+            raise BadInput("mutation_rate must be in [0, 1]")
+        if int(max_generations) < 1:
+            raise BadInput("max_generations must be at least 1")
+        deltas = tuple(float(x) for x in deltas)
+        if not deltas or any(not (np.isfinite(x) and x > 0) for x in deltas):
+            raise BadInput("deltas must be one or more positive convergence costs")
+        if not (np.isfinite(delta_fov) and delta_fov > 0):
+            raise BadInput("delta_fov must be positive")
+        if not (np.isfinite(box_factor) and box_factor > 0):
+            raise BadInput("box_factor must be positive")
+        if mag_tolerance is not None and not (np.isfinite(mag_tolerance) and mag_tolerance > 0):
+            raise BadInput("mag_tolerance must be positive or None (no magnitude pre-filter)")
+        if int(max_restarts) < 0:
+            raise BadInput("max_restarts must be >= 0")
+        if stall_generations is not None and int(stall_generations) < 1:
+            raise BadInput("stall_generations must be >= 1 or None")
+        if seeding not in SEEDINGS:
+            raise BadInput(f"unknown seeding {seeding!r}: choose from {', '.join(SEEDINGS)}")
+        if int(complete_below) < 1:
+            raise BadInput("complete_below must be at least 1")
+        if int(min_stars) < 2:
+            raise BadInput("min_stars must be at least 2")
+        if int(workers) not in (1, 2):
+            raise BadInput("workers must be 1 or 2")
+        if statistic not in STATISTICS:
+            raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
+        if threshold is not None and not (0 < float(threshold) <= 1):
+            raise BadInput("threshold must be in (0, 1]")
+        if not (np.isfinite(radius_sigmas) and radius_sigmas > 0):
+            raise BadInput("radius_sigmas must be positive")
+        self.first = Sizes(int(initial), int(population), int(survivors))
+        self.spiral = Sizes(int(spiral_initial), int(spiral_population), int(spiral_survivors))
+        self.roll = Sizes(int(roll_initial), int(roll_population), int(roll_survivors))
+        self.catalog = catalog
+        self.camera = camera
+        self.sigma_rad = float(sigma_rad)
+        self.m = int(m)
+        self.mutation_rate = float(mutation_rate)
+        self.max_generations = int(max_generations)
+        self.deltas = deltas
+        self.delta_fov = float(delta_fov)
+        self.box_factor = float(box_factor)
+        self.mag_tolerance = None if mag_tolerance is None else float(mag_tolerance)
+        self.max_restarts = int(max_restarts)
+        self.stall_generations = None if stall_generations is None else int(stall_generations)
+        self.seeding = seeding
+        self.min_stars = int(min_stars)
+        self.complete_below = int(complete_below)
+        self.seed = int(seed)
+        self.workers = int(workers)
+        self.statistic = statistic
+        self.threshold = threshold
+        self.radius_sigmas = float(radius_sigmas)
+        self.r_circle = inscribed_radius(camera)
+        self.fov_rad = float(np.radians(camera.fov_deg))
+        self.max_sep_rad = 2.0 * camera.half_diagonal_rad
+        # the most catalog stars a circle around a chromosome may hold (a little wider than r_circle)
+        self.k_max = int(catalog.tree.query_ball_point(catalog.xyz, float(chord(1.1 * self.r_circle + 0.005)),
+                                                       return_length=True).max()) + 1 if len(catalog) else 1
+        self._pool: tuple[ProcessPoolExecutor, object] | None = None
+        self._stop: Callable[[], bool] | None = None  # set in worker processes
+
+        params = {"max_sep_rad": self.max_sep_rad, "version": DATABASE_VERSION}
+        self.database_key = database.make_key(self.name, params, catalog, camera)
+        arrays, info = database.load_or_build(self.database_key,
+                                              lambda: build_pair_separations(catalog, self.max_sep_rad))
+        self.separations = arrays["separations"]
+        info.update(pairs=len(self.separations), catalog_stars=len(catalog),
+                    max_sep_deg=float(np.degrees(self.max_sep_rad)),
+                    circle_radius_deg=float(np.degrees(self.r_circle)))
+        self.database_info = info
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_pool"] = None
+        return state
+
+    def close(self) -> None:
+        """Stop the worker processes (workers=2)."""
+        if self._pool is not None:
+            self._pool[0].shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown
+            pass
+
+    # ------------------------------------------------------------------ helpers
+    def pair_hypotheses(self, sep_rad: float, radius_rad: float) -> int:
+        """Oriented catalog pairs whose separation is within 2 r of sep_rad (the hypotheses a pair stands for)."""
+        lo = np.searchsorted(self.separations, sep_rad - 2.0 * radius_rad, side="left")
+        hi = np.searchsorted(self.separations, sep_rad + 2.0 * radius_rad, side="right")
+        return int(2 * max(hi - lo, 1))
+
+    def thresholds(self, n: int, sigma: float) -> list[float]:
+        """The position GA's convergence costs on the sky for n stars: the paper's deltas (for m = 20 stars
+        in a 25-unit FOV) per star and per FOV, never below the noise floor."""
+        floor = noise_floor(n, sigma)
+        return [max(d * (n / PAPER_M) * self.fov_rad / self.delta_fov, floor) for d in self.deltas]
+
+    # ------------------------------------------------------------------ identify
+    def identify(self, obs: Observation) -> Identification:
+        t0 = time.perf_counter()
+        steps: list[Step] = []
+        n = len(obs)
+        sigma = float(obs.sigma_rad) if (obs.sigma_rad is not None and np.isfinite(obs.sigma_rad)
+                                         and obs.sigma_rad > 0) else self.sigma_rad
+        result = Identification(method=self.name, status=FAILED, matches={}, steps=steps,
+                                database_key=database.key_string(self.database_key))
+        V = np.asarray(obs.vectors, dtype=np.float64)
+        if n and (V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V))):
+            raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
+        sky = self._field(V, obs.brightness, sigma)
+        if n < 3 or sky.n < self.min_stars:
+            result.reason = (f"the genetic method needs at least {self.min_stars} stars within "
+                             f"{np.degrees(self.r_circle):.2f} deg of the centre and 3 in the image; the frame has "
+                             f"{sky.n} and {n}")
+            result.stats = {"stars": n, "stars_in_circle": sky.n_circle, "stars_in_vector": sky.n,
+                            "time_s": time.perf_counter() - t0}
+            return result
+        frame_key = zlib.crc32(np.ascontiguousarray(V).tobytes())
+        r = match_radius(sigma, self.radius_sigmas)
+        attempts: list[_Attempt] = []
+        reasons: list[str] = []
+        runs = self._attempts(V, obs.brightness, sigma, frame_key)
+        try:
+            n_hyp = self._search(runs, V, sigma, r, result, attempts, reasons)
+        finally:
+            runs.close()
+        first_answer = next((a for a in attempts if a.outcome == "answer"), None)
+        if result.status != IDENTIFIED:
+            result.status = INCONCLUSIVE
+            result.reason = (f"no verified answer in {len(attempts)} attempt(s): "
+                             + "; ".join(sorted(set(reasons), key=reasons.index)))
+        result.stats = {
+            "stars": n,
+            "stars_in_circle": sky.n_circle,
+            "stars_in_vector": sky.n,
+            "brightness_cut_mag": sky.cut_rel_mag,
+            "attempts": len(attempts),
+            "restarts": max(0, len(attempts) - 1),
+            "generations": int(sum(sum(a.generations) for a in attempts)),
+            "evaluations": int(sum(a.evaluations for a in attempts)),
+            "verifications": int(sum(1 for s in steps if s.kind == "verify")),
+            "n_hypotheses": n_hyp,
+            "thresholds_rad": self.thresholds(sky.n, sigma),
+            "first_chain": {"outcome": "answer" if first_answer is not None else "none",
+                            "matches": dict(first_answer.matches) if first_answer is not None else {}},
+            "time_s": time.perf_counter() - t0,
+        }
+        return result
+
+    def _search(self, runs, V: np.ndarray, sigma: float, r: float, result: Identification,
+                attempts: list[_Attempt], reasons: list[str]) -> int:
+        """Verify the attempts' answers in restart order until one passes; returns the hypotheses counted."""
+        steps = result.steps
+        n_hyp = 0
+        for att in runs:
+            attempts.append(att)
+            steps.extend(att.steps)
+            if att.outcome != "answer":
+                reasons.append(att.reason)
+                continue
+            hyp, n_pair = self._hypothesis(V, att.matches, r)
+            if hyp is None:
+                reasons.append("an answer matched fewer than two observed stars")
+                steps.append(Step("restart", f"attempt {att.index + 1}: the answer matched fewer than two stars",
+                                  numbers={"attempt": att.index}))
+                continue
+            n_hyp += n_pair
+            ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=n_hyp,
+                         n_patterns=len(self.separations), statistic=self.statistic, threshold=self.threshold,
+                         radius_rad=r)
+            vd = ver.to_dict()
+            shown = ver.matches or hyp
+            steps.append(Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
+                              observed=sorted(shown), catalog=[int(c) for _, c in sorted(shown.items())],
+                              numbers={k: vd[k] for k in ("n_agree", "n_tested", "p_false", "threshold_effective",
+                                                         "radius_arcsec", "n_hypotheses", "p_single")}
+                              | {"passed": float(ver.passed), "attempt": att.index, "pair_hypotheses": n_pair},
+                              extra={"hypothesis": dict(hyp)}))
+            result.verification = vd
+            if ver.passed:
+                result.status = IDENTIFIED
+                result.matches = ver.matches
+                result.R = ver.R
+                result.attitude_covariance = ver.covariance
+                result.reason = ""
+                break
+            reasons.append(f"verification failed: {ver.reason}")
+        return n_hyp
+
+    def _field(self, V: np.ndarray, brightness: np.ndarray, sigma: float) -> SkyField:
+        margin = RADIUS_SIGMAS * sigma
+        return SkyField(self.catalog, V if len(V) else np.zeros((0, 3)), np.asarray(brightness), self.r_circle,
+                        self.r_circle + margin, self.m, self.mag_tolerance, self.k_max,
+                        complete=len(V) < self.complete_below, min_stars=self.min_stars)
+
+    def _attempts(self, V, brightness, sigma, frame_key):
+        """The attempts in restart order (with workers=2 two are computed at a time in forked processes;
+        closing the generator stops the one still running)."""
+        total = self.max_restarts + 1
+        if self.workers == 1:
+            for k in range(total):
+                yield self._attempt(V, brightness, sigma, frame_key, k)
+            return
+        pool, stop_event = self._get_pool()
+        stop_event.clear()
+        futures = {}
+        nxt = 0
+        try:
+            for k in range(total):
+                while nxt < total and nxt < k + self.workers:
+                    futures[nxt] = pool.submit(_attempt_in_worker, V, brightness, sigma, frame_key, nxt)
+                    nxt += 1
+                yield futures.pop(k).result()
+        finally:
+            if futures:
+                stop_event.set()
+                for f in futures.values():
+                    if not f.cancel():
+                        f.exception()  # wait for the abandoned attempt to stop
+                stop_event.clear()
+
+    def _get_pool(self):
+        if self._pool is None:
+            ctx = multiprocessing.get_context("fork")
+            event = ctx.Event()
+            self._pool = (ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
+                                              initializer=_set_worker_method, initargs=(self, event)), event)
+        return self._pool
+
+    # ------------------------------------------------------------------ one attempt
+    def _attempt(self, V: np.ndarray, brightness: np.ndarray, sigma: float, frame_key: int, k: int) -> _Attempt:
+        t0 = time.perf_counter()
+        rng = np.random.default_rng([self.seed, frame_key, k])
+        sky = self._field(V, brightness, sigma)
+        att = _Attempt(index=k)
+        ths = self.thresholds(sky.n, sigma)
+        # stage 1: the whole sky, genes (RA, Dec)
+        space = GeneSpace(lo=(0.0, -np.pi / 2), hi=(2 * np.pi, np.pi / 2), periodic=(True, False),
+                          sine=(False, True))
+        box = {"kind": "sky", "center": None, "half_width_rad": float(np.pi), "corners": None}
+
+        def sky_cost(genes):
+            return sky.cost(radec_to_vec(genes[:, 0], genes[:, 1]))
+
+        initial = None
+        if self.seeding == "rings":
+            initial = np.stack(vec_to_radec(ring_seeds(self.catalog.xyz, float(sky.R_a[0]), self.first.initial, rng)),
+                               axis=1)
+        res = self._run(att, 1, sky_cost, space, self.first, ths[0], rng, box,
+                        lambda g: radec_to_vec(g[:, 0], g[:, 1]), initial=initial)
+        if not res.converged:
+            return self._fail(att, 1, res, ths[0], t0)
+        best = radec_to_vec(res.genes[0], res.genes[1])
+        cost = res.cost
+        # spiral stages: a square of +-Delta (gnomonic) around the best so far
+        for stage, th in enumerate(ths[1:], start=2):
+            half = self.box_factor * cost
+            center = best
+
+            basis = tangent_basis(center)
+
+            def box_cost(genes, center=center, basis=basis):
+                return sky.cost(box_vectors(center, genes[:, 0], genes[:, 1], basis))
+
+            space = GeneSpace(lo=(-half, -half), hi=(half, half))
+            box = {"kind": "square", "center": center.copy(), "half_width_rad": float(half),
+                   "corners": _corners(center, half)}
+            res = self._run(att, stage, box_cost, space, self.spiral, th, rng, box,
+                            lambda g, center=center, basis=basis: box_vectors(center, g[:, 0], g[:, 1], basis))
+            if not res.converged:
+                return self._fail(att, stage, res, th, t0)
+            best = box_vectors(center, res.genes[:1], res.genes[1:2])[0]
+            cost = res.cost
+        att.b = best
+        # roll: eq. 4 at the found position
+        ang, idx, _ = sky.neighbours(best[None, :])
+        D_i = distance_vector(ang, sky.n)[0]
+        rows = np.concatenate([-np.ones(sky.n - int(np.sum(idx[0] >= 0)), dtype=np.int64),
+                               idx[0][idx[0] >= 0]])  # the rows in the order of D_i
+        theta_i = np.zeros(sky.n)
+        real = rows >= 0
+        theta_i[real] = position_angles(self.catalog.xyz[rows[real]], best)
+        tie = 2.0 * RADIUS_SIGMAS * sigma
+        partners = angle_partners(sky.D_a, D_i, tie)
+        th_roll = roll_threshold(sky.R_a, sigma, cost)
+        ring = 0.5 * self.r_circle
+
+        def roll_vectors(g):
+            return _up_directions(best, g[:, 0], ring)
+
+        box = {"kind": "roll", "center": best.copy(), "half_width_rad": float(ring), "corners": None}
+        res = self._run(att, len(ths) + 1, lambda g: angle_cost(sky.theta_a, theta_i, g[:, 0], partners),
+                        GeneSpace(lo=(0.0,), hi=(2 * np.pi,), periodic=(True,)), self.roll, th_roll, rng, box,
+                        roll_vectors, roll=True)
+        if not res.converged:
+            return self._fail(att, len(ths) + 1, res, th_roll, t0, "roll")
+        att.phi = float(res.genes[0])
+        att.R = attitude_from_phi(best, att.phi)
+        # the GA's answer: the paired stars, refined, then every observed star within r
+        dphi = np.abs(wrap_angle(sky.theta_a[:, None] + att.phi - theta_i[np.clip(partners, 0, None)]))
+        dphi = np.where(partners >= 0, dphi, np.inf)
+        pick = partners[np.arange(sky.n), np.argmin(dphi, axis=1)]
+        pairs = {int(sky.obs_index[j]): int(rows[pick[j]]) for j in range(sky.n)
+                 if pick[j] >= 0 and rows[pick[j]] >= 0}
+        att.matches, att.R = self._answer(V, pairs, att.R, sigma)
+        att.outcome = "answer"
+        ra, dec, roll = radec_roll_from_R(att.R)
+        att.steps.append(Step("answer", f"attempt {att.index + 1}: the GA points at RA {np.degrees(ra):.3f}, "
+                                        f"Dec {np.degrees(dec):.3f}, roll {np.degrees(roll):.2f} deg with "
+                                        f"{len(att.matches)} matched stars",
+                              observed=sorted(att.matches), catalog=[c for _, c in sorted(att.matches.items())],
+                              numbers={"ra_deg": float(np.degrees(ra)), "dec_deg": float(np.degrees(dec)),
+                                       "roll_deg": float(np.degrees(roll)), "matched": len(att.matches),
+                                       "attempt": att.index},
+                              extra={"R": att.R.copy(), "boresight": att.R[2].copy()}))
+        att.time_s = time.perf_counter() - t0
+        return att
+
+    def _run(self, att: _Attempt, stage: int, cost, space, sizes, threshold, rng, box, to_vectors,
+             roll: bool = False, initial: np.ndarray | None = None) -> GAResult:
+        name = "roll" if roll else ("first" if stage == 1 else "spiral")
+        half_deg = float(np.degrees(box["half_width_rad"]))
+
+        def record(gen, pop, c, evals):
+            best = float(c[0])
+            extra = {"population": to_vectors(pop).astype(np.float32), "box": box,
+                     "costs": c.astype(np.float32)}
+            if roll:
+                extra["roll_rad"] = _phi_to_roll(box["center"], pop[:, 0])
+            att.steps.append(Step("generation", f"attempt {att.index + 1}, {name} GA (stage {stage}), generation "
+                                                f"{gen}: best cost {_deg(best)}",
+                                  numbers={"best_cost": best, "threshold": float(threshold), "stage": stage,
+                                           "generation": gen, "evaluations": evals, "attempt": att.index,
+                                           "box_half_width_deg": half_deg},
+                                  extra=extra))
+
+        res = run_ga(cost, space, sizes, rng, mutation_rate=self.mutation_rate, threshold=threshold,
+                     max_generations=self.max_generations, stall_generations=self.stall_generations,
+                     initial=initial, stop=self._stop, on_generation=record)
+        att.generations.append(res.generations)
+        att.evaluations += res.evaluations
+        att.costs.append(res.cost)
+        if res.converged:
+            att.steps.append(Step("converged", f"attempt {att.index + 1}: {name} GA (stage {stage}) converged in "
+                                               f"{res.generations} generations, cost {_deg(res.cost)} "
+                                               f"<= {_deg(threshold)}",
+                                  numbers={"best_cost": res.cost, "threshold": float(threshold), "stage": stage,
+                                           "generations": res.generations, "attempt": att.index}))
+        return res
+
+    def _fail(self, att: _Attempt, stage: int, res: GAResult, threshold: float, t0: float,
+              what: str = "position") -> _Attempt:
+        why = "stalled" if res.stalled else f"reached {self.max_generations} generations"
+        att.outcome = f"stage {stage}"
+        att.reason = f"the {what} GA (stage {stage}) did not converge"
+        att.steps.append(Step("restart", f"attempt {att.index + 1}: stage {stage} {why} with best cost "
+                                         f"{_deg(res.cost)} > {_deg(threshold)}"
+                                         f": new chromosomes",
+                              numbers={"best_cost": res.cost, "threshold": float(threshold), "stage": stage,
+                                       "generations": res.generations, "attempt": att.index}))
+        att.time_s = time.perf_counter() - t0
+        return att
+
+    def _answer(self, V: np.ndarray, pairs: dict[int, int], R: np.ndarray, sigma: float
+                ) -> tuple[dict[int, int], np.ndarray]:
+        """Refine the GA attitude with its paired stars (dropping the worst while any misfits), then
+        match every observed star within the match radius, one to one."""
+        r = match_radius(sigma, self.radius_sigmas)
+        cur = dict(pairs)
+        while len(cur) >= 2:
+            o = np.array(sorted(cur))
+            c = np.array([cur[i] for i in o])
+            R = svd_attitude(V[o], self.catalog.xyz[c], sigma).R
+            res = angular_distance(V[o], self.catalog.xyz[c] @ R.T)
+            if res.max() <= r or len(cur) == 2:
+                break
+            cur.pop(int(o[np.argmax(res)]))
+        near = self.catalog.within(R[2], self.camera.half_diagonal_rad + r)
+        qi, rj, _, amb = match_one_to_one(V @ R, self.catalog.xyz[near], r)
+        matches = {int(q): int(near[j]) for q, j in zip(qi, rj) if q not in set(amb.tolist())}
+        return matches, R
+
+    def _hypothesis(self, V: np.ndarray, matches: dict[int, int], r: float) -> tuple[dict[int, int] | None, int]:
+        """The two brightest matched stars (observed indices are brightest first) and the number of
+        oriented catalog pairs they stand for."""
+        if len(matches) < 2:
+            return None, 0
+        o1, o2 = sorted(matches)[:2]
+        sep = float(angular_distance(V[o1], V[o2]))
+        return {o1: matches[o1], o2: matches[o2]}, self.pair_hypotheses(sep, r)
+
+
+# ---------------------------------------------------------------------- helpers
+
+def _deg(c: float) -> str:
+    return f"{np.degrees(c):.4g} deg"
+
+
+def _up_directions(b: np.ndarray, phi: np.ndarray, ring: float) -> np.ndarray:
+    """For roll chromosomes phi: the sky direction of image-up at `ring` from the boresight b."""
+    e, n = tangent_basis(b)
+    phi = np.asarray(phi, dtype=np.float64)
+    # x = cos phi e + sin phi n, y = b x x = cos phi n - sin phi e; up = -y
+    up = np.sin(phi)[:, None] * e[None, :] - np.cos(phi)[:, None] * n[None, :]
+    v = np.cos(ring) * b[None, :] + np.sin(ring) * up
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _phi_to_roll(b: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """skyview roll (image-up from north towards east) of roll chromosomes phi: roll = pi - phi."""
+    return wrap_angle(np.pi - np.asarray(phi, dtype=np.float64)).astype(np.float32)
+
+
+_WORKER_METHOD: GeneticMethod | None = None
+
+
+def _set_worker_method(method: GeneticMethod, stop_event) -> None:
+    global _WORKER_METHOD
+    _WORKER_METHOD = method
+    method._pool = None
+    method._stop = stop_event.is_set
+
+
+def _attempt_in_worker(V, brightness, sigma, frame_key, k) -> _Attempt:
+    return _WORKER_METHOD._attempt(V, brightness, sigma, frame_key, k)
