@@ -289,6 +289,74 @@ def cmd_replay(a) -> int:
     return replay(a.recording, web=True if a.web else None, host=a.host, port=a.port, grpc_port=a.grpc_port)
 
 
+def cmd_solve_sequence(a) -> int:
+    from skyview.sequence import solve_sequence
+
+    if a.sigma_arcsec is not None and a.sigma_arcsec <= 0:
+        raise BadInput("--sigma-arcsec must be positive")
+    if a.p_identify is not None and not 0 < a.p_identify <= 1:
+        raise BadInput("--p-identify must be in (0, 1]")
+    output = Path(a.output) if a.output else None
+    if output is not None and output.exists() and not a.force:
+        raise BadInput(f"{output} exists; use --force to overwrite it")
+    method_params = {} if a.p_identify is None else {"p_identify": a.p_identify}
+    res = solve_sequence(a.path, fov_deg=a.fov_deg, mag_limit=a.mag_limit,
+                         sigma_rad=None if a.sigma_arcsec is None else a.sigma_arcsec * ARCSEC,
+                         mag_zero_point=a.mag_zero_point, mag_cut=a.mag_cut, variant=a.variant,
+                         method_params=method_params, use_truth=not a.no_truth, epoch=a.epoch,
+                         max_stars=a.max_stars, k_sigma=a.k_sigma)
+    out = res.to_dict()
+    out["sequence"] = str(a.path)
+    text = json.dumps(out, indent=1 if a.json else None)
+    if output is not None:
+        _write_text_new(output, text + "\n", a.force)
+    if a.json:
+        print(text)
+    else:
+        for f in out["frames"]:
+            line = (f"frame {f['frame']}: {f.get('n_centroids', f['stars'])} centroids, {f['above_prior']} stars above "
+                    f"the prior, leading HIP {f['top_hips'][0] if f['top_hips'] else '-'} at {f['top_posterior']:.3f}")
+            if f.get("true_hip") is not None:
+                line += f" (true HIP {f['true_hip']}: {f['true_posterior']:.3f})"
+            line += f" -> {f['status']}"
+            if f["status"] == "identified":
+                line += f", {f['n_matches']} matches, P(false) {f['p_false']:.1e}"
+            print(line)
+        if res.solved:
+            print(f"solved at frame {out['frame']}: RA {out['ra_deg']:.5f} deg  Dec {out['dec_deg']:+.5f} deg  "
+                  f"roll {out['roll_deg']:+.4f} deg")
+    if not res.solved:
+        print(f"skyview: not solved: {out.get('reason', '')}", file=sys.stderr)
+        return EXIT_NOT_SOLVED
+    return EXIT_SOLVED
+
+
+def cmd_bench_sequence(a) -> int:
+    from skyview.bench import save_results
+    from skyview.scenarios import get_scenario
+    from skyview.sequence import bench_sequence, format_sequence_markdown
+
+    scenario = get_scenario(a.scenario)
+    if a.noise_deg is not None and a.noise_arcsec is not None:
+        raise BadInput("give --noise-deg or --noise-arcsec, not both")
+    noise = (np.radians(a.noise_deg) if a.noise_deg is not None
+             else a.noise_arcsec * ARCSEC if a.noise_arcsec is not None else None)
+    out_dir = Path(a.out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise BadInput(f"{out_dir} is not a folder")
+    summary = bench_sequence(scenario, a.n, n_frames=a.frames, start=a.start, turn=a.turn, step_deg=a.step_deg,
+                             level=a.level, position_noise_rad=noise, sigma_mag=a.mag_noise,
+                             designation=a.designation, variant=a.variant, seed=a.seed, progress=not a.quiet)
+    md = format_sequence_markdown(summary)
+    print(md)
+    noise_tag = f"-noise{summary['setup']['position_noise_deg'] * 3600:.0f}as"
+    stem = (f"stochastic{'-' + a.variant if a.variant != 'paper' else ''}-{scenario.name}-{a.start}-{a.turn}-{a.level}"
+            f"{noise_tag}-{a.designation}-n{a.n}-seed{a.seed}")
+    j, m = save_results(summary, out_dir, stem, markdown=md)
+    print(f"saved {j} and {m}")
+    return EXIT_SOLVED
+
+
 def cmd_catalog(a) -> int:
     from skyview.catalog import ASSET_PATH, build_guide_catalog, load_guide_catalog, save_guide_catalog
 
@@ -412,6 +480,50 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--record-failures", default=None, metavar="DIR",
                    help="save a Rerun recording of every trial that is not correct into DIR (created if missing)")
     b.set_defaults(func=cmd_bench)
+
+    q = sub.add_parser("solve-sequence", help="frames with known relative rotations -> attitude (stochastic method)")
+    q.add_argument("path", help="sequence.json (as `skyview simulate --frames` writes it) or its folder")
+    q.add_argument("--fov-deg", type=_float, default=None, help="horizontal full FOV, deg (default: the sidecar's camera)")
+    q.add_argument("--variant", choices=("paper", "improved"), default="paper",
+                   help="the paper's parameters, or the method's improvements (docs/stochastic.md)")
+    q.add_argument("--mag-limit", type=_float, default=4.5, help="guide catalog limit, Hp (the paper: 4.5)")
+    q.add_argument("--sigma-arcsec", type=_float, default=None,
+                   help="1-sigma direction error of a star (default: half a pixel)")
+    q.add_argument("--mag-zero-point", type=_float, default=None,
+                   help="magnitude of a star giving 1 unit of brightness (default: from the sidecar's sensor)")
+    q.add_argument("--mag-cut", type=_float, default=None,
+                   help="leave fainter stars out of the statistics (default: mag-limit + 0.25 with a zero point)")
+    q.add_argument("--p-identify", type=_float, default=None, help="posterior at which a star dominates (0.95)")
+    q.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH)
+    q.add_argument("--max-stars", type=int, default=40, help="use at most this many brightest centroids per frame")
+    q.add_argument("--k-sigma", type=_float, default=5.0, help="detection threshold in noise sigmas")
+    q.add_argument("--no-truth", action="store_true", help="ignore the simulator's truth in the sidecar")
+    q.add_argument("--json", action="store_true", help="print one JSON object")
+    q.add_argument("--output", default=None, help="also write the JSON result to this file")
+    q.add_argument("--force", action="store_true")
+    q.set_defaults(func=cmd_solve_sequence)
+
+    bs = sub.add_parser("bench-sequence", help="Monte Carlo of the stochastic method over frame sequences "
+                                               "(default: the paper's experiment)")
+    bs.add_argument("--scenario", default="udomkesmalee30")
+    bs.add_argument("-n", type=int, default=100, help="number of runs (sequences)")
+    bs.add_argument("--frames", type=int, default=5)
+    bs.add_argument("--start", choices=("betelgeuse", "random"), default="betelgeuse")
+    bs.add_argument("--turn", choices=("ra", "pan"), default="ra",
+                    help="ra: along right ascension (the paper); pan: about the camera y axis")
+    bs.add_argument("--step-deg", type=_float, default=10.0)
+    bs.add_argument("--level", choices=("image", "vector"), default="image",
+                    help="image: simulator + centroider; vector: perturbed catalog directions (the paper's own)")
+    bs.add_argument("--noise-deg", type=_float, default=None, help="position noise, 1 sigma per axis (default: scenario)")
+    bs.add_argument("--noise-arcsec", type=_float, default=None)
+    bs.add_argument("--mag-noise", type=_float, default=0.6, help="magnitude noise, 1 sigma (the paper: 0.6)")
+    bs.add_argument("--designation", choices=("observed", "true"), default="observed",
+                    help="observed: the star nearest the boresight in the noisy frame; true: f(true boresight)")
+    bs.add_argument("--variant", choices=("paper", "improved"), default="paper")
+    bs.add_argument("--seed", type=int, default=0)
+    bs.add_argument("--out", default="bench-results", help="folder for the JSON and Markdown results")
+    bs.add_argument("--quiet", action="store_true", help="no progress lines")
+    bs.set_defaults(func=cmd_bench_sequence)
 
     r = sub.add_parser("record", help="simulate a scenario case, solve it and save it as a Rerun recording (.rrd)")
     r.add_argument("--method", default="angle")

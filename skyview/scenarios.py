@@ -45,6 +45,9 @@ SCENARIOS: dict[str, Scenario] = {
                  fov_deg=8.0, width=1024, height=1024, mag_limit=6.0, noise_rad=87e-6),
         Scenario("cole8-false", "cole8 with one false star (debris) within half the FOV of the boresight",
                  fov_deg=8.0, width=1024, height=1024, mag_limit=6.0, noise_rad=87e-6, n_false_stars=1),
+        Scenario("udomkesmalee30", "Udomkesmalee et al.: 30 deg FOV, 1024x1024, Hp <= 4.5, 1 deg noise per axis "
+                 "(the paper's '10' read as 1 deg) and 0.6 mag (docs/stochastic.md)",
+                 fov_deg=30.0, width=1024, height=1024, mag_limit=4.5, noise_rad=0.017453292519943295),
         Scenario("juang8", "Juang, Kim & Junkins: 8x8 deg FOV, 1024x1024, Hp <= 7.3 (the paper: 7.3 Mv), 87 urad "
                  "noise (the paper states none: cole8's, same camera)",
                  fov_deg=8.0, width=1024, height=1024, mag_limit=7.3, noise_rad=87e-6),

@@ -16,11 +16,13 @@ from skyview.identify.angle import AngleMethod
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
 from skyview.identify.genetic import GeneticMethod
+from skyview.identify.stochastic import StochasticMethod
 from skyview.identify.svd import SVDMethod
 
 METHODS: dict[str, type[Identifier]] = {
     "angle": AngleMethod,
     "genetic": GeneticMethod,
+    "stochastic": StochasticMethod,
     "svd": SVDMethod,
 }
 
