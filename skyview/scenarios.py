@@ -51,6 +51,9 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("juang8", "Juang, Kim & Junkins: 8x8 deg FOV, 1024x1024, Hp <= 7.3 (the paper: 7.3 Mv), 87 urad "
                  "noise (the paper states none: cole8's, same camera)",
                  fov_deg=8.0, width=1024, height=1024, mag_limit=7.3, noise_rad=87e-6),
+        Scenario("sun20", "Sun, Qi, Jin & Wang: 20x20 deg FOV, 1024x1024, Hp <= 6.0, 10 urad noise (the paper "
+                 "states none; its eps threshold 0.001 holds the true pattern at ~10 urad)",
+                 fov_deg=20.0, width=1024, height=1024, mag_limit=6.0, noise_rad=10e-6),
     ]
 }
 

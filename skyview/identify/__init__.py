@@ -15,12 +15,14 @@ from skyview.errors import BadInput
 from skyview.identify.angle import AngleMethod
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
+from skyview.identify.ellipticity import EllipticityMethod
 from skyview.identify.genetic import GeneticMethod
 from skyview.identify.stochastic import StochasticMethod
 from skyview.identify.svd import SVDMethod
 
 METHODS: dict[str, type[Identifier]] = {
     "angle": AngleMethod,
+    "ellipticity": EllipticityMethod,
     "genetic": GeneticMethod,
     "stochastic": StochasticMethod,
     "svd": SVDMethod,
