@@ -19,6 +19,7 @@ from skyview.identify.ellipticity import EllipticityMethod
 from skyview.identify.genetic import GeneticMethod
 from skyview.identify.stochastic import StochasticMethod
 from skyview.identify.svd import SVDMethod
+from skyview.identify.triangle import TriangleMethod
 
 METHODS: dict[str, type[Identifier]] = {
     "angle": AngleMethod,
@@ -26,6 +27,7 @@ METHODS: dict[str, type[Identifier]] = {
     "genetic": GeneticMethod,
     "stochastic": StochasticMethod,
     "svd": SVDMethod,
+    "triangle": TriangleMethod,
 }
 
 
