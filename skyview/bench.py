@@ -99,7 +99,7 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     camera = scenario.camera()
     t0 = time.perf_counter()
     solver = Solver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
-                    catalog=catalog, method_params=method_params, variant=variant)
+                    catalog=catalog, method_params=method_params, variant=variant, max_stars=scenario.max_stars)
     setup_ms = (time.perf_counter() - t0) * 1e3
     sensor = sensor or SensorModel()
     attitudes = random_attitudes(n, rng)

@@ -573,7 +573,7 @@ class CaseRunner:
         self.catalog = catalog if catalog is not None else load_guide_catalog()
         self.camera = self.scenario.camera()
         self.solver = Solver(self.camera, method, mag_limit=self.scenario.mag_limit, sigma_rad=self.scenario.sigma_rad,
-                             catalog=self.catalog, variant=variant)
+                             catalog=self.catalog, variant=variant, max_stars=self.scenario.max_stars)
 
     def run(self, seed: int) -> Case:
         from skyview.bench import score_trial

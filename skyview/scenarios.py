@@ -24,6 +24,7 @@ class Scenario:
     n_false_stars: int = 0
     false_star_placement: str = "disk"  # Cole & Crassidis: within half the FOV of the boresight
     centroid_sigma_px: float = 0.1  # what the centroider adds on top of noise_rad (measured)
+    max_stars: int = 40  # brightest centroids handed to the identifier (20 deg fields hold ~40-100)
 
     def camera(self) -> Camera:
         return Camera.from_fov(self.fov_deg, self.width, self.height)
@@ -53,7 +54,7 @@ SCENARIOS: dict[str, Scenario] = {
                  fov_deg=8.0, width=1024, height=1024, mag_limit=7.3, noise_rad=87e-6),
         Scenario("sun20", "Sun, Qi, Jin & Wang: 20x20 deg FOV, 1024x1024, Hp <= 6.0, 10 urad noise (the paper "
                  "states none; its eps threshold 0.001 holds the true pattern at ~10 urad)",
-                 fov_deg=20.0, width=1024, height=1024, mag_limit=6.0, noise_rad=10e-6),
+                 fov_deg=20.0, width=1024, height=1024, mag_limit=6.0, noise_rad=10e-6, max_stars=200),
     ]
 }
 
