@@ -123,6 +123,7 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
             "trial": k, "seed": int(seeds[k]), "outcome": outcome,
             "status": ident.status if ident else "failed", "reason": result.reason,
             "unverified_outcome": unverified,
+            "cause": (ident.stats.get("cause") if ident and outcome != "correct" else None),
             "stars_in_fov": len(frame.truth["stars"]), "centroids": len(result.centroids),
             "matches": len(result.matches), "wrong_matches": wrong,
             "pivots": (ident.stats.get("pivots") if ident else None),
@@ -178,6 +179,7 @@ def summarize(method: str, scenario: Scenario, seed: int, trials: list[dict], se
         "counts": {o: sum(t["outcome"] == o for t in trials) for o in OUTCOMES},
         "unverified_counts": ({o: sum(t["unverified_outcome"] == o for t in trials) for o in OUTCOMES}
                               if any(t["unverified_outcome"] is not None for t in trials) else None),
+        "failure_causes": dict(Counter(str(t["cause"]) for t in trials if t.get("cause"))),
         "by_stars_in_fov": {str(k) + ("+" if k == 15 else ""): {o: c.get(o, 0) for o in OUTCOMES}
                             for k, c in sorted(by_stars.items())},
         "pivots": dict(sorted(Counter(t["pivots"] for t in trials if t["pivots"] is not None).items())),
@@ -211,6 +213,9 @@ def format_markdown(s: dict) -> str:
         u = s["unverified_counts"]
         lines += ["", "The method's first answer before verification (the paper's own criterion): "
                   + ", ".join(f"{o} {100 * u[o] / s['n']:.1f} %" for o in OUTCOMES) + "."]
+    if s.get("failure_causes"):
+        lines += ["", "Failure causes the method reports: "
+                  + ", ".join(f"{k} {v}" for k, v in sorted(s["failure_causes"].items(), key=lambda kv: -kv[1])) + "."]
     lines += [
         "",
         "## By number of catalog stars in the image",
