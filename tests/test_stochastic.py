@@ -18,7 +18,7 @@ from skyview.identify.stochastic import (PAPER_Q, StochasticMethod, field_statis
 from skyview.scenarios import get_scenario
 from skyview.sequence import (PAPER_SENSOR, bench_sequence, format_sequence_markdown, perturb_magnitudes,
                               vector_frame, zero_point)
-from skyview.simulate import betelgeuse_ra_sequence, save_sequence, simulate_sequence, turn_about_camera_axis
+from skyview.simulate import betelgeuse_ra_sequence, save_sequence, turn_about_camera_axis
 
 DEG = np.pi / 180
 
