@@ -10,9 +10,11 @@ from skyview.camera import Camera
 from skyview.catalog import load_guide_catalog
 from skyview.errors import BadInput
 from skyview.identify import IDENTIFIED, METHODS, make_identifier
+from skyview.identify.genetic import inscribed_radius as inscribed
 from skyview.identify.genetic import (IMPROVED_PARAMS, PAPER_FIRST, GeneSpace, GeneticMethod, Sizes, _phi_to_roll,
                                       angle_cost, angle_partners, attitude_from_phi, box_vectors, brightness_cut,
-                                      distance_cost, distance_vector, noise_floor, position_angles, ring_seeds,
+                                      distance_cost, distance_vector, merged_catalog, noise_floor, position_angles,
+                                      reference_magnitude, ring_seeds,
                                       roll_threshold, run_ga, tangent_basis, wrap_angle)
 from skyview.identify.genetic_map import MapField, make_map, main as map_main, solve_map
 from skyview.identify.synthetic import synthetic_frame
@@ -93,7 +95,23 @@ def test_brightness_cut_at_the_widest_gap_of_the_fainter_half():
     m = np.array([1.0, 2.0, 2.1, 2.2, 3.0, 3.05, 3.1])
     keep, cut = brightness_cut(np.arange(7), m, 3)
     np.testing.assert_array_equal(keep, [0, 1, 2, 3])
-    assert cut == pytest.approx(1.6)
+    assert cut == pytest.approx(2.6)  # the middle of the gap 2.2 .. 3.0
+    # relative magnitudes start at the second brightest (one saturated star does not move them)
+    np.testing.assert_allclose(reference_magnitude([[3.0, 1.0, 2.0], [5.0, np.inf, np.inf]]), [2.0, 5.0])
+
+
+def test_merged_catalog_sees_close_pairs_as_one_star(cat):
+    merged, rows = merged_catalog(cat, np.radians(20.0 / 3600))
+    assert len(merged) < len(cat) and np.all(np.diff(rows) > 0)
+    pairs = cat.tree.query_pairs(2 * np.sin(np.radians(20.0 / 3600) / 2), output_type="ndarray")
+    a, b = pairs[0]
+    keep = a if cat.mag[a] <= cat.mag[b] else b
+    k = int(np.searchsorted(rows, keep))
+    assert rows[k] == keep and (b if keep == a else a) not in set(rows.tolist())
+    flux = 10 ** (-0.4 * cat.mag[[a, b]].astype(float))
+    assert merged.mag[k] == pytest.approx(-2.5 * np.log10(flux.sum()), abs=1e-5)
+    mean = flux @ cat.xyz[[a, b]]
+    np.testing.assert_allclose(merged.xyz[k], mean / np.linalg.norm(mean), atol=1e-12)
 
 
 # ---------------------------------------------------------------------- the GA
@@ -210,6 +228,22 @@ def test_sky_cost_at_the_truth_is_within_the_noise_and_roll_free(cache, cat, cam
     assert g.thresholds(20, SIGMA)[0] == pytest.approx(3.0 * np.radians(20.0) / 25.0)
 
 
+def test_one_outlier_option_forgives_a_false_star(cache, cat):
+    cam = Camera.from_fov(8.0, 1024)
+    rng = np.random.default_rng(3)
+    R = random_attitudes(1, rng)[0]
+    f = synthetic_frame(cat, cam, R, SIGMA, rng, false_stars=1)  # 9 stars in the circle + 1 false
+    false = int(np.flatnonzero(f.truth < 0)[0])
+    assert np.arccos(f.obs.vectors[false, 2]) < inscribed(cam)  # the false star is inside the circle
+    plain = GeneticMethod(cat, cam, SIGMA)._field(f.obs.vectors, f.obs.brightness, SIGMA)
+    robust = GeneticMethod(cat, cam, SIGMA, outliers=1)._field(f.obs.vectors, f.obs.brightness, SIGMA)
+    robust.rel_mag_a = plain.rel_mag_a = None  # the false star's brightness is random: no pre-filter here
+    assert plain.cost(R[2][None])[0] > noise_floor(plain.n, SIGMA)
+    assert robust.cost(R[2][None])[0] <= noise_floor(robust.n, SIGMA)
+    keep, D_i, rows = robust.alignment(R[2])
+    assert false not in set(robust.obs_index[keep].tolist()) and len(keep) == robust.n - 1
+
+
 # ---------------------------------------------------------------------- the identifier
 
 def test_registered_and_parameters_checked(cache, cat, cam20):
@@ -222,7 +256,7 @@ def test_registered_and_parameters_checked(cache, cat, cam20):
     imp = make_identifier("genetic", cat, cam20, SIGMA, variant="improved")
     assert imp.seeding == IMPROVED_PARAMS["seeding"] and imp.first.initial == IMPROVED_PARAMS["initial"]
     for bad in ({"mutation_rate": 2.0}, {"survivors": 200}, {"seeding": "grid"}, {"workers": 3},
-                {"deltas": ()}, {"mag_tolerance": -1.0}):
+                {"deltas": ()}, {"mag_tolerance": -1.0}, {"outliers": 2}):
         with pytest.raises(BadInput):
             make_identifier("genetic", cat, cam20, SIGMA, **bad)
 

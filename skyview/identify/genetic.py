@@ -23,28 +23,37 @@ The real sky (the paper's future work). Stage 1 chromosomes are (RA, Dec) boresi
 sphere (Dec sampled uniformly in sin Dec, so the population is uniform on the sky). The image side
 of eq. 3 is the observed stars within the circle inscribed in the sensor (radius r_c, roll-free, as
 the paper's distance vector must be), at most m of them, nearest first: their angles from the
-camera axis +z. The catalog side is, for every chromosome, the same number of catalog stars nearest
-to it within r_c grown by 3 sigma sqrt(2) (a star on the edge may fall on either side with noise),
-found for the whole population at once with one cKDTree query (the catalog's tree on unit vectors:
-chord distances, converted to angles on the sphere). The spiral stages search a square of +-Delta in
-the gnomonic (tangent) plane around the previous best position (genes xi, eta: a true square on the
-sky, even at the poles). The roll GA compares position angles in the tangent plane: theta_a = atan2
-(y, x) of the camera-frame direction, theta_i = atan2(north, east) of the catalog star at the found
-boresight, and theta_i = theta_a + phi gives the attitude (x = cos phi east + sin phi north,
-y = boresight x x). Stars are paired in distance order as in eq. 4; two stars whose distances agree
-within the noise may be in either order, so a star's term is the smaller of the two pairings.
+camera axis +z. The catalog side is, for every chromosome, the same number n of catalog stars
+nearest to it within r_c grown by 3 sigma sqrt(2) (a star on the edge may fall on either side with
+noise), found for the whole population at once with one cKDTree query (the catalog's tree on unit
+vectors: chord distances, converted to angles on the sphere); the paper's zero padding applies when
+the catalog has fewer. Two adaptations keep the two sides comparable on real images. (1) Stars
+closer than merge_px = 3 pixels are one blob for the centroider: the GA's catalog makes each such
+group one star (flux-weighted position, summed flux; the verification uses the full catalog).
+(2) The pipeline passes only the brightest centroids (40 by default) and a real sensor sees stars
+below the catalog's limit, so an image with complete_below = 40 stars or more is taken as cut at
+some brightness: the GA then uses the stars brighter than the widest gap in instrument magnitude
+among the fainter half, and the catalog side the stars brighter than the same cut (a cut in a gap
+survives magnitude errors; magnitudes are relative to the second brightest star on each side,
+robust to one saturated star). The spiral stages search a square of +-Delta in the gnomonic plane
+around the previous best position (genes xi, eta: a true square on the sky, even at the poles). The
+roll GA compares position angles in the tangent plane: theta_a = atan2(y, x) of the camera-frame
+direction, theta_i = atan2(north, east) of the catalog star at the found boresight, and
+theta_i = theta_a + phi gives the attitude (x = cos phi east + sin phi north, y = boresight x x).
+Stars are paired in distance order as in eq. 4; two stars whose distances agree within the noise
+may be in either order, so a star's term is the smaller of the two pairings.
 
-Thresholds on the sky. The paper's deltas are in map units for a 25-unit FOV (delta_fov); on the sky
-they scale with the FOV (delta x fov / 25: 3.0 -> 0.96 deg for an 8 deg FOV) and never go below the
-noise floor, the sum of n half-normal distance errors: sigma (n sqrt(2/pi) + 4 sqrt(n (1 - 2/pi))).
-The roll GA converges when its cost is below sum_k min(pi, (3 sqrt(2) sigma + eps_b) / R_k) with
-eps_b = 3 C / n from the final position cost C (the angle error of a star at R_k from a position
-error eps_b and noise).
+Thresholds on the sky. The paper's deltas are for m = 20 stars in a 25-unit FOV (delta_fov); on the
+sky they scale per star and with the FOV (delta x n / 20 x fov / 25: 3.0 -> 0.96 deg for 20 stars
+in an 8 deg FOV) and never go below the noise floor, the sum of n half-normal distance errors:
+sigma (n sqrt(2/pi) + 4 sqrt(n (1 - 2/pi))). The roll GA converges when its cost is below
+sum_k min(pi, (3 sqrt(2) sigma + eps_b) / R_k) with eps_b = 3 C / n from the final position cost C
+(the angle error of a star at R_k from a position error eps_b and noise).
 
 Magnitude pre-filter (the paper's proposal): a chromosome whose nearest catalog star is not within
 mag_tolerance = 1 magnitude of the observed star nearest the boresight gets no cost (infinite).
 Instrument brightness is used as relative magnitude only: both sides are taken relative to the
-brightest star of their own circle. mag_tolerance=None switches it off.
+second brightest star of the stars they use. mag_tolerance=None switches it off.
 
 Verification (the identifier contract). The GA's answer (boresight + roll) is refined with the
 paired stars (SVD, outliers dropped), every observed star is matched to the catalog within the
@@ -62,12 +71,14 @@ forked processes; attempts are verified in restart order with per-restart seeds,
 the same as with workers=1.
 
 Step record. One step per generation (kind "generation"): numbers best_cost, threshold, stage,
-generation, evaluations, box_half_width_deg; extra["population"] is the population as (P, 3) ICRS
-unit vectors (float32) — for the roll GA the direction of image-up at half the circle radius from
-the boresight, one per roll chromosome, with extra["roll_rad"] the rolls (skyview's convention);
-extra["box"] the search box: {"kind": "sky" | "square" | "roll", "center", "half_width_rad",
-"corners" ((4, 3) ICRS, square only)}. Steps "converged", "restart", "answer" and "verify" mark the
-stages.
+generation, evaluations, attempt, box_half_width_deg; extra["box"] the search box: {"kind": "sky" |
+"square" | "roll", "center", "half_width_rad", "corners" ((4, 3) ICRS, square only)}.
+extra["population"] is the population as (P, 3) ICRS unit vectors (float32, best first) with
+extra["costs"] — for the roll GA the direction of image-up at half the circle radius from the
+boresight, one per roll chromosome, with extra["roll_rad"] the rolls (skyview's convention). To keep
+a failing 600-generation stage small, the population is attached to generations 0-20, every 10th,
+those that improve the best cost or converge, and the last of each stage; a viewer holds the last
+one it saw in between. Steps "converged", "restart", "answer" and "verify" mark the stages.
 """
 
 from __future__ import annotations
@@ -81,8 +92,10 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
-from skyview.attitude import RAD_TO_ARCSEC, east_north, radec_roll_from_R, svd_attitude
+from skyview.attitude import east_north, radec_roll_from_R, svd_attitude
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, chord, radec_to_vec, vec_to_radec
 from skyview.errors import BadInput
@@ -110,6 +123,10 @@ PAPER_MAG_TOLERANCE = 1.0  # the pre-filter's +-1 magnitude
 # for generation 600.
 IMPROVED_PARAMS = {"seeding": "rings", "initial": 60_000, "stall_generations": 60, "max_restarts": 30}
 SEEDINGS = ("uniform", "rings")
+# step record: the population is kept for generations 0-20, every 10th, those that improve the best
+# cost or converge, and the last of each stage (a failing 600-generation stage keeps ~100, not 600)
+RECORD_FIRST_GENERATIONS = 20
+RECORD_EVERY = 10
 DATABASE_VERSION = 1
 HALF_NORMAL_MEAN = math.sqrt(2.0 / math.pi)
 HALF_NORMAL_SD = math.sqrt(1.0 - 2.0 / math.pi)
@@ -322,8 +339,8 @@ def angle_cost(theta_a: np.ndarray, theta_i: np.ndarray, phi: np.ndarray, partne
                ) -> np.ndarray:
     """Eq. 4 for each roll phi: sum_k |theta_a[k] + phi - theta_i[k]| (differences wrapped).
 
-    theta_a, theta_i: (m,) angles in distance order (entries without a partner are ignored). With
-    partners (angle_partners) a star's term is its best pairing; a star with no partner adds pi.
+    theta_a, theta_i: (m,) angles in distance order. With partners (angle_partners) a star's term is
+    its best pairing; a star with no partner (padding) adds nothing.
     """
     theta_a = np.asarray(theta_a, dtype=np.float64)
     theta_i = np.asarray(theta_i, dtype=np.float64)
@@ -414,13 +431,25 @@ def inscribed_radius(camera: Camera) -> float:
 def brightness_cut(stars: np.ndarray, m_inst: np.ndarray, min_stars: int) -> tuple[np.ndarray, float]:
     """Of observed `stars` (a brightness-limited set: the pipeline passes the brightest centroids), the
     ones brighter than the widest gap in instrument magnitude among the fainter half (at least
-    min_stars kept), and that cut relative to the brightest (magnitudes)."""
+    min_stars kept), and the cut (the middle of that gap, instrument magnitude)."""
     o = stars[np.argsort(m_inst[stars], kind="stable")]
     mags = m_inst[o]
     lo = max(min_stars, (len(o) + 1) // 2)
     gaps = np.diff(mags)[lo - 1:]  # gap after the k-th brightest, k = lo .. len - 1
     k = lo + int(np.argmax(gaps))
-    return np.sort(o[:k]), float(0.5 * (mags[k - 1] + mags[k]) - mags[0])
+    return np.sort(o[:k]), float(0.5 * (mags[k - 1] + mags[k]))
+
+
+def reference_magnitude(mags: np.ndarray) -> np.ndarray:
+    """Per row, the second brightest finite magnitude (the brightest when there is one): the zero of
+    the relative magnitudes, robust to one saturated or blended star."""
+    mags = np.atleast_2d(np.asarray(mags, dtype=np.float64))
+    if mags.shape[1] == 0:
+        return np.full(len(mags), np.inf)
+    if mags.shape[1] == 1:
+        return mags[:, 0].copy()
+    two = np.partition(mags, 1, axis=1)[:, :2]
+    return np.where(np.isfinite(two[:, 1]), two[:, 1], two[:, 0])
 
 
 class SkyField:
@@ -430,17 +459,18 @@ class SkyField:
     have been cut at some brightness (complete=False: the pipeline passes the brightest centroids
     only; a real sensor also sees stars below the catalog's limit), only the stars brighter than the
     widest magnitude gap of the fainter half are used (brightness_cut), and the catalog side applies
-    the same cut relative to its own brightest star: a cut in a gap survives magnitude errors. Their
-    m nearest (n = min(m, N)) give the distances D_a, nearest first, the position angles theta_a and
-    (pre-filter) the relative magnitude of the nearest star against the brightest of the N. Catalog
-    side, for every chromosome: the n nearest catalog stars within r_catalog of it (after the cut),
-    zero-padded at the beginning when fewer. k_max: the most catalog stars any circle of r_catalog
-    holds (rows that reach it are completed one by one).
+    the same cut: a cut in a gap survives magnitude errors. Their m nearest (n = min(m, N)) give the
+    distances D_a, nearest first, and the position angles theta_a. Catalog side, for every
+    chromosome: the n nearest catalog stars within r_catalog of it (after the cut), zero-padded at
+    the beginning when fewer. Magnitudes are relative on both sides: to the second brightest star
+    (reference_magnitude) of the stars used (complete image: the n; cut image: all in the circle).
+    The pre-filter compares the relative magnitude of the nearest star. k_max: the most catalog stars
+    any circle of r_catalog holds (rows that reach it are completed one by one).
     """
 
     def __init__(self, catalog: GuideCatalog, V: np.ndarray, brightness: np.ndarray, r_circle: float,
                  r_catalog: float, m: int, mag_tolerance: float | None, k_max: int, complete: bool = True,
-                 min_stars: int = 3):
+                 min_stars: int = 3, outliers: int = 0):
         self.catalog = catalog
         self.r_circle, self.r_catalog = float(r_circle), float(r_catalog)
         ang = np.arccos(np.clip(V[:, 2], -1.0, 1.0)) if len(V) else np.zeros(0)
@@ -448,8 +478,10 @@ class SkyField:
         b = np.asarray(brightness, dtype=np.float64)
         m_inst = -2.5 * np.log10(np.where(np.isfinite(b) & (b > 0), b, np.nan)) if len(b) else b
         self.cut_rel_mag = None
+        cut = None
         if not complete and len(inside) > min_stars and np.all(np.isfinite(m_inst[inside])):
-            inside, self.cut_rel_mag = brightness_cut(inside, m_inst, min_stars)
+            inside, cut = brightness_cut(inside, m_inst, min_stars)
+            self.cut_rel_mag = float(cut - reference_magnitude(m_inst[inside][None, :])[0])
         self.n_circle = len(inside)
         order = inside[np.argsort(ang[inside], kind="stable")][:m]
         self.obs_index = order  # observed star of each entry, nearest first
@@ -459,16 +491,22 @@ class SkyField:
         self.theta_a = np.arctan2(V[order, 1], V[order, 0]) if self.n else np.zeros(0)
         self.chord_catalog = float(chord(r_catalog))
         self.complete = self.cut_rel_mag is None
+        self.outliers = int(outliers) if self.n > 2 else 0
+        self.n_query = self.n + self.outliers  # catalog stars per chromosome (one more to drop one)
+        if self.outliers:  # D_a with each image star left out in turn; index of n + 1 less one
+            self.D_a_drop = np.stack([np.delete(self.D_a, j) for j in range(self.n)])
+            self.drop_one = np.stack([np.delete(np.arange(self.n + 1), j) for j in range(self.n + 1)])
         if self.complete:  # the paper's rule: the n nearest
-            self.k_max = self.k_first = max(self.n, 1)
+            self.k_max = self.k_first = max(self.n_query, 1)
         else:  # every star of the circle is needed to apply the cut
             expected = len(catalog) / (4.0 * np.pi) * 2.0 * np.pi * (1.0 - np.cos(r_catalog))
             self.k_max = max(int(k_max), self.n_circle + 1)
             self.k_first = min(self.k_max, max(self.n_circle + 8, int(np.ceil(1.5 * expected)) + 10))
         self.mag_tolerance = mag_tolerance
         self.rel_mag_a = None
-        if mag_tolerance is not None and self.n and np.all(np.isfinite(m_inst[inside])):
-            self.rel_mag_a = float(m_inst[order[0]] - m_inst[inside].min())
+        used = order if self.complete else inside
+        if mag_tolerance is not None and self.n and np.all(np.isfinite(m_inst[used])):
+            self.rel_mag_a = float(m_inst[order[0]] - reference_magnitude(m_inst[used][None, :])[0])
         self.cat_mag = catalog.mag.astype(np.float64)
 
     def _query(self, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -498,34 +536,103 @@ class SkyField:
         return d, idx
 
     def neighbours(self, B: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For chromosomes B (P, 3): (P, n) angles (inf: none) and catalog rows (-1) of the stars that make
-        D_i, nearest first, and the magnitude of the brightest catalog star within r_catalog.
+        """For chromosomes B (P, 3): (P, n + outliers) angles (inf: none) and catalog rows (-1) of the
+        stars that make D_i, nearest first, and the reference magnitude of the relative magnitudes.
 
         Complete image: the n nearest catalog stars (the paper's rule). Cut image: the n nearest of
-        the catalog stars within the same relative magnitude of the brightest as the image's cut."""
+        the catalog stars within r_catalog brighter than the image's cut (relative magnitudes)."""
         B = np.atleast_2d(B)
         d, idx = self._query(B)
         found = np.isfinite(d)
         mags = np.where(found, self.cat_mag[np.where(found, idx, 0)], np.inf)
-        brightest = mags.min(axis=1)
+        ref = reference_magnitude(mags)
         if not self.complete:
-            keep = found & (mags <= brightest[:, None] + self.cut_rel_mag)
+            keep = found & (mags <= ref[:, None] + self.cut_rel_mag)
             d = np.where(keep, d, np.inf)
-            o = np.argsort(d, axis=1, kind="stable")[:, :self.n]
+            o = np.argsort(d, axis=1, kind="stable")[:, :self.n_query]
             d, idx = np.take_along_axis(d, o, axis=1), np.take_along_axis(idx, o, axis=1)
             found = np.isfinite(d)
         ang = np.where(found, 2.0 * np.arcsin(np.clip(np.where(found, d, 0.0) / 2.0, 0.0, 1.0)), np.inf)
-        return ang, np.where(found, idx, -1), brightest
+        return ang, np.where(found, idx, -1), ref
 
     def cost(self, B: np.ndarray) -> np.ndarray:
-        """Eq. 3 for chromosomes B (P, 3): sum |D_a - D_i| over the n entries (+ the pre-filter)."""
-        ang, idx, brightest = self.neighbours(B)
-        c = distance_cost(self.D_a, distance_vector(ang, self.n))
+        """Eq. 3 for chromosomes B (P, 3): sum |D_a - D_i| over the n entries (+ the pre-filter).
+
+        With outliers=1 the cost is the smallest of eq. 3, eq. 3 with one image star left out (against
+        the n - 1 nearest catalog stars: a false star) and eq. 3 with one of the n + 1 nearest catalog
+        stars left out (a star the image lacks)."""
+        ang, idx, ref = self.neighbours(B)
+        n = self.n
+        c = distance_cost(self.D_a, distance_vector(ang[:, :n], n))
+        if self.outliers:
+            D1 = distance_vector(ang[:, :n - 1], n - 1)
+            c = np.minimum(c, np.abs(self.D_a_drop[None, :, :] - D1[:, None, :]).sum(axis=2).min(axis=1))
+            D2 = distance_vector(ang[:, :n + 1], n + 1)
+            c = np.minimum(c, np.abs(D2[:, self.drop_one] - self.D_a[None, None, :]).sum(axis=2).min(axis=1))
         if self.rel_mag_a is not None:
-            near = idx[:, 0] >= 0
-            rel = np.where(near, self.cat_mag[np.clip(idx[:, 0], 0, None)] - np.where(near, brightest, 0.0), np.inf)
+            near = (idx[:, 0] >= 0) & np.isfinite(ref)
+            rel = np.where(near, self.cat_mag[np.clip(idx[:, 0], 0, None)] - np.where(near, ref, 0.0), np.inf)
             c = np.where(np.abs(rel - self.rel_mag_a) <= self.mag_tolerance, c, np.inf)
         return c
+
+    def alignment(self, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """At position b, the entries of the image that eq. 3 compares (indices into D_a), the catalog
+        distance vector they are compared with and its catalog rows (-1 for padding): the full
+        vectors, or with one star left out on either side when that costs less (outliers=1)."""
+        ang, idx, _ = self.neighbours(np.asarray(b)[None, :])
+        a, i = ang[0], idx[0]
+        n = self.n
+
+        def catalog_side(k):
+            ii = i[:k]
+            real = ii[ii >= 0]
+            return distance_vector(a[None, :k], k)[0], np.concatenate([-np.ones(k - len(real), np.int64), real])
+
+        keep = np.arange(n)
+        D_i, rows = catalog_side(n)
+        best = float(np.sum(np.abs(self.D_a - D_i)))
+        if self.outliers:
+            D1, rows1 = catalog_side(n - 1)
+            for j in range(n):
+                cj = float(np.sum(np.abs(self.D_a_drop[j] - D1)))
+                if cj < best:
+                    best, keep, D_i, rows = cj, np.delete(np.arange(n), j), D1, rows1
+            D2, rows2 = catalog_side(n + 1)
+            for j in range(n + 1):
+                kj = np.delete(np.arange(n + 1), j)
+                cj = float(np.sum(np.abs(self.D_a - D2[kj])))
+                if cj < best:
+                    best, keep, D_i, rows = cj, np.arange(n), D2[kj], rows2[kj]
+        return keep, D_i, rows
+
+
+def merged_catalog(catalog: GuideCatalog, sep_rad: float) -> tuple[GuideCatalog, np.ndarray]:
+    """The catalog as a centroider sees it: every group of stars closer than sep_rad becomes one star
+    at the flux-weighted mean position with the summed flux (row of its brightest star). Returns the
+    catalog and, for each of its rows, the row of the original catalog."""
+    n = len(catalog)
+    if sep_rad <= 0 or n < 2:
+        return catalog, np.arange(n)
+    pairs = catalog.tree.query_pairs(float(chord(sep_rad)), output_type="ndarray")
+    if len(pairs) == 0:
+        return catalog, np.arange(n)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    flux = 10.0 ** (-0.4 * catalog.mag.astype(np.float64))
+    order = np.lexsort((catalog.mag, label))  # by group, brightest first
+    first = np.ones(n, dtype=bool)
+    first[1:] = label[order][1:] != label[order][:-1]
+    rows = np.sort(order[first])  # the brightest star of each group
+    total = np.bincount(label, weights=flux)
+    xyz = np.zeros((label.max() + 1, 3))
+    np.add.at(xyz, label, flux[:, None] * catalog.xyz)
+    xyz = xyz[label[rows]]
+    xyz /= np.linalg.norm(xyz, axis=1, keepdims=True)
+    mag = (-2.5 * np.log10(total[label[rows]])).astype(catalog.mag.dtype)
+    out = GuideCatalog(hip=catalog.hip[rows], xyz=xyz, mag=mag, pm=catalog.pm[rows], bv=catalog.bv[rows],
+                       flags=catalog.flags[rows], epoch=catalog.epoch,
+                       history=catalog.history + (f"merged<{np.degrees(sep_rad) * 3600:.1f}arcsec",))
+    return out, rows
 
 
 # ================================================================== the database: pair separations
@@ -571,7 +678,7 @@ class GeneticMethod(Identifier):
                  deltas: tuple[float, ...] = PAPER_DELTAS, delta_fov: float = PAPER_FOV,
                  box_factor: float = PAPER_BOX_FACTOR, mag_tolerance: float | None = PAPER_MAG_TOLERANCE,
                  max_restarts: int = 20, stall_generations: int | None = None, seeding: str = "uniform",
-                 min_stars: int = 3, complete_below: int = 40,
+                 outliers: int = 0, min_stars: int = 3, complete_below: int = 40, merge_px: float = 3.0,
                  seed: int = 0, workers: int = 1, statistic: str = CALIBRATED, threshold: float | None = None,
                  radius_sigmas: float = RADIUS_SIGMAS):
         if not (np.isfinite(sigma_rad) and sigma_rad > 0):
@@ -597,6 +704,10 @@ class GeneticMethod(Identifier):
             raise BadInput("stall_generations must be >= 1 or None")
         if seeding not in SEEDINGS:
             raise BadInput(f"unknown seeding {seeding!r}: choose from {', '.join(SEEDINGS)}")
+        if int(outliers) not in (0, 1):
+            raise BadInput("outliers must be 0 or 1")
+        if not (np.isfinite(merge_px) and merge_px >= 0):
+            raise BadInput("merge_px must be >= 0")
         if int(complete_below) < 1:
             raise BadInput("complete_below must be at least 1")
         if int(min_stars) < 2:
@@ -625,6 +736,7 @@ class GeneticMethod(Identifier):
         self.max_restarts = int(max_restarts)
         self.stall_generations = None if stall_generations is None else int(stall_generations)
         self.seeding = seeding
+        self.outliers = int(outliers)
         self.min_stars = int(min_stars)
         self.complete_below = int(complete_below)
         self.seed = int(seed)
@@ -635,9 +747,13 @@ class GeneticMethod(Identifier):
         self.r_circle = inscribed_radius(camera)
         self.fov_rad = float(np.radians(camera.fov_deg))
         self.max_sep_rad = 2.0 * camera.half_diagonal_rad
+        # the GA's catalog: stars closer than merge_px are one blob for the centroider
+        self.merge_px = float(merge_px)
+        self.ga_catalog, self.ga_rows = merged_catalog(catalog, self.merge_px * camera.pixel_scale_rad)
         # the most catalog stars a circle around a chromosome may hold (a little wider than r_circle)
-        self.k_max = int(catalog.tree.query_ball_point(catalog.xyz, float(chord(1.1 * self.r_circle + 0.005)),
-                                                       return_length=True).max()) + 1 if len(catalog) else 1
+        gx = self.ga_catalog
+        self.k_max = int(gx.tree.query_ball_point(gx.xyz, float(chord(1.1 * self.r_circle + 0.005)),
+                                                  return_length=True).max()) + 1 if len(gx) else 1
         self._pool: tuple[ProcessPoolExecutor, object] | None = None
         self._stop: Callable[[], bool] | None = None  # set in worker processes
 
@@ -775,9 +891,9 @@ class GeneticMethod(Identifier):
 
     def _field(self, V: np.ndarray, brightness: np.ndarray, sigma: float) -> SkyField:
         margin = RADIUS_SIGMAS * sigma
-        return SkyField(self.catalog, V if len(V) else np.zeros((0, 3)), np.asarray(brightness), self.r_circle,
+        return SkyField(self.ga_catalog, V if len(V) else np.zeros((0, 3)), np.asarray(brightness), self.r_circle,
                         self.r_circle + margin, self.m, self.mag_tolerance, self.k_max,
-                        complete=len(V) < self.complete_below, min_stars=self.min_stars)
+                        complete=len(V) < self.complete_below, min_stars=self.min_stars, outliers=self.outliers)
 
     def _attempts(self, V, brightness, sigma, frame_key):
         """The attempts in restart order (with workers=2 two are computed at a time in forked processes;
@@ -830,8 +946,8 @@ class GeneticMethod(Identifier):
 
         initial = None
         if self.seeding == "rings":
-            initial = np.stack(vec_to_radec(ring_seeds(self.catalog.xyz, float(sky.R_a[0]), self.first.initial, rng)),
-                               axis=1)
+            seeds = ring_seeds(self.ga_catalog.xyz, float(sky.R_a[0]), self.first.initial, rng)
+            initial = np.stack(vec_to_radec(seeds), axis=1)
         res = self._run(att, 1, sky_cost, space, self.first, ths[0], rng, box,
                         lambda g: radec_to_vec(g[:, 0], g[:, 1]), initial=initial)
         if not res.converged:
@@ -858,24 +974,22 @@ class GeneticMethod(Identifier):
             best = box_vectors(center, res.genes[:1], res.genes[1:2])[0]
             cost = res.cost
         att.b = best
-        # roll: eq. 4 at the found position
-        ang, idx, _ = sky.neighbours(best[None, :])
-        D_i = distance_vector(ang, sky.n)[0]
-        rows = np.concatenate([-np.ones(sky.n - int(np.sum(idx[0] >= 0)), dtype=np.int64),
-                               idx[0][idx[0] >= 0]])  # the rows in the order of D_i
-        theta_i = np.zeros(sky.n)
+        # roll: eq. 4 at the found position, on the stars eq. 3 compared there
+        keep, D_i, rows = sky.alignment(best)
+        D_a, theta_a, R_a, obs_index = sky.D_a[keep], sky.theta_a[keep], sky.R_a[keep], sky.obs_index[keep]
+        theta_i = np.zeros(len(rows))
         real = rows >= 0
-        theta_i[real] = position_angles(self.catalog.xyz[rows[real]], best)
+        theta_i[real] = position_angles(self.ga_catalog.xyz[rows[real]], best)
         tie = 2.0 * RADIUS_SIGMAS * sigma
-        partners = angle_partners(sky.D_a, D_i, tie)
-        th_roll = roll_threshold(sky.R_a, sigma, cost)
+        partners = angle_partners(D_a, D_i, tie)
+        th_roll = roll_threshold(R_a, sigma, cost)
         ring = 0.5 * self.r_circle
 
         def roll_vectors(g):
             return _up_directions(best, g[:, 0], ring)
 
         box = {"kind": "roll", "center": best.copy(), "half_width_rad": float(ring), "corners": None}
-        res = self._run(att, len(ths) + 1, lambda g: angle_cost(sky.theta_a, theta_i, g[:, 0], partners),
+        res = self._run(att, len(ths) + 1, lambda g: angle_cost(theta_a, theta_i, g[:, 0], partners),
                         GeneSpace(lo=(0.0,), hi=(2 * np.pi,), periodic=(True,)), self.roll, th_roll, rng, box,
                         roll_vectors, roll=True)
         if not res.converged:
@@ -883,10 +997,10 @@ class GeneticMethod(Identifier):
         att.phi = float(res.genes[0])
         att.R = attitude_from_phi(best, att.phi)
         # the GA's answer: the paired stars, refined, then every observed star within r
-        dphi = np.abs(wrap_angle(sky.theta_a[:, None] + att.phi - theta_i[np.clip(partners, 0, None)]))
+        dphi = np.abs(wrap_angle(theta_a[:, None] + att.phi - theta_i[np.clip(partners, 0, None)]))
         dphi = np.where(partners >= 0, dphi, np.inf)
-        pick = partners[np.arange(sky.n), np.argmin(dphi, axis=1)]
-        pairs = {int(sky.obs_index[j]): int(rows[pick[j]]) for j in range(sky.n)
+        pick = partners[np.arange(len(keep)), np.argmin(dphi, axis=1)]
+        pairs = {int(obs_index[j]): int(self.ga_rows[rows[pick[j]]]) for j in range(len(keep))
                  if pick[j] >= 0 and rows[pick[j]] >= 0}
         att.matches, att.R = self._answer(V, pairs, att.R, sigma)
         att.outcome = "answer"
@@ -907,12 +1021,21 @@ class GeneticMethod(Identifier):
         name = "roll" if roll else ("first" if stage == 1 else "spiral")
         half_deg = float(np.degrees(box["half_width_rad"]))
 
-        def record(gen, pop, c, evals):
-            best = float(c[0])
-            extra = {"population": to_vectors(pop).astype(np.float32), "box": box,
-                     "costs": c.astype(np.float32)}
+        best_so_far = [np.inf]
+
+        def population_extra(pop, c):
+            extra = {"population": to_vectors(pop).astype(np.float32), "costs": c.astype(np.float32)}
             if roll:
                 extra["roll_rad"] = _phi_to_roll(box["center"], pop[:, 0])
+            return extra
+
+        def record(gen, pop, c, evals):
+            best = float(c[0])
+            extra = {"box": box}
+            if (gen <= RECORD_FIRST_GENERATIONS or gen % RECORD_EVERY == 0 or best < best_so_far[0]
+                    or best <= threshold):
+                extra.update(population_extra(pop, c))
+            best_so_far[0] = min(best_so_far[0], best)
             att.steps.append(Step("generation", f"attempt {att.index + 1}, {name} GA (stage {stage}), generation "
                                                 f"{gen}: best cost {_deg(best)}",
                                   numbers={"best_cost": best, "threshold": float(threshold), "stage": stage,
@@ -923,6 +1046,8 @@ class GeneticMethod(Identifier):
         res = run_ga(cost, space, sizes, rng, mutation_rate=self.mutation_rate, threshold=threshold,
                      max_generations=self.max_generations, stall_generations=self.stall_generations,
                      initial=initial, stop=self._stop, on_generation=record)
+        if "population" not in att.steps[-1].extra:  # the last generation of a stage always has it
+            att.steps[-1].extra.update(population_extra(res.population, res.costs))
         att.generations.append(res.generations)
         att.evaluations += res.evaluations
         att.costs.append(res.cost)

@@ -284,7 +284,8 @@ def format_report(s: dict) -> str:
                   f"| roll error (deg) | {s['roll_error_deg']['mean']:.3g} | {s['roll_error_deg']['sd']:.3g} | "
                   f"(example: 1e-4) | |",
                   "", f"Stars in the FOV: mean {s['stars_in_fov']['mean']:.1f}; restarts: mean "
-                  f"{s['restarts']['mean']:.2f}, max {s['restarts']['max_abs']:.0f} (by stage: {s['restarts_by_stage']}); "
+                  f"{s['restarts']['mean']:.2f}, max {s['restarts']['max_abs']:.0f} "
+                  f"(by stage: {s['restarts_by_stage']}); "
                   f"generations per stage (mean) "
                   + ", ".join(f"{g:.0f}" for g in s["generations_per_stage_mean"])
                   + f"; time per run: median {s['time_s']['median']:.2f} s."]
