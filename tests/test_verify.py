@@ -10,7 +10,7 @@ from scipy.stats import binom
 
 from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes, svd_attitude
 from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
+from skyview.catalog import load_guide_catalog, vec_to_radec
 from skyview.identify.synthetic import synthetic_frame
 from skyview.identify.verify import (CALIBRATED, DEFAULT_THRESHOLD, TETRA3, angular_distance, match_one_to_one,
                                      match_radius, p_false_calibrated, p_false_tetra3, poisson_binomial_sf, verify)
@@ -218,3 +218,29 @@ def test_unknown_statistic(cat, cam):
     f = frame_with(cat, cam, 5, seed=10)
     with pytest.raises(ValueError):
         verify(f.obs.vectors, {0: int(f.truth[0]), 1: int(f.truth[1])}, cat, cam, SIGMA, statistic="magic")
+
+
+def test_a_blended_close_pair_is_never_reported():
+    """nu Draconis (HIP 85819 / 85829, 62" apart, Hp 4.96 / 4.94) seen through a 20 deg, 1024 px camera
+    is one centroid between the two: the verification must report neither identity, whichever
+    component the centroid happens to lie nearer to."""
+    cat = load_guide_catalog().brighter_than(6.0)
+    cam20 = Camera.from_fov(20.0, 1024)
+    a, b = cat.index_of(85819), cat.index_of(85829)
+    mid = cat.xyz[a] + cat.xyz[b]
+    mid /= np.linalg.norm(mid)
+    ra, dec = vec_to_radec(mid)
+    R = R_from_radec_roll(float(ra) + 0.02, float(dec) + 0.01, 0.3)
+    rows, _ = cam20.visible(R, cat.xyz)
+    rows = [int(r) for r in rows if r not in (a, b)]
+    for lean in (0.0, 0.45, -0.45):  # the blend's centroid at the midpoint or next to one component
+        blend = mid + lean * (cat.xyz[a] - cat.xyz[b])
+        vectors = np.vstack([cat.xyz[rows] @ R.T, (blend / np.linalg.norm(blend)) @ R.T])
+        k = len(vectors) - 1
+        hyp = {i: rows[i] for i in range(4)}
+        ver = verify(vectors, hyp, cat, cam20, 10e-6)
+        assert ver.passed
+        assert k not in ver.matches
+        if lean:  # within the match radius of one component: without the blend rule it would be reported
+            assert k in ver.ambiguous
+        assert all(ver.matches[i] == rows[i] for i in ver.matches)

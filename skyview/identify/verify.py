@@ -78,6 +78,9 @@ DEFAULT_THRESHOLD = {CALIBRATED: 1e-3, TETRA3: 1e-3}
 MAX_RADIUS_RAD = float(np.radians(1.0))  # a prediction worse than this is no evidence at all
 LOCAL_RADIUS_RAD = float(np.radians(1.0))  # neighbourhood for the local catalog density
 LOCAL_MIN_COUNT = 3  # fewer stars than this in the neighbourhood: too few to estimate a density
+# Two catalog stars closer than this on the sensor are seen as one blended centroid (PSF sigma ~1.1 px;
+# the centroider separates pairs from ~3.5 px): the blend's identity is either, so neither is reported.
+BLEND_RADIUS_PX = 3.0
 
 
 def local_density(catalog: GuideCatalog, directions_icrs: np.ndarray, leave_out: np.ndarray | None = None,
@@ -389,9 +392,14 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         # ... and a catalog star with two observed stars within the radius (a false star or a hot
         # pixel next to a star) may belong to either, so neither is reported
         crowd = cKDTree(vectors).query_ball_point(pred, chord(rad), return_length=True) >= 2
-        for o in f_obs[misfit | crowd].tolist():
+        # ... and a catalog star with another catalog star closer than the sensor resolves may be
+        # half of a blend whose centroid sits between the two: its identity is either
+        blend = np.maximum(rad, BLEND_RADIUS_PX * camera.pixel_scale_rad)
+        blended = np.asarray(catalog.tree.query_ball_point(catalog.xyz[f_cat], chord(blend),
+                                                           return_length=True)) >= 2
+        for o in f_obs[misfit | crowd | blended].tolist():
             final.pop(int(o))
-        ambiguous |= set(f_obs[crowd].tolist())
+        ambiguous |= set(f_obs[crowd | blended].tolist())
     out.ambiguous = sorted(ambiguous)
     if len(final) < 2:
         out.reason = "fewer than two observed stars have an unambiguous identity"
