@@ -107,7 +107,7 @@ C_TRUTH = (80, 220, 120)
 C_FALSE = (255, 150, 0)
 
 # The default scenario of each method: its paper's conditions (used by --examples).
-EXAMPLE_SCENARIOS = {"angle": "cole8", "triangle": "cole8", "svd": "juang8", "ellipticity": "sun20"}
+EXAMPLE_SCENARIOS = {"angle": "cole8", "triangle": "cole8", "svd": "juang8", "ellipticity": "sun20", "genetic": "sun20"}
 # The failure example: the paper variant of this method on this scenario, first seed that ends inconclusive.
 FAILURE_EXAMPLE = ("angle", "cole8-false")
 EXAMPLE_SEED_START = 1
