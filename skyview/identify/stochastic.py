@@ -98,7 +98,7 @@ from skyview.identify import database
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
 from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, frame_stars,
-                                     match_one_to_one, match_radius, verify)
+                                     match_one_to_one, match_radius, verify, verification_step)
 
 STAT_NAMES = ("n", "mu_m", "sigma_m", "mu_d", "sigma_d", "sigma_theta")
 # The paper's Q (diagonal): star^2, mag^2, mag^2, deg^2, deg^2, rad^2 (see the module docstring)
@@ -854,13 +854,8 @@ class StochasticMethod(Identifier):
                     ver.reason = (f"the geometry agrees ({ver.reason}) but the magnitudes do not: "
                                   f"P(chi^2) = {vd['p_magnitudes']:.1e} < {MAG_CONSISTENCY_P:g}")
                     vd.update(passed=False, reason=ver.reason)
-            steps.append(Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
-                              observed=sorted(ver.matches or hyp),
-                              catalog=[int(c) for _, c in sorted((ver.matches or hyp).items())][:200],
-                              numbers={kk: vd[kk] for kk in ("n_agree", "n_tested", "p_false", "threshold_effective",
-                                                              "radius_arcsec", "n_hypotheses", "p_single")}
-                              | {"passed": float(ver.passed), "frame": k,
-                                 "p_magnitudes": vd.get("p_magnitudes", float("nan"))}))
+            steps.append(verification_step(ver, hyp, numbers={"frame": k,
+                                                              "p_magnitudes": vd.get("p_magnitudes", float("nan"))}))
             result.verification = vd
             if ver.passed:
                 result.status = IDENTIFIED

@@ -130,7 +130,8 @@ from skyview.identify import database
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
 from skyview.identify.kvector import KVector
-from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius, verify
+from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius,
+                                     verification_step, verify)
 
 SIGN_RULES = ("max", "dot")
 BORESIGHT_ORDERS = ("brightness", "inside")
@@ -760,13 +761,7 @@ class SVDMethod(Identifier):
                          n_patterns=len(self.sets), statistic=self.statistic, threshold=self.threshold,
                          radius_rad=match_radius(sigma, self.radius_sigmas))
             vd = ver.to_dict()
-            steps.append(Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
-                              observed=sorted(ver.matches or hyp),
-                              catalog=[int(r) for _, r in sorted((ver.matches or hyp).items())][:CAP],
-                              numbers={k: vd[k] for k in ("n_agree", "n_tested", "p_false", "threshold_effective",
-                                                         "radius_arcsec", "n_hypotheses", "p_single")}
-                              | {"passed": float(ver.passed)},
-                              extra={"verification": vd}))
+            steps.append(verification_step(ver, hyp, cap=CAP, extra={"verification": vd}))
             a.verified += 1
             untestable += ver.n_tested == 0
             if ver.passed:

@@ -93,7 +93,8 @@ from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identificat
                                    Step)
 from skyview.identify.kvector import KVector
 from skyview.identify.synthetic import add_noise
-from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius, verify
+from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius,
+                                     verification_step, verify)
 
 ORDERS = ("largest", "fewest")
 AREA_SIGMAS = ("paper", "stars")
@@ -596,12 +597,7 @@ class TriangleMethod(Identifier):
                              n_patterns=len(self.tri), statistic=self.statistic, threshold=self.threshold,
                              radius_rad=match_radius(sigma, self.radius_sigmas))
                 vd = ver.to_dict()
-                steps.append(Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
-                                  observed=sorted(ver.matches or hyp),
-                                  catalog=[int(r) for _, r in sorted((ver.matches or hyp).items())][:CAP],
-                                  numbers={k: vd[k] for k in ("n_agree", "n_tested", "p_false", "threshold_effective",
-                                                             "radius_arcsec", "n_hypotheses", "p_single")}
-                                  | {"passed": float(ver.passed)}))
+                steps.append(verification_step(ver, hyp, cap=CAP))
                 result.verification = vd
                 if ver.passed:
                     result.status = IDENTIFIED

@@ -418,3 +418,21 @@ def _estimate(vectors, matches, catalog, sigma_rad):
     idx = np.array(sorted(matches), dtype=np.int64)
     rows = np.array([matches[i] for i in idx], dtype=np.int64)
     return svd_attitude(vectors[idx], catalog.xyz[rows], sigma_rad)
+
+
+VERIFY_NUMBERS = ("n_agree", "n_tested", "p_false", "threshold_effective", "radius_arcsec", "n_hypotheses",
+                  "p_single")
+
+
+def verification_step(ver: Verification, hypothesis: dict[int, int], *, cap: int = 200,
+                      numbers: dict | None = None, **fields):
+    """The 'verify' step every method records: the matches (or the rejected hypothesis), the figures
+    of the verification, plus the method's own `numbers` and Step fields (groups, extra)."""
+    from skyview.identify.base import Step
+
+    shown = ver.matches or hypothesis
+    vd = ver.to_dict()
+    nums = {k: vd[k] for k in VERIFY_NUMBERS} | {"passed": float(ver.passed)} | (numbers or {})
+    return Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
+                observed=sorted(shown), catalog=[int(r) for _, r in sorted(shown.items())][:cap],
+                numbers=nums, **fields)
