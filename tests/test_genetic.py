@@ -96,8 +96,9 @@ def test_brightness_cut_at_the_widest_gap_of_the_fainter_half():
     keep, cut = brightness_cut(np.arange(7), m, 3)
     np.testing.assert_array_equal(keep, [0, 1, 2, 3])
     assert cut == pytest.approx(2.6)  # the middle of the gap 2.2 .. 3.0
-    # relative magnitudes start at the second brightest (one saturated star does not move them)
-    np.testing.assert_allclose(reference_magnitude([[3.0, 1.0, 2.0], [5.0, np.inf, np.inf]]), [2.0, 5.0])
+    # relative magnitudes start at the k-th brightest (saturated bright stars do not move it)
+    np.testing.assert_allclose(reference_magnitude([[3.0, 1.0, 2.0], [5.0, np.inf, np.inf]], 2), [2.0, 5.0])
+    np.testing.assert_allclose(reference_magnitude([[4.0, 0.1, 0.2, 3.0, 5.0]], 3), [3.0])
 
 
 def test_merged_catalog_sees_close_pairs_as_one_star(cat):
@@ -236,7 +237,9 @@ def test_one_outlier_option_forgives_a_false_star(cache, cat):
     false = int(np.flatnonzero(f.truth < 0)[0])
     assert np.arccos(f.obs.vectors[false, 2]) < inscribed(cam)  # the false star is inside the circle
     plain = GeneticMethod(cat, cam, SIGMA)._field(f.obs.vectors, f.obs.brightness, SIGMA)
-    robust = GeneticMethod(cat, cam, SIGMA, outliers=1)._field(f.obs.vectors, f.obs.brightness, SIGMA)
+    robust = GeneticMethod(cat, cam, SIGMA, outliers=1, outlier_min_stars=3)._field(f.obs.vectors, f.obs.brightness,
+                                                                                     SIGMA)
+    assert GeneticMethod(cat, cam, SIGMA, outliers=1)._field(f.obs.vectors, f.obs.brightness, SIGMA).outliers == 0
     robust.rel_mag_a = plain.rel_mag_a = None  # the false star's brightness is random: no pre-filter here
     assert plain.cost(R[2][None])[0] > noise_floor(plain.n, SIGMA)
     assert robust.cost(R[2][None])[0] <= noise_floor(robust.n, SIGMA)
@@ -333,3 +336,10 @@ def test_two_workers_give_the_same_answer(cache, cat, cam20):
     assert one.stats["attempts"] == two.stats["attempts"]
     if one.identified:
         assert all(f.truth[o] == c for o, c in one.matches.items())
+
+
+def test_verify_every_answer_counts_no_wrong_pass(cache):
+    from skyview.identify.genetic import verify_every_answer
+    tally = verify_every_answer(20.0, frames=3, attempts=2, seed=4, initial=5000)
+    assert tally["frames"] >= 1 and tally["wrong_passed"] == 0
+    assert tally["answers"] == tally["wrong_answers"] + tally["right_passed"] + tally["right_rejected"]

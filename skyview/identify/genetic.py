@@ -34,8 +34,8 @@ group one star (flux-weighted position, summed flux; the verification uses the f
 below the catalog's limit, so an image with complete_below = 40 stars or more is taken as cut at
 some brightness: the GA then uses the stars brighter than the widest gap in instrument magnitude
 among the fainter half, and the catalog side the stars brighter than the same cut (a cut in a gap
-survives magnitude errors; magnitudes are relative to the second brightest star on each side,
-robust to one saturated star). The spiral stages search a square of +-Delta in the gnomonic plane
+survives magnitude errors; magnitudes are relative to the median star by brightness rank on each
+side, which saturation of the brightest stars does not move). The spiral stages search a square of +-Delta in the gnomonic plane
 around the previous best position (genes xi, eta: a true square on the sky, even at the poles). The
 roll GA compares position angles in the tangent plane: theta_a = atan2(y, x) of the camera-frame
 direction, theta_i = atan2(north, east) of the catalog star at the found boresight, and
@@ -53,7 +53,7 @@ sum_k min(pi, (3 sqrt(2) sigma + eps_b) / R_k) with eps_b = 3 C / n from the fin
 Magnitude pre-filter (the paper's proposal): a chromosome whose nearest catalog star is not within
 mag_tolerance = 1 magnitude of the observed star nearest the boresight gets no cost (infinite).
 Instrument brightness is used as relative magnitude only: both sides are taken relative to the
-second brightest star of the stars they use. mag_tolerance=None switches it off.
+median star (by brightness rank) of the stars they use. mag_tolerance=None switches it off.
 
 Verification (the identifier contract). The GA's answer (boresight + roll) is refined with the
 paired stars (SVD, outliers dropped), every observed star is matched to the catalog within the
@@ -118,10 +118,12 @@ PAPER_BOX_FACTOR = 1.1  # Delta = 1.1 x previous best cost (2.40075 = 1.1 x 2.18
 PAPER_MAG_TOLERANCE = 1.0  # the pre-filter's +-1 magnitude
 
 # Options beyond the paper (variant "improved"): the first GA starts from 60,000 chromosomes placed at
-# the observed nearest-star distance from random catalog stars ("rings") instead of 300 uniform ones,
-# and a stage whose best cost has not improved for 60 generations restarts at once instead of waiting
-# for generation 600.
-IMPROVED_PARAMS = {"seeding": "rings", "initial": 60_000, "stall_generations": 60, "max_restarts": 30}
+# the observed nearest-star distance from random catalog stars ("rings") instead of 300 uniform ones;
+# a stage whose best cost has not improved for 60 generations restarts at once instead of waiting
+# for generation 600; with 10 stars or more in the distance vector, eq. 3 forgives one false or
+# missing star (outliers=1).
+IMPROVED_PARAMS = {"seeding": "rings", "initial": 60_000, "stall_generations": 60, "max_restarts": 30,
+                   "outliers": 1}
 SEEDINGS = ("uniform", "rings")
 # step record: the population is kept for generations 0-20, every 10th, those that improve the best
 # cost or converge, and the last of each stage (a failing 600-generation stage keeps ~100, not 600)
@@ -440,16 +442,21 @@ def brightness_cut(stars: np.ndarray, m_inst: np.ndarray, min_stars: int) -> tup
     return np.sort(o[:k]), float(0.5 * (mags[k - 1] + mags[k]))
 
 
-def reference_magnitude(mags: np.ndarray) -> np.ndarray:
-    """Per row, the second brightest finite magnitude (the brightest when there is one): the zero of
-    the relative magnitudes, robust to one saturated or blended star."""
+def reference_magnitude(mags: np.ndarray, k: int) -> np.ndarray:
+    """Per row, the k-th brightest finite magnitude (the faintest finite one when a row has fewer): the
+    zero of the relative magnitudes. With k half the stars used it is the median star: saturation
+    compresses only the brightest few (in the simulator from Hp ~3.3 on), and a star entering or
+    leaving the circle moves it by one rank only."""
     mags = np.atleast_2d(np.asarray(mags, dtype=np.float64))
     if mags.shape[1] == 0:
         return np.full(len(mags), np.inf)
-    if mags.shape[1] == 1:
-        return mags[:, 0].copy()
-    two = np.partition(mags, 1, axis=1)[:, :2]
-    return np.where(np.isfinite(two[:, 1]), two[:, 1], two[:, 0])
+    k = int(min(max(k, 1), mags.shape[1]))
+    part = np.sort(mags, axis=1)[:, :k] if mags.shape[1] <= 64 else np.sort(
+        np.partition(mags, k - 1, axis=1)[:, :k], axis=1)
+    fin = np.isfinite(part)
+    last = np.maximum(fin.sum(axis=1) - 1, 0)
+    out = part[np.arange(len(part)), last]
+    return np.where(fin.any(axis=1), out, np.inf)
 
 
 class SkyField:
@@ -462,15 +469,15 @@ class SkyField:
     the same cut: a cut in a gap survives magnitude errors. Their m nearest (n = min(m, N)) give the
     distances D_a, nearest first, and the position angles theta_a. Catalog side, for every
     chromosome: the n nearest catalog stars within r_catalog of it (after the cut), zero-padded at
-    the beginning when fewer. Magnitudes are relative on both sides: to the second brightest star
-    (reference_magnitude) of the stars used (complete image: the n; cut image: all in the circle).
+    the beginning when fewer. Magnitudes are relative on both sides, to the median star by rank
+    (reference_magnitude) of the stars used (complete image: the n; cut image: those above the cut).
     The pre-filter compares the relative magnitude of the nearest star. k_max: the most catalog stars
     any circle of r_catalog holds (rows that reach it are completed one by one).
     """
 
     def __init__(self, catalog: GuideCatalog, V: np.ndarray, brightness: np.ndarray, r_circle: float,
                  r_catalog: float, m: int, mag_tolerance: float | None, k_max: int, complete: bool = True,
-                 min_stars: int = 3, outliers: int = 0):
+                 min_stars: int = 3, outliers: int = 0, outlier_min_stars: int = 10):
         self.catalog = catalog
         self.r_circle, self.r_catalog = float(r_circle), float(r_catalog)
         ang = np.arccos(np.clip(V[:, 2], -1.0, 1.0)) if len(V) else np.zeros(0)
@@ -481,9 +488,12 @@ class SkyField:
         cut = None
         if not complete and len(inside) > min_stars and np.all(np.isfinite(m_inst[inside])):
             inside, cut = brightness_cut(inside, m_inst, min_stars)
-            self.cut_rel_mag = float(cut - reference_magnitude(m_inst[inside][None, :])[0])
+            self.ref_rank = (len(inside) + 1) // 2
+            self.cut_rel_mag = float(cut - reference_magnitude(m_inst[inside][None, :], self.ref_rank)[0])
         self.n_circle = len(inside)
         order = inside[np.argsort(ang[inside], kind="stable")][:m]
+        if cut is None:  # complete: the median star of the n used
+            self.ref_rank = (len(order) + 1) // 2
         self.obs_index = order  # observed star of each entry, nearest first
         self.n = len(order)
         self.R_a = ang[order]
@@ -491,7 +501,7 @@ class SkyField:
         self.theta_a = np.arctan2(V[order, 1], V[order, 0]) if self.n else np.zeros(0)
         self.chord_catalog = float(chord(r_catalog))
         self.complete = self.cut_rel_mag is None
-        self.outliers = int(outliers) if self.n > 2 else 0
+        self.outliers = int(outliers) if self.n >= max(3, int(outlier_min_stars)) else 0
         self.n_query = self.n + self.outliers  # catalog stars per chromosome (one more to drop one)
         if self.outliers:  # D_a with each image star left out in turn; index of n + 1 less one
             self.D_a_drop = np.stack([np.delete(self.D_a, j) for j in range(self.n)])
@@ -506,7 +516,7 @@ class SkyField:
         self.rel_mag_a = None
         used = order if self.complete else inside
         if mag_tolerance is not None and self.n and np.all(np.isfinite(m_inst[used])):
-            self.rel_mag_a = float(m_inst[order[0]] - reference_magnitude(m_inst[used][None, :])[0])
+            self.rel_mag_a = float(m_inst[order[0]] - reference_magnitude(m_inst[used][None, :], self.ref_rank)[0])
         self.cat_mag = catalog.mag.astype(np.float64)
 
     def _query(self, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -545,7 +555,7 @@ class SkyField:
         d, idx = self._query(B)
         found = np.isfinite(d)
         mags = np.where(found, self.cat_mag[np.where(found, idx, 0)], np.inf)
-        ref = reference_magnitude(mags)
+        ref = reference_magnitude(mags if not self.complete else mags[:, :self.n], self.ref_rank)
         if not self.complete:
             keep = found & (mags <= ref[:, None] + self.cut_rel_mag)
             d = np.where(keep, d, np.inf)
@@ -678,7 +688,8 @@ class GeneticMethod(Identifier):
                  deltas: tuple[float, ...] = PAPER_DELTAS, delta_fov: float = PAPER_FOV,
                  box_factor: float = PAPER_BOX_FACTOR, mag_tolerance: float | None = PAPER_MAG_TOLERANCE,
                  max_restarts: int = 20, stall_generations: int | None = None, seeding: str = "uniform",
-                 outliers: int = 0, min_stars: int = 3, complete_below: int = 40, merge_px: float = 3.0,
+                 outliers: int = 0, outlier_min_stars: int = 10, min_stars: int = 3, complete_below: int = 40,
+                 merge_px: float = 3.0,
                  seed: int = 0, workers: int = 1, statistic: str = CALIBRATED, threshold: float | None = None,
                  radius_sigmas: float = RADIUS_SIGMAS):
         if not (np.isfinite(sigma_rad) and sigma_rad > 0):
@@ -706,6 +717,8 @@ class GeneticMethod(Identifier):
             raise BadInput(f"unknown seeding {seeding!r}: choose from {', '.join(SEEDINGS)}")
         if int(outliers) not in (0, 1):
             raise BadInput("outliers must be 0 or 1")
+        if int(outlier_min_stars) < 3:
+            raise BadInput("outlier_min_stars must be at least 3")
         if not (np.isfinite(merge_px) and merge_px >= 0):
             raise BadInput("merge_px must be >= 0")
         if int(complete_below) < 1:
@@ -737,6 +750,7 @@ class GeneticMethod(Identifier):
         self.stall_generations = None if stall_generations is None else int(stall_generations)
         self.seeding = seeding
         self.outliers = int(outliers)
+        self.outlier_min_stars = int(outlier_min_stars)
         self.min_stars = int(min_stars)
         self.complete_below = int(complete_below)
         self.seed = int(seed)
@@ -893,7 +907,8 @@ class GeneticMethod(Identifier):
         margin = RADIUS_SIGMAS * sigma
         return SkyField(self.ga_catalog, V if len(V) else np.zeros((0, 3)), np.asarray(brightness), self.r_circle,
                         self.r_circle + margin, self.m, self.mag_tolerance, self.k_max,
-                        complete=len(V) < self.complete_below, min_stars=self.min_stars, outliers=self.outliers)
+                        complete=len(V) < self.complete_below, min_stars=self.min_stars, outliers=self.outliers,
+                        outlier_min_stars=self.outlier_min_stars)
 
     def _attempts(self, V, brightness, sigma, frame_key):
         """The attempts in restart order (with workers=2 two are computed at a time in forked processes;
@@ -1134,3 +1149,58 @@ def _set_worker_method(method: GeneticMethod, stop_event) -> None:
 
 def _attempt_in_worker(V, brightness, sigma, frame_key, k) -> _Attempt:
     return _WORKER_METHOD._attempt(V, brightness, sigma, frame_key, k)
+
+
+# ---------------------------------------------------------------------- every answer through verification
+
+def verify_every_answer(fov_deg: float = 8.0, frames: int = 300, attempts: int = 10, false_stars: int = 0,
+                        sigma_rad: float = 87e-6, mag_limit: float = 6.0, seed: int = 0,
+                        **params) -> dict:
+    """Vector-level check of the guard: random attitudes (Cole & Crassidis frames), `attempts` GA
+    attempts per frame with the improved parameters (and `params`), EVERY answer sent to the shared
+    verification (until one passes, counting hypotheses as identify does), each scored against the
+    truth. Returns the tally: answers, wrong answers, wrong answers that passed, right ones passed and
+    rejected."""
+    from skyview.attitude import random_attitudes
+    from skyview.catalog import load_guide_catalog
+    from skyview.identify.synthetic import synthetic_frame
+
+    cat = load_guide_catalog().brighter_than(mag_limit)
+    cam = Camera.from_fov(fov_deg, 1024)
+    g = GeneticMethod(cat, cam, sigma_rad, **{**IMPROVED_PARAMS, "max_restarts": attempts - 1, **params})
+    rng = np.random.default_rng(seed)
+    r = match_radius(sigma_rad, g.radius_sigmas)
+    tally = {"frames": 0, "answers": 0, "wrong_answers": 0, "wrong_passed": 0, "right_passed": 0,
+             "right_rejected": 0, "time_s": 0.0}
+    t0 = time.perf_counter()
+    for t in range(frames):
+        R = random_attitudes(1, rng)[0]
+        f = synthetic_frame(cat, cam, R, sigma_rad, rng, false_stars=false_stars)
+        V = f.obs.vectors
+        if len(V) < 3 or g._field(V, f.obs.brightness, sigma_rad).n < g.min_stars:
+            continue
+        tally["frames"] += 1
+        n_hyp = 0
+        for k in range(attempts):
+            att = g._attempt(V, f.obs.brightness, sigma_rad, t, k)
+            if att.outcome != "answer":
+                continue
+            hyp, n_pair = g._hypothesis(V, att.matches, r)
+            if hyp is None:
+                continue
+            n_hyp += n_pair
+            ver = verify(V, hyp, cat, cam, sigma_rad, n_hypotheses=n_hyp, radius_rad=r)
+            right = all(f.truth[o] == c for o, c in hyp.items())
+            tally["answers"] += 1
+            if not right:
+                tally["wrong_answers"] += 1
+                tally["wrong_passed"] += int(ver.passed)
+            elif ver.passed:
+                tally["right_passed"] += 1
+            else:
+                tally["right_rejected"] += 1
+            if ver.passed:
+                break
+    tally["time_s"] = time.perf_counter() - t0
+    return tally
+

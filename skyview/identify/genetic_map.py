@@ -1,6 +1,12 @@
 """The paper's own experiment (Paladugu, Williams & Schoen): the spiral GA on a random star map.
 
     python -m skyview.identify.genetic_map [--runs 100] [--seed 0] [--fov-stars 15 20] [--json out.json]
+    python -m skyview.identify.genetic_map --verify-sky [--fov-deg 8] [--frames 300] [--attempts 10]
+                                           [--false-stars 0] [--outliers 0|1] [--outlier-min-stars N]
+                                           [--seed 0]
+
+The second form is the real-sky check of `skyview.identify.genetic.verify_every_answer`: every answer
+of the GA on the celestial sphere (vector-level frames) through the shared verification.
 
 The map: 1,000 stars uniform on a 300 x 300 map (-150 to +150), the FOV a 25 x 25 square. The
 bore-sight of the image is the origin of the map and its rotation phi is random (the paper's example
@@ -304,7 +310,28 @@ def main(argv: list[str] | None = None) -> int:
                     help="convergence costs of the position GAs (default 3.0 1.0 0.001882)")
     ap.add_argument("--json", default=None, help="write the statistics here (never overwrites)")
     ap.add_argument("--quiet", action="store_true")
+    sky = ap.add_argument_group("--verify-sky: every real-sky GA answer through the shared verification")
+    sky.add_argument("--verify-sky", action="store_true")
+    sky.add_argument("--fov-deg", type=float, default=8.0)
+    sky.add_argument("--frames", type=int, default=300)
+    sky.add_argument("--attempts", type=int, default=10)
+    sky.add_argument("--false-stars", type=int, default=0)
+    sky.add_argument("--sigma-urad", type=float, default=87.0)
+    sky.add_argument("--outliers", type=int, default=None, choices=(0, 1),
+                     help="eq. 3 forgives one star (default: the improved variant's, from 10 stars)")
+    sky.add_argument("--outlier-min-stars", type=int, default=None)
     a = ap.parse_args(argv)
+    if a.verify_sky:
+        if a.frames < 1 or a.attempts < 1 or a.false_stars < 0 or not a.sigma_urad > 0:
+            ap.error("--frames and --attempts must be >= 1, --false-stars >= 0, --sigma-urad > 0")
+        if a.outlier_min_stars is not None and a.outlier_min_stars < 3:
+            ap.error("--outlier-min-stars must be at least 3")
+        from skyview.identify.genetic import verify_every_answer
+        extra = {k: v for k, v in (("outliers", a.outliers), ("outlier_min_stars", a.outlier_min_stars))
+                 if v is not None}
+        print(json.dumps(verify_every_answer(a.fov_deg, a.frames, a.attempts, a.false_stars, a.sigma_urad * 1e-6,
+                                             seed=a.seed, **extra)))
+        return 0
     if a.runs < 1:
         ap.error("--runs must be at least 1")
     if a.fov_stars and not (0 <= a.fov_stars[0] <= a.fov_stars[1]):
