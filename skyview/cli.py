@@ -346,12 +346,13 @@ def cmd_bench_sequence(a) -> int:
         raise BadInput(f"{out_dir} is not a folder")
     summary = bench_sequence(scenario, a.n, n_frames=a.frames, start=a.start, turn=a.turn, step_deg=a.step_deg,
                              level=a.level, position_noise_rad=noise, sigma_mag=a.mag_noise,
-                             designation=a.designation, variant=a.variant, seed=a.seed, progress=not a.quiet)
+                             designation=a.designation, variant=a.variant, seed=a.seed, progress=not a.quiet,
+                             hypothesis=a.hypothesis)
     md = format_sequence_markdown(summary)
     print(md)
     noise_tag = f"-noise{summary['setup']['position_noise_deg'] * 3600:.0f}as"
     stem = (f"stochastic{'-' + a.variant if a.variant != 'paper' else ''}-{scenario.name}-{a.start}-{a.turn}-{a.level}"
-            f"{noise_tag}-{a.designation}-n{a.n}-seed{a.seed}")
+            f"{noise_tag}-{a.designation}{'-boresight' if a.hypothesis == 'boresight' else ''}-n{a.n}-seed{a.seed}")
     j, m = save_results(summary, out_dir, stem, markdown=md)
     print(f"saved {j} and {m}")
     return EXIT_SOLVED
@@ -519,6 +520,10 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--mag-noise", type=_float, default=0.6, help="magnitude noise, 1 sigma (the paper: 0.6)")
     bs.add_argument("--designation", choices=("observed", "true"), default="observed",
                     help="observed: the star nearest the boresight in the noisy frame; true: f(true boresight)")
+    bs.add_argument("--hypothesis", choices=("attitude", "boresight"), default="attitude",
+                    help="attitude: each hypothesis carries an attitude, turns in the camera frame (gyros); "
+                         "boresight: the paper taken literally, 'the boresight is on star s' shifted by the "
+                         "inertial turn (docs/stochastic.md)")
     bs.add_argument("--variant", choices=("paper", "improved"), default="paper")
     bs.add_argument("--seed", type=int, default=0)
     bs.add_argument("--out", default="bench-results", help="folder for the JSON and Markdown results")

@@ -411,7 +411,7 @@ def bench_sequence(scenario: Scenario, n_runs: int = 100, *, n_frames: int = 5, 
                    turn: str = "ra", step_deg: float = 10.0, level: str = "image",
                    position_noise_rad: float | None = None, sigma_mag: float = 0.6, designation: str = "observed",
                    variant: str = "paper", method_params: dict | None = None, seed: int = 0,
-                   progress: bool = True) -> dict:
+                   progress: bool = True, hypothesis: str = "attitude") -> dict:
     """Monte Carlo of the stochastic method over sequences (the paper's experiment by default).
 
     start: "betelgeuse" (boresight on HIP 27989, roll 0, as the paper) or "random" (uniform on
@@ -420,7 +420,10 @@ def bench_sequence(scenario: Scenario, n_runs: int = 100, *, n_frames: int = 5, 
     "vector" (perturbed catalog directions, the paper's own simulation); position_noise_rad: 1 sigma
     per axis (default: the scenario's); sigma_mag: the magnitude noise; designation: "observed"
     (the rule f on the noisy frame) or "true" (the star the true boresight designates, as the
-    paper's test software can). Each run has its own noise (seeded from seed and the run index).
+    paper's test software can); hypothesis: "attitude" (rows carry attitudes, the turn is given in
+    the camera frame, dR_cam) or "boresight" (the paper taken literally: "the boresight is on star s",
+    shifted by the inertial turn T = R_{k+1}^T R_k). Each run has its own noise (seeded from seed and
+    the run index).
     """
     if n_runs < 1 or n_frames < 1:
         raise BadInput("the number of runs and of frames must be at least 1")
@@ -436,6 +439,8 @@ def bench_sequence(scenario: Scenario, n_runs: int = 100, *, n_frames: int = 5, 
     sigma = float(np.hypot(noise, pix)) if level == "image" else max(noise, 1e-6)
     catalog_all = load_guide_catalog()
     params = dict(method_params or {})
+    if hypothesis != "attitude":
+        params["hypothesis"] = hypothesis
     sensor = PAPER_SENSOR
     params.setdefault("mag_zero_point", zero_point(sensor) if level == "image" else 0.0)
     t0 = time.perf_counter()
@@ -480,6 +485,8 @@ def bench_sequence(scenario: Scenario, n_runs: int = 100, *, n_frames: int = 5, 
                 f_b = int(cat.tree.query(R[2])[1])
                 hit = np.flatnonzero(tr == f_b)
                 des.append(int(hit[0]) if len(hit) else None)
+        if hypothesis == "boresight":  # the inertial turn of the boresight: R_{k+1} = R_k T^T
+            turns = [Rs[k + 1].T @ Rs[k] for k in range(n_frames - 1)]
         res = solver.solve_observations(obs, turns, truth=truth, designated=des, true_R=Rs)
         frames = []
         first_id = None
@@ -519,7 +526,7 @@ def bench_sequence(scenario: Scenario, n_runs: int = 100, *, n_frames: int = 5, 
     return _summarize(runs, scenario, solver, dict(
         n_runs=n_runs, n_frames=n_frames, start=start, turn=turn, step_deg=step_deg, level=level,
         position_noise_rad=noise, position_noise_deg=math.degrees(noise), sigma_rad=sigma, sigma_mag=sigma_mag,
-        designation=designation, variant=variant, seed=seed, method_params=params,
+        designation=designation, variant=variant, seed=seed, method_params=params, hypothesis=hypothesis,
         sensor=sensor.to_dict() if level == "image" else None), setup_ms)
 
 

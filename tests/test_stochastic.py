@@ -272,3 +272,32 @@ def test_an_empty_first_frame_leaves_the_prior(cache):
     r = m.update(state, _single_star(1.0), np.eye(3))  # the first star seen is the prior update
     assert r.stats["frame"] == 1 and state.frames == 1
     assert r.stats["top_rows"][0] == 0
+
+
+def test_boresight_hypothesis_registers_the_true_sequence_exactly(cache, cat, cam):
+    """The paper taken literally: row r is "the boresight is on star r", carried by the inertial turn
+    (10 deg along RA). Starting on Betelgeuse, the Betelgeuse row's boresight IS the true boresight, so
+    its designated star is f(true boresight) at every frame, whatever the noise."""
+    from skyview.simulate import HIP_BETELGEUSE, R_pointing_at, turn_along_ra
+
+    m = make_identifier("stochastic", cat, cam, 1.0 * DEG, mag_zero_point=0.0, hypothesis="boresight")
+    rng = np.random.default_rng(5)
+    R = R_pointing_at(cat, HIP_BETELGEUSE)
+    trn = turn_along_ra(10 * DEG)
+    row0 = int(np.flatnonzero(cat.hip == HIP_BETELGEUSE)[0])
+    state = m.start()
+    T = None
+    for k in range(4):
+        obs, truth = vector_frame(cat, cam, R, 1.0 * DEG, rng)
+        f_true = m.designated_star(R)
+        des = int(np.flatnonzero(truth == f_true)[0])
+        m.update(state, perturb_magnitudes(obs, 0.6, rng), T, truth=truth, designated=des)
+        assert state.rows[row0] == f_true  # the true sequence registers exactly
+        assert np.allclose(state.R[row0][2], R[2], atol=1e-9)  # its boresight is the true one
+        R_next = trn.apply(R)
+        T = R_next.T @ R  # the inertial turn: R_{k+1} = R_k T^T
+        R = R_next
+    with pytest.raises(BadInput):
+        make_identifier("stochastic", cat, cam, 1e-4, hypothesis="boresight", registration="designated")
+    with pytest.raises(BadInput):
+        make_identifier("stochastic", cat, cam, 1e-4, hypothesis="roll")

@@ -78,6 +78,10 @@ Bonferroni factor); prediction_likelihood adds the registration residual (how fa
 designated star lands, under row r, from the nearest catalog star: Gaussian with the position noise
 and half a degree of attitude error) to the likelihood, a geometric check the statistics alone lack;
 registration="designated" (above). docs/stochastic.md has the reasons and the measurements.
+
+The paper taken literally (hypothesis="boresight", for reproducing it): row r is "the boresight is on
+star r", the turns are the inertial rotations of the boresight, no roll is carried and no field is
+fitted; a row gets a roll (the vote) only when it goes to verification.
 """
 
 from __future__ import annotations
@@ -112,6 +116,11 @@ REFINE_TOP = 256  # at most this many leading rows get their attitude fitted to 
 REFINE_FLOOR = 0.1  # ... those with a posterior above this fraction of the prior 1/N
 N_REGISTER = 3  # candidate catalog stars for a row's next designated star (registration="designated")
 REGISTRATIONS = ("boresight", "designated")
+# What a hypothesis is, and so in which frame the known turn is given (docs/stochastic.md):
+# "attitude" (skyview's default): a full attitude per row, turns in the camera frame (dR_cam, gyros);
+# "boresight" (the paper taken literally): "the boresight is on star s", turns inertial (T, the
+# boresight moves b_{k+1} = T b_k, e.g. 10 deg along right ascension), no roll until verification.
+HYPOTHESES = ("attitude", "boresight")
 N_BINS = 360  # roll histogram bins
 DATABASE_VERSION = 1
 MAG_CONSISTENCY_P = 1e-4  # a verified match whose magnitudes disagree more than this is refused
@@ -291,7 +300,7 @@ class StochasticMethod(Identifier):
                  Q: tuple | list | None = None, p_identify: float = 0.95, mag_zero_point: float | None = None,
                  mag_cut: float | None = None, sigma_mag: float = 0.6, n_roll: int = N_ROLL,
                  max_verify: int = 3, verify_top: int = 0, prediction_likelihood: bool = False,
-                 registration: str = "boresight",
+                 registration: str = "boresight", hypothesis: str = "attitude",
                  statistic: str = CALIBRATED, threshold: float | None = None,
                  radius_sigmas: float = RADIUS_SIGMAS):
         if not (np.isfinite(sigma_rad) and sigma_rad > 0):
@@ -313,6 +322,11 @@ class StochasticMethod(Identifier):
             raise BadInput("max_verify must be >= 1 and verify_top >= 0")
         if registration not in REGISTRATIONS:
             raise BadInput(f"unknown registration {registration!r}: choose from {', '.join(REGISTRATIONS)}")
+        if hypothesis not in HYPOTHESES:
+            raise BadInput(f"unknown hypothesis {hypothesis!r}: choose from {', '.join(HYPOTHESES)}")
+        if hypothesis == "boresight" and (registration != "boresight" or prediction_likelihood):
+            raise BadInput("hypothesis='boresight' (the paper's literal model) registers by the boresight and has "
+                           "no prediction likelihood")
         if statistic not in STATISTICS:
             raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
         if threshold is not None and not (0 < float(threshold) <= 1):
@@ -334,6 +348,7 @@ class StochasticMethod(Identifier):
         self.verify_top = int(verify_top)
         self.prediction_likelihood = bool(prediction_likelihood)
         self.registration = registration
+        self.hypothesis = hypothesis
         self.statistic = statistic
         self.threshold = threshold
         self.radius_sigmas = float(radius_sigmas)
@@ -380,7 +395,9 @@ class StochasticMethod(Identifier):
     def identify_sequence(self, observations: list[Observation], turns: list[np.ndarray] | None = None,
                           truth: list[np.ndarray | None] | None = None,
                           designated: list[int | None] | None = None) -> list[Identification]:
-        """Frames k = 0..K-1 with turns[k] = dR_cam from frame k to k+1 (v_cam_{k+1} = dR_cam v_cam_k).
+        """Frames k = 0..K-1 with turns[k] = dR_cam from frame k to k+1 (v_cam_{k+1} = dR_cam v_cam_k),
+        or, with hypothesis="boresight", the inertial turn T of the boresight (b_{k+1} = T b_k, i.e.
+        R_{k+1} = R_k T^T).
 
         truth (optional, for the record only): per frame, the true catalog row of every observed star
         (-1 for a false star); every step then reports the posterior of the designated star's true
@@ -441,7 +458,7 @@ class StochasticMethod(Identifier):
 
         if fld is None:  # nothing to see: carry the rows with the turn only
             if not first:
-                state.R = np.asarray(dR_cam) @ state.R
+                state.R = self._carry(state.R, np.asarray(dR_cam))
                 _, rows = self.catalog.tree.query(state.R[:, 2, :])
                 state.rows = rows.astype(np.int64)
             steps.append(Step("skip", f"frame {k}: no star to designate; the posterior is unchanged",
@@ -462,7 +479,10 @@ class StochasticMethod(Identifier):
                           extra={"x": fld.x.copy()}))
 
         # likelihood (eq. 5) and the recursion (eq. 3)
-        if first:  # row r: the designated star is catalog star r; its roll from its field
+        if first and self.hypothesis == "boresight":  # row r: the boresight is on catalog star r
+            state.R = self._boresight_attitudes(state.rows)
+            loglik = self._log_likelihood(fld, state.rows)
+        elif first:  # row r: the designated star is catalog star r; its roll from its field
             psi, _ = self._vote(state.rows, fld, sigma)
             state.R = self._attitudes(state.rows, psi, fld)
             loglik = self._log_likelihood(fld, state.rows)
@@ -618,6 +638,14 @@ class StochasticMethod(Identifier):
         return (col0[:, :, None] * e[:, None, :] + col1[:, :, None] * n[:, None, :]
                 + fld.v_d[None, :, None] * v[:, None, :])
 
+    def _boresight_attitudes(self, rows: np.ndarray) -> np.ndarray:
+        """R for each row with catalog star rows[i] on the boresight (roll 0: x east, y north)."""
+        return np.stack([self.east[rows], self.north[rows], self.catalog.xyz[rows]], axis=1)
+
+    def _carry(self, R: np.ndarray, turn: np.ndarray) -> np.ndarray:
+        """Attitudes after the known turn: dR_cam @ R (camera frame), or R @ T^T (inertial, boresight)."""
+        return R @ turn.T[None] if self.hypothesis == "boresight" else turn[None] @ R
+
     def _predict(self, state: StochasticState, fld: _Field, dR_cam: np.ndarray, sigma: float,
                  steps: list[Step], k: int) -> tuple[np.ndarray, np.ndarray]:
         """Carry every row to this frame with the known turn, register its new designated star and
@@ -634,7 +662,7 @@ class StochasticMethod(Identifier):
         the weight and both rules agree; with the paper's 1 deg noise two stars 1-2 deg apart cannot
         be told apart by position."""
         before = state.rows.copy()
-        Rp = dR_cam[None] @ state.R
+        Rp = self._carry(state.R, dR_cam)
         H = len(Rp)
         target = np.einsum("hji,j->hi", Rp, fld.v_d)  # R^T v_d
         state.R = Rp
@@ -642,7 +670,9 @@ class StochasticMethod(Identifier):
             _, rows = self.catalog.tree.query(Rp[:, 2, :])
             state.rows = rows.astype(np.int64)
             loglik = self._log_likelihood(fld, state.rows)
-            resid = angular_distance(target, self.catalog.xyz[state.rows])
+            # boresight hypotheses have no roll: their residual is the boresight's distance to its star
+            resid = angular_distance(Rp[:, 2, :] if self.hypothesis == "boresight" else target,
+                                     self.catalog.xyz[state.rows])
         else:
             kq = min(N_REGISTER, self.n_catalog)
             dist, idx = self.catalog.tree.query(target, k=kq)
@@ -662,7 +692,8 @@ class StochasticMethod(Identifier):
         steps.append(Step("predict",
                           f"frame {k}: the known turn carried the {H} hypotheses to their next "
                           f"designated stars ({len(np.unique(state.rows))} distinct); under the leading one the "
-                          f"observed designated star lands {np.degrees(resid[top]):.2f} deg from its star",
+                          f"{'boresight' if self.hypothesis == 'boresight' else 'observed designated star'} lands "
+                          f"{np.degrees(resid[top]):.2f} deg from its star",
                           observed=[fld.designated],
                           catalog=[int(r) for r in state.rows[np.argsort(-state.log_post)[:TOP_K]]],
                           numbers={"frame": k, "distinct": int(len(np.unique(state.rows))),
@@ -700,7 +731,10 @@ class StochasticMethod(Identifier):
 
     def _refine(self, state: StochasticState, V: np.ndarray, fld: _Field, sigma: float) -> None:
         """Fit the attitude of the leading rows to this frame's field (all its stars, not just the
-        designated one): the prediction of the next frame then rests on the whole field."""
+        designated one): the prediction of the next frame then rests on the whole field. Boresight
+        hypotheses (the paper's literal model) are not refined."""
+        if self.hypothesis == "boresight":
+            return
         Vu = V[fld.used]
         tree = cKDTree(Vu) if len(Vu) >= 2 else None
         floor = np.log(REFINE_FLOOR / self.n_catalog)
@@ -816,6 +850,9 @@ class StochasticMethod(Identifier):
         agree in magnitude (`magnitude_consistency`)."""
         s = int(state.rows[r])
         R = state.R[r]
+        if self.hypothesis == "boresight":  # no roll yet: put s on the designated star, roll from the field
+            psi, _ = self._vote(np.array([s]), fld, sigma)
+            R = self._attitudes(np.array([s]), psi, fld)[0]
         rad = match_radius(sigma, self.radius_sigmas)
         matches = {fld.designated: s}
         for radius in (2.0 * rad, rad):
