@@ -11,10 +11,13 @@ runs the same `Solver` that `skyview solve` uses, and scores the result against 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import platform
 import sys
 import time
 from collections import Counter
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -89,11 +92,20 @@ def _stats(values) -> dict:
 
 def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_params: dict | None = None,
               variant: str = "paper", sensor: SensorModel | None = None, progress: bool = True,
-              on_trial: Callable | None = None) -> dict:
+              on_trial: Callable | None = None, jobs: int = 1) -> dict:
     """Run n trials; on_trial(trial, frame, result, solver), when given, is called after each trial is scored
-    (e.g. skyview.record.FailureRecorder); the trial's own timings are taken before it runs."""
+    (e.g. skyview.record.FailureRecorder); the trial's own timings are taken before it runs.
+
+    jobs > 1 runs the trials in that many forked processes (the solver and its database are built once,
+    before forking). Trial k always gets the same attitude and noise seed, so the outcomes are the
+    same as with jobs=1; only the timings differ (the processes share the machine)."""
     if n < 1:
         raise BadInput("the number of trials (-n) must be at least 1")
+    jobs = int(jobs)
+    if jobs < 1:
+        raise BadInput("the number of jobs must be at least 1")
+    if jobs > 1 and on_trial is not None:
+        raise BadInput("recording failures (on_trial) runs in one process: use jobs=1")
     rng = np.random.default_rng(seed)
     catalog = load_guide_catalog()
     camera = scenario.camera()
@@ -101,45 +113,91 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     solver = Solver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
                     catalog=catalog, method_params=method_params, variant=variant, max_stars=scenario.max_stars)
     setup_ms = (time.perf_counter() - t0) * 1e3
-    sensor = sensor or SensorModel()
-    attitudes = random_attitudes(n, rng)
-    seeds = rng.integers(0, 2**31 - 1, size=n)
+    ctx = _TrialContext(solver=solver, catalog=catalog, camera=camera, scenario=scenario,
+                        sensor=sensor or SensorModel(), attitudes=random_attitudes(n, rng),
+                        seeds=rng.integers(0, 2**31 - 1, size=n))
     trials, counts = [], Counter()
     bar = Progress(n, f"{method}({variant})/{scenario.name}", progress)
-    for k in range(n):
-        ts = time.perf_counter()
-        frame = simulate_image(catalog, camera, attitudes[k], sensor, seed=int(seeds[k]),
-                               mag_limit=scenario.mag_limit, n_false_stars=scenario.n_false_stars,
-                               false_star_placement=scenario.false_star_placement,
-                               position_noise_rad=scenario.noise_rad)
-        sim_ms = (time.perf_counter() - ts) * 1e3
-        result = solver.solve_array(frame.image)
-        outcome, wrong = score_trial(result, frame.truth)
-        unverified = score_unverified(result, frame.truth, solver.catalog.hip)
-        counts[outcome] += 1
-        ident = result.identification
-        err = attitude_error_arcsec(result.R, attitudes[k]) if result.solved else None
-        trials.append({
-            "trial": k, "seed": int(seeds[k]), "outcome": outcome,
-            "status": ident.status if ident else "failed", "reason": result.reason,
-            "unverified_outcome": unverified,
-            "cause": (ident.stats.get("cause") if ident and outcome != "correct" else None),
-            "stars_in_fov": len(frame.truth["stars"]), "centroids": len(result.centroids),
-            "matches": len(result.matches), "wrong_matches": wrong,
-            "pivots": (ident.stats.get("pivots") if ident else None),
-            "p_false": (ident.verification.get("p_false") if ident else None),
-            "err_boresight_arcsec": err["boresight"] if err else None,
-            "err_cross_arcsec": [err["cross_x"], err["cross_y"]] if err else None,
-            "err_roll_arcsec": err["roll"] if err else None,
-            "sigma_boresight_arcsec": result.sigma_boresight_arcsec,
-            "sigma_roll_arcsec": result.sigma_roll_arcsec,
-            "time_ms": {"simulate": sim_ms, **result.time_ms},
-            "quaternion_true": [float(x) for x in np.asarray(frame.truth["quaternion"])],
-        })
-        if on_trial is not None:
-            on_trial(trials[-1], frame, result, solver)
-        bar.update(k + 1, counts)
-    return summarize(method, scenario, seed, trials, setup_ms, solver)
+    if jobs == 1:
+        for k in range(n):
+            trial, frame, result = _run_trial(ctx, k)
+            trials.append(trial)
+            counts[trial["outcome"]] += 1
+            if on_trial is not None:
+                on_trial(trial, frame, result, solver)
+            bar.update(k + 1, counts)
+    else:
+        global _CONTEXT
+        _CONTEXT = ctx  # inherited by the forked workers
+        chunks = [list(range(i, min(i + BENCH_CHUNK, n))) for i in range(0, n, BENCH_CHUNK)]
+        try:
+            with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+                for part in as_completed([pool.submit(_run_chunk, c) for c in chunks]):
+                    for trial in part.result():
+                        trials.append(trial)
+                        counts[trial["outcome"]] += 1
+                    bar.update(len(trials), counts)
+        finally:
+            _CONTEXT = None
+        trials.sort(key=lambda t: t["trial"])
+    summary = summarize(method, scenario, seed, trials, setup_ms, solver)
+    summary["jobs"] = jobs
+    return summary
+
+
+BENCH_CHUNK = 5  # trials per task when jobs > 1
+
+
+@dataclass
+class _TrialContext:
+    solver: Solver
+    catalog: object
+    camera: object
+    scenario: Scenario
+    sensor: SensorModel
+    attitudes: np.ndarray
+    seeds: np.ndarray
+
+
+_CONTEXT: _TrialContext | None = None
+
+
+def _run_chunk(indices: list[int]) -> list[dict]:
+    return [_run_trial(_CONTEXT, k)[0] for k in indices]
+
+
+def _run_trial(ctx: _TrialContext, k: int):
+    """Simulate, solve and score trial k: (trial record, frame, result)."""
+    scenario, solver = ctx.scenario, ctx.solver
+    ts = time.perf_counter()
+    frame = simulate_image(ctx.catalog, ctx.camera, ctx.attitudes[k], ctx.sensor, seed=int(ctx.seeds[k]),
+                           mag_limit=scenario.mag_limit, n_false_stars=scenario.n_false_stars,
+                           false_star_placement=scenario.false_star_placement,
+                           position_noise_rad=scenario.noise_rad)
+    sim_ms = (time.perf_counter() - ts) * 1e3
+    result = solver.solve_array(frame.image)
+    outcome, wrong = score_trial(result, frame.truth)
+    unverified = score_unverified(result, frame.truth, solver.catalog.hip)
+    ident = result.identification
+    err = attitude_error_arcsec(result.R, ctx.attitudes[k]) if result.solved else None
+    trial = {
+        "trial": k, "seed": int(ctx.seeds[k]), "outcome": outcome,
+        "status": ident.status if ident else "failed", "reason": result.reason,
+        "unverified_outcome": unverified,
+        "cause": (ident.stats.get("cause") if ident and outcome != "correct" else None),
+        "stars_in_fov": len(frame.truth["stars"]), "centroids": len(result.centroids),
+        "matches": len(result.matches), "wrong_matches": wrong,
+        "pivots": (ident.stats.get("pivots") if ident else None),
+        "p_false": (ident.verification.get("p_false") if ident else None),
+        "err_boresight_arcsec": err["boresight"] if err else None,
+        "err_cross_arcsec": [err["cross_x"], err["cross_y"]] if err else None,
+        "err_roll_arcsec": err["roll"] if err else None,
+        "sigma_boresight_arcsec": result.sigma_boresight_arcsec,
+        "sigma_roll_arcsec": result.sigma_roll_arcsec,
+        "time_ms": {"simulate": sim_ms, **result.time_ms},
+        "quaternion_true": [float(x) for x in np.asarray(frame.truth["quaternion"])],
+    }
+    return trial, frame, result
 
 
 def summarize(method: str, scenario: Scenario, seed: int, trials: list[dict], setup_ms: float, solver) -> dict:
@@ -235,7 +293,7 @@ def format_markdown(s: dict) -> str:
     for stage, st in s["time_ms"].items():
         if st.get("n"):
             lines.append(f"| {stage} | {st['median']:.2f} | {st['p95']:.2f} | {st['mean']:.2f} |")
-    lines += ["", f"Setup (once): " + ", ".join(f"{k} {v:.1f} ms" for k, v in s["setup_ms"].items())]
+    lines += ["", "Setup (once): " + ", ".join(f"{k} {v:.1f} ms" for k, v in s["setup_ms"].items())]
     db = s["database"]
     if db:
         shown = {k: v for k, v in db.items() if k not in ("key", "path") and not isinstance(v, (dict, list))}
@@ -253,7 +311,9 @@ def format_markdown(s: dict) -> str:
             f"(normalised RMS {acc['normalised_roll_error_rms']:.2f})",
         ]
     m = s["machine"]
-    lines += ["", f"Machine: Python {m['python']}, {m['cpu']}, {m['cores']} cores."]
+    jobs = s.get("jobs", 1)
+    lines += ["", f"Machine: Python {m['python']}, {m['cpu']}, {m['cores']} cores"
+              + (f"; {jobs} trials at a time (times per trial include the sharing)." if jobs > 1 else ".")]
     return "\n".join(lines) + "\n"
 
 

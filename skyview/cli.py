@@ -246,6 +246,10 @@ def cmd_bench(a) -> int:
     out_dir = Path(a.out)
     if out_dir.exists() and not out_dir.is_dir():
         raise BadInput(f"{out_dir} is not a folder")
+    if a.jobs < 1:
+        raise BadInput("--jobs must be at least 1")
+    if a.jobs > 1 and a.record_failures:
+        raise BadInput("--record-failures records in one process: leave out --jobs")
     on_trial = None
     if a.record_failures:  # the recorder is imported only when asked: unrecorded benches stay as fast
         from skyview.record import FailureRecorder
@@ -253,7 +257,7 @@ def cmd_bench(a) -> int:
         on_trial = FailureRecorder(a.record_failures, method=a.method, variant=a.variant, scenario=scenario.name,
                                    seed=a.seed)
     summary = run_bench(a.method, scenario, a.n, seed=a.seed, method_params=method_params or None,
-                        variant=a.variant, progress=not a.quiet, on_trial=on_trial)
+                        variant=a.variant, progress=not a.quiet, on_trial=on_trial, jobs=a.jobs)
     md = format_markdown(summary)
     print(md)
     tag = (f"-{a.variant}" if a.variant != "paper" else "") + (f"-{a.statistic}" if a.statistic else "")
@@ -478,6 +482,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--centroids", action="store_true", help="measure centroid accuracy instead")
     b.add_argument("--out", default="bench-results", help="folder for the JSON and Markdown results")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.add_argument("--jobs", type=int, default=1,
+                   help="trials run in this many processes (same outcomes as 1; the per-trial times then "
+                        "include the sharing of the cores)")
     b.add_argument("--record-failures", default=None, metavar="DIR",
                    help="save a Rerun recording of every trial that is not correct into DIR (created if missing)")
     b.set_defaults(func=cmd_bench)

@@ -41,3 +41,23 @@ def test_scoring_catches_a_wrong_match():
 def test_centroid_truth_labels_stars_false_stars_and_nothing():
     truth = {"stars": [{"hip": 10, "u": 100.0, "v": 200.0}], "false_stars": [{"u": 700.0, "v": 700.0}]}
     assert centroid_truth(np.array([[100.4, 200.2], [700.0, 701.0], [5.0, 5.0]]), truth) == [10, -1, None]
+
+
+def test_two_jobs_give_the_same_outcomes_as_one():
+    """Trial k gets the same attitude and noise whatever the number of processes."""
+    one = run_bench("angle", SCENARIOS["cole8"], 6, seed=5, progress=False)
+    two = run_bench("angle", SCENARIOS["cole8"], 6, seed=5, progress=False, jobs=2)
+    assert two["jobs"] == 2 and [t["trial"] for t in two["trials"]] == list(range(6))
+    for a, b in zip(one["trials"], two["trials"]):
+        assert (a["seed"], a["outcome"], a["matches"], a["quaternion_true"]) == \
+            (b["seed"], b["outcome"], b["matches"], b["quaternion_true"])
+    assert one["counts"] == two["counts"]
+
+
+def test_cli_jobs_refuses_recording_failures(tmp_path, capsys):
+    from skyview.cli import main
+
+    rec = tmp_path / "failures"
+    assert main(["bench", "-n", "2", "--jobs", "2", "--record-failures", str(rec), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--jobs" in err[0] and not rec.exists()
