@@ -142,9 +142,7 @@ def cmd_solve(a) -> int:
         if a.sigma_arcsec <= 0:
             raise BadInput("--sigma-arcsec must be positive")
         params["sigma_rad"] = a.sigma_arcsec * ARCSEC
-    method_params = {}
-    if a.statistic:
-        method_params["statistic"] = a.statistic
+    method_params = _method_params(a)
     output = Path(a.output) if a.output else None
     if output is not None and output.exists() and not a.force:
         raise BadInput(f"{output} exists; use --force to overwrite it")
@@ -223,6 +221,27 @@ def cmd_demo(a) -> int:
     return EXIT_SOLVED if result.solved else EXIT_NOT_SOLVED
 
 
+def _param_value(text: str):
+    """A --param value: JSON when it parses (numbers, true/false, null, lists), else the text itself."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def _method_params(a) -> dict:
+    """--statistic and every --param KEY=VALUE, as the identifier's keyword parameters."""
+    params = {}
+    if getattr(a, "statistic", None):
+        params["statistic"] = a.statistic
+    for item in getattr(a, "param", None) or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip().isidentifier():
+            raise BadInput(f"--param {item!r} is not KEY=VALUE (e.g. --param workers=2)")
+        params[key.strip()] = _param_value(value.strip())
+    return params
+
+
 def cmd_bench(a) -> int:
     from skyview.bench import format_markdown, run_bench, save_results
     from skyview.scenarios import get_scenario
@@ -240,9 +259,7 @@ def cmd_bench(a) -> int:
 
     if a.method not in METHODS:
         raise BadInput(f"unknown method {a.method!r}: choose from {', '.join(METHODS)}")
-    method_params = {}
-    if a.statistic:
-        method_params["statistic"] = a.statistic
+    method_params = _method_params(a)
     out_dir = Path(a.out)
     if out_dir.exists() and not out_dir.is_dir():
         raise BadInput(f"{out_dir} is not a folder")
@@ -459,6 +476,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH)
     v.add_argument("--estimator", choices=("svd", "q-method"), default="svd")
     v.add_argument("--statistic", choices=("calibrated", "tetra3"), default=None)
+    v.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a method parameter by its name (docs/methods.md), repeatable: e.g. --param workers=2 "
+                        "(genetic: both cores), --param p_identify=0.99")
     v.add_argument("--max-stars", type=int, default=40, help="use at most this many brightest centroids")
     v.add_argument("--k-sigma", type=_float, default=5.0, help="detection threshold in noise sigmas")
     v.add_argument("--distortion", type=_float, nargs=2, default=(0.0, 0.0), metavar=("K1", "K2"))
@@ -482,6 +502,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--centroids", action="store_true", help="measure centroid accuracy instead")
     b.add_argument("--out", default="bench-results", help="folder for the JSON and Markdown results")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a method parameter by its name (docs/methods.md), repeatable: e.g. --param workers=2 "
+                        "(genetic: both cores), --param p_identify=0.99")
     b.add_argument("--jobs", type=int, default=1,
                    help="trials run in this many processes (same outcomes as 1; the per-trial times then "
                         "include the sharing of the cores)")

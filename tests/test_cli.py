@@ -130,3 +130,15 @@ def test_unknown_scenario_and_bad_options(capsys):
     assert code == 2 and one_line_error(err)
     code, out, err = run(capsys, "solve")
     assert code == 2 and one_line_error(err)
+
+
+def test_method_parameters_by_name(orion, capsys):
+    # a parameter reaches the method: this field solves, but not when the angle method may not pivot
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--json", "--param", "max_pivots=0")
+    assert code == 1, err
+    assert "after 0 pivots (the limit)" in json.loads(out)["reason"]
+    for bad, words in ((["--param", "max_pivotz=1"], "no parameter 'max_pivotz'"),
+                       (["--param", "max_pivots=abc"], "cannot take max_pivots='abc'"),
+                       (["--param", "max_pivots"], "not KEY=VALUE")):
+        code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", *bad)
+        assert code == 2 and one_line_error(err) and words in err, err

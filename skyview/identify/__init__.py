@@ -54,7 +54,13 @@ def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_ra
     if unknown:
         raise BadInput(f"method {method!r} has no parameter {', '.join(map(repr, unknown))}: "
                        f"its parameters are {', '.join(allowed)}")
-    return cls(catalog, camera, sigma_rad, **params)
+    try:
+        return cls(catalog, camera, sigma_rad, **params)
+    except (TypeError, ValueError) as exc:
+        if not params:
+            raise
+        shown = ", ".join(f"{k}={v!r}" for k, v in params.items())
+        raise BadInput(f"method {method!r} cannot take {shown}: {exc}") from None
 
 
 __all__ = ["METHODS", "VARIANTS", "make_identifier", "Identifier", "Identification", "Observation", "Step",
