@@ -286,21 +286,45 @@ def cmd_bench(a) -> int:
 
 
 def cmd_record(a) -> int:
+    if a.path is not None and a.out is not None:
+        raise BadInput(f"give the output once: {a.path} or --out {a.out}")
+    target = a.path if a.path is not None else a.out
     if a.examples:
         from skyview.record import MANIFEST, record_examples
 
-        out = Path(a.out) if a.out else Path("recordings")
+        out = Path(target) if target else Path("recordings")
         entries = record_examples(out, force=a.force)
         print(f"wrote {len(entries)} example recordings and {out / MANIFEST}")
         return EXIT_SOLVED
+    if a.method == "stochastic":  # a sequence method: the paper's experiment, frame by frame
+        return _record_stochastic(a, target)
     from skyview.record import record_case
 
-    out = Path(a.out) if a.out else Path(f"{a.method}-{a.scenario}-{a.seed}.rrd")
-    info, case = record_case(out, a.method, a.scenario, a.seed, variant=a.variant, force=a.force)
+    scenario = a.scenario or "cole8"
+    out = Path(target) if target else Path(f"{a.method}-{scenario}-{a.seed}.rrd")
+    info, case = record_case(out, a.method, scenario, a.seed, variant=a.variant, force=a.force)
     r = case.result
-    print(f"recorded {info.path}: {a.method} ({a.variant}) on {a.scenario}, seed {a.seed}: {r.status}"
+    print(f"recorded {info.path}: {a.method} ({a.variant}) on {scenario}, seed {a.seed}: {r.status}"
           f"{'' if r.solved else ' (' + r.reason + ')'}, {case.outcome} against truth; {info.steps} steps, "
           f"{info.bytes / 1e6:.2f} MB written in {info.write_ms:.0f} ms (solve {r.time_ms.get('total', 0.0):.0f} ms)")
+    return EXIT_SOLVED
+
+
+def _record_stochastic(a, target) -> int:
+    from skyview.record_sequence import PAPER_SCENARIO, record_paper_sequence
+
+    scenario = a.scenario or PAPER_SCENARIO
+    out = Path(target) if target else Path(f"stochastic-{scenario}-{a.seed}.rrd")
+    info, case = record_paper_sequence(out, a.seed, scenario=scenario, variant=a.variant, force=a.force)
+    r = case.result
+    post = [r_.stats.get("true_posterior") for r_ in r.identifications]
+    done = (f"identified at frame{'s' if len(info.identified) > 1 else ''} {', '.join(map(str, info.identified))}"
+            if info.identified else f"not identified ({r.identifications[-1].reason})")
+    print(f"recorded {info.path}: stochastic ({a.variant}) on {scenario}, the paper's experiment at 10 arcsec, seed "
+          f"{a.seed}: {info.frames} frames, {done}, {case.outcome} against truth; P(true star) "
+          + " ".join("-" if p is None else f"{p:.3f}" for p in post)
+          + f"; {info.steps} steps, {info.bytes / 1e6:.2f} MB written in {info.write_ms:.0f} ms "
+          f"(solve {sum(r.time_ms.values()):.0f} ms)")
     return EXIT_SOLVED
 
 
@@ -320,6 +344,10 @@ def cmd_solve_sequence(a) -> int:
     output = Path(a.output) if a.output else None
     if output is not None and output.exists() and not a.force:
         raise BadInput(f"{output} exists; use --force to overwrite it")
+    if a.record:  # check the recording's path before solving (the recorder is imported only when asked)
+        from skyview.record import check_output_path
+
+        check_output_path(a.record, a.force)
     method_params = {} if a.p_identify is None else {"p_identify": a.p_identify}
     res = solve_sequence(a.path, fov_deg=a.fov_deg, mag_limit=a.mag_limit,
                          sigma_rad=None if a.sigma_arcsec is None else a.sigma_arcsec * ARCSEC,
@@ -328,6 +356,8 @@ def cmd_solve_sequence(a) -> int:
                          max_stars=a.max_stars, k_sigma=a.k_sigma)
     out = res.to_dict()
     out["sequence"] = str(a.path)
+    if a.record:
+        _record_sequence(a, res)
     text = json.dumps(out, indent=1 if a.json else None)
     if output is not None:
         _write_text_new(output, text + "\n", a.force)
@@ -350,6 +380,21 @@ def cmd_solve_sequence(a) -> int:
         print(f"skyview: not solved: {out.get('reason', '')}", file=sys.stderr)
         return EXIT_NOT_SOLVED
     return EXIT_SOLVED
+
+
+def _record_sequence(a, res) -> None:
+    from skyview.record_sequence import record_sequence
+    from skyview.sequence import load_sequence
+
+    seq = load_sequence(a.path, a.fov_deg)  # the images (solve_sequence read them too) and the turns
+    truths = None if a.no_truth else seq.truths
+    info = record_sequence(a.record, res, seq.images, truths=truths, turns=seq.turns, force=a.force,
+                           meta={"sequence": str(a.path), "frames": len(seq.images), "variant": a.variant,
+                                 "truth": "the simulator's sidecars" if truths is not None else "-"})
+    done = (f"identified at frame{'s' if len(info.identified) > 1 else ''} {', '.join(map(str, info.identified))}"
+            if info.identified else "not identified")
+    print(f"recorded {info.path} ({info.frames} frames, {done}, {info.steps} steps, {info.bytes / 1e6:.2f} MB, "
+          f"written in {info.write_ms:.0f} ms)", file=sys.stderr)
 
 
 def cmd_bench_sequence(a) -> int:
@@ -532,6 +577,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--json", action="store_true", help="print one JSON object")
     q.add_argument("--output", default=None, help="also write the JSON result to this file")
     q.add_argument("--force", action="store_true")
+    q.add_argument("--record", default=None, metavar="PATH.rrd",
+                   help="also save the sequence as a Rerun recording, frame by frame (open it with 'skyview replay')")
     q.set_defaults(func=cmd_solve_sequence)
 
     bs = sub.add_parser("bench-sequence", help="Monte Carlo of the stochastic method over frame sequences "
@@ -560,12 +607,16 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--quiet", action="store_true", help="no progress lines")
     bs.set_defaults(func=cmd_bench_sequence)
 
-    r = sub.add_parser("record", help="simulate a scenario case, solve it and save it as a Rerun recording (.rrd)")
+    r = sub.add_parser("record", help="simulate a scenario case, solve it and save it as a Rerun recording (.rrd); "
+                                      "--method stochastic records the paper's frame sequence")
     r.add_argument("--method", default="angle")
     r.add_argument("--variant", choices=("paper", "improved"), default="paper",
                    help="the paper's parameters, or the method's improvements (see docs/methods.md)")
-    r.add_argument("--scenario", default="cole8")
-    r.add_argument("--seed", type=int, default=0, help="the case: its attitude and image noise")
+    r.add_argument("--scenario", default=None,
+                   help="default cole8; for --method stochastic udomkesmalee30 (the paper's experiment)")
+    r.add_argument("--seed", type=int, default=0,
+                   help="the case: its attitude and image noise (stochastic: run 0 of bench-sequence --seed SEED)")
+    r.add_argument("path", nargs="?", default=None, metavar="OUT.rrd", help="the .rrd file (same as --out)")
     r.add_argument("--out", default=None,
                    help="the .rrd file (default METHOD-SCENARIO-SEED.rrd); with --examples the folder (default recordings)")
     r.add_argument("--force", action="store_true", help="overwrite existing recordings")

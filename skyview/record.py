@@ -6,6 +6,7 @@ step on a `step` timeline, the matches and the result. `record_case` simulates a
 and records it (`skyview record`); `FailureRecorder` records the failed trials of a bench run
 (`skyview bench --record-failures`); `record_examples` regenerates the example recordings
 (`skyview record --examples`). Open a recording with `skyview replay FILE.rrd` (or `rerun FILE.rrd`).
+Frame sequences (the stochastic method) are recorded by `skyview.record_sequence` with these helpers.
 
 What is drawn comes from the `SolveResult` and its `Step` objects only (kind, note, observed, catalog,
 groups, numbers, extra): nothing here knows a method. Entity paths (see docs/recordings.md):
@@ -48,6 +49,8 @@ import math
 import os
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,6 +111,8 @@ C_FALSE = (255, 150, 0)
 
 # The default scenario of each method: its paper's conditions (used by --examples).
 EXAMPLE_SCENARIOS = {"angle": "cole8", "triangle": "cole8", "svd": "juang8", "ellipticity": "sun20", "genetic": "sun20"}
+# Sequence methods: their example is the paper's frame sequence (skyview.record_sequence), on this scenario.
+SEQUENCE_EXAMPLES = {"stochastic": "udomkesmalee30"}
 # The failure example: the paper variant of this method on this scenario, first seed that ends inconclusive.
 FAILURE_EXAMPLE = ("angle", "cole8-false")
 EXAMPLE_SEED_START = 1
@@ -388,6 +393,21 @@ def record_solve(path: str | os.PathLike, result, image: np.ndarray, *, catalog,
     # the same solve of the same image gets the same id (reproducible); different ones never merge in a viewer
     digest = hashlib.sha1(np.ascontiguousarray(image).tobytes()).hexdigest()
     rec_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"skyview:{title}:{result.method}:{result.variant}:{digest}"))
+    with open_recording(p, rec_id, title, blueprint(R_view, series)) as rec:
+        image_note = _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view)
+        _write_steps(rec, steps, result, catalog, R_view)
+        rec.log(RESULT, rr.TextDocument(result_markdown(result, truth=truth, meta=meta, image_note=image_note,
+                                                        wrong=wrong), media_type=rr.MediaType.MARKDOWN),
+                static=True)
+    return RecordInfo(path=p, bytes=p.stat().st_size, write_ms=(time.perf_counter() - t0) * 1e3,
+                      steps=len(steps), status=result.status)
+
+
+@contextmanager
+def open_recording(p: Path, rec_id: str, title: str, bp: rrb.Blueprint) -> Iterator[rr.RecordingStream]:
+    """A recording stream that writes `p` (already checked with `check_output_path`): into a file beside
+    it, moved into place only when the block completes; a failure leaves nothing behind. No wall-clock
+    column: the same inputs give the same contents. OSError becomes a one-line BadInput."""
     tmp = _temp_path(p)
     try:
         # create the file ourselves first: a permission or path problem surfaces here as an OSError
@@ -396,16 +416,12 @@ def record_solve(path: str | os.PathLike, result, image: np.ndarray, *, catalog,
     except OSError as exc:
         raise BadInput(f"cannot write {p}: {exc.strerror or exc}") from None
     rec = rr.RecordingStream(APP_ID, recording_id=rec_id, send_properties=False)
-    rec.set_log_time_enabled(False)  # no wall-clock column: the same inputs give the same contents
+    rec.set_log_time_enabled(False)
     ok = False
     try:
-        rec.save(str(tmp), default_blueprint=blueprint(R_view, series))
+        rec.save(str(tmp), default_blueprint=bp)
         rec.send_recording_name(title)
-        image_note = _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view)
-        _write_steps(rec, steps, result, catalog, R_view)
-        rec.log(RESULT, rr.TextDocument(result_markdown(result, truth=truth, meta=meta, image_note=image_note,
-                                                        wrong=wrong), media_type=rr.MediaType.MARKDOWN),
-                static=True)
+        yield rec
         rec.flush()
         rec.disconnect()
         if not tmp.exists() or tmp.stat().st_size == 0:
@@ -418,8 +434,6 @@ def record_solve(path: str | os.PathLike, result, image: np.ndarray, *, catalog,
         if not ok:
             rec.disconnect()
             tmp.unlink(missing_ok=True)
-    return RecordInfo(path=p, bytes=p.stat().st_size, write_ms=(time.perf_counter() - t0) * 1e3,
-                      steps=len(steps), status=result.status)
 
 
 def _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view) -> str:
@@ -482,13 +496,16 @@ def _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view) -> 
     return note
 
 
-def _write_steps(rec, steps, result, catalog, R_view) -> None:
+def _write_steps(rec, steps, result, catalog, R_view, first: int = 0,
+                 shown: tuple[set[str], set[str]] | None = None) -> tuple[set[str], set[str]]:
+    """Log `steps` at step numbers first, first + 1, ... (`result`: anything with .camera and .centroids).
+    shown: the extras and series drawn by the step before `first` (cleared when a step lacks them);
+    returns those of the last step, for the next call."""
     camera = result.camera
     cents = result.centroids
     obs_icrs = camera.unproject(cents.uv) @ R_view if (R_view is not None and len(cents)) else None
-    shown_extra: set[str] = set()
-    shown_series: set[str] = set()
-    for k, step in enumerate(steps):
+    shown_extra, shown_series = (set(), set()) if shown is None else (set(shown[0]), set(shown[1]))
+    for k, step in enumerate(steps, start=first):
         rec.set_time(TIMELINE, sequence=k)
         rec.log(STEP_LOG, rr.TextLog(f"[{step.kind}] {step.note}", level=step.kind))
         for name, value in step.numbers.items():
@@ -533,6 +550,7 @@ def _write_steps(rec, steps, result, catalog, R_view) -> None:
         for ename in shown_series - now_series:
             rec.log(f"{STEP_SERIES}/{ename}", rr.Clear(recursive=False))
         shown_extra, shown_series = now_extra, now_series
+    return shown_extra, shown_series
 
 
 # ============================================================================ simulated cases
@@ -654,7 +672,8 @@ class FailureRecorder:
 
 def record_examples(out_dir: str | os.PathLike = "recordings", *, force: bool = False, say=print) -> list[dict]:
     """Regenerate the example recordings: every method in METHODS on its paper's scenario (the first seed
-    from EXAMPLE_SEED_START that it solves correctly), and one failure case (FAILURE_EXAMPLE, paper
+    from EXAMPLE_SEED_START that it solves correctly; a sequence method, SEQUENCE_EXAMPLES, records its
+    paper's frame sequence, `record_sequence.record_example`), and one failure case (FAILURE_EXAMPLE, paper
     variant: the first seed that ends inconclusive with at least 6 stars drawn and the false star among
     the observed stars its steps used). Writes
     `<method>-<scenario>.rrd`, `failure-<method>-<scenario>.rrd` and a manifest `index.json`."""
@@ -667,7 +686,7 @@ def record_examples(out_dir: str | os.PathLike = "recordings", *, force: bool = 
         raise BadInput(f"folder {out} does not exist")
     plan: list[tuple[str, str, bool]] = []
     for method in METHODS:
-        scenario = EXAMPLE_SCENARIOS.get(method)
+        scenario = SEQUENCE_EXAMPLES.get(method, EXAMPLE_SCENARIOS.get(method))
         if scenario is None:
             say(f"skipped {method}: no default scenario for it in skyview.record.EXAMPLE_SCENARIOS")
         elif scenario not in SCENARIOS:
@@ -687,6 +706,19 @@ def record_examples(out_dir: str | os.PathLike = "recordings", *, force: bool = 
     catalog = load_guide_catalog()
     entries = []
     for (method, scenario, fail), name in zip(plan, names):
+        if method in SEQUENCE_EXAMPLES and not fail:  # a sequence: the paper's experiment, frame by frame
+            from skyview.record_sequence import record_example
+
+            entry = record_example(out / name, scenario=scenario, catalog=catalog, force=force)
+            if entry is None:
+                say(f"skipped {name}: no seed in {EXAMPLE_SEED_START}..{EXAMPLE_SEED_START + EXAMPLE_SEED_TRIES - 1} "
+                    f"identifies its last frame")
+                continue
+            entries.append(entry)
+            say(f"wrote {out / name}: {entry['status']} (seed {entry['seed']}), {entry['frames']} frames identified at "
+                f"{entry['identified_frames']}, {entry['steps']} steps, {entry['bytes'] / 1e6:.2f} MB in "
+                f"{entry['write_ms']:.0f} ms")
+            continue
         runner = CaseRunner(method, scenario, "paper", catalog)
         chosen = None
         for seed in range(EXAMPLE_SEED_START, EXAMPLE_SEED_START + EXAMPLE_SEED_TRIES):
