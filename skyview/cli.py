@@ -615,13 +615,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--scenario", default=None,
                    help="default cole8; for --method stochastic udomkesmalee30 (the paper's experiment)")
     r.add_argument("--seed", type=int, default=0,
-                   help="the case: its attitude and image noise (stochastic: run 0 of bench-sequence --seed SEED)")
+                   help="the case: its attitude and image noise (stochastic: run 0 of "
+                        "bench-sequence --noise-arcsec 10 --seed SEED)")
     r.add_argument("path", nargs="?", default=None, metavar="OUT.rrd", help="the .rrd file (same as --out)")
     r.add_argument("--out", default=None,
                    help="the .rrd file (default METHOD-SCENARIO-SEED.rrd); with --examples the folder (default recordings)")
     r.add_argument("--force", action="store_true", help="overwrite existing recordings")
     r.add_argument("--examples", action="store_true",
-                   help="regenerate the example recordings: each method on its paper's scenario, and one failure")
+                   help="regenerate the example recordings: each method on its paper's scenario (stochastic: its "
+                        "frame sequence), and one failure")
     r.set_defaults(func=cmd_record)
 
     rp = sub.add_parser("replay", help="open a recording in the Rerun viewer (the web viewer when there is no desktop)")
