@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 import pytest
 
-from skyview.attitude import R_from_radec_roll
+from skyview.attitude import R_from_radec_roll, attitude_error_arcsec
 from skyview.camera import Camera
 from skyview.catalog import radec_to_vec
 from skyview.cli import main
@@ -36,6 +36,7 @@ from skyview.identify.base import Step
 from skyview.viewer import picture, steps
 from skyview.viewer.panel import result_markdown, step_markdown
 from skyview.viewer.run import SceneConfig, Solvers, compare, simulate, solve
+from skyview.viewer.sequence_run import SequenceConfig, solve_sequence_run
 from skyview.viewer.scene import NODES, frustum_scale, local_grid, nearest_star, pose_wxyz, ray_to_sphere
 
 REPO = Path(__file__).resolve().parents[1]
@@ -109,11 +110,34 @@ def test_step_extras_follow_the_recorder_conventions():
         Step("hyp", "hypotheses", catalog=[0, 1], extra={"hypotheses": np.array([[0, 1], [1, 0]]), "used": [2, 5]}),
     ]
     d = steps.step_drawables(st, xyz, n_observed=5, hip=np.arange(100, 106))
-    assert d[0].points.shape == (3, 3) and d[0].point_weights.tolist() == [1.0, 0.0, 0.5]
+    assert d[0].points.shape == (3, 3) and d[0].point_weights.tolist() == [0.0, 1.0, 0.5]  # lowest cost brightest
     assert "population" in d[0].points_name and any(e.startswith("box") for e in d[0].extras)
     np.testing.assert_allclose(d[1].weights, [0.0, 1.0, 1 / 6], atol=1e-12)  # tints the candidates
     assert len(d[2].attitudes) == 1 and d[2].points.shape == (1, 3)  # a rotation and a direction
     assert "HIP 100, HIP 101" in " ".join(d[3].extras) and "used: 2, 5" in d[3].extras
+
+
+def test_a_posterior_over_hypotheses_lights_their_stars_and_costs_with_inf_still_tint():
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(size=(400, 3))
+    xyz /= np.linalg.norm(xyz, axis=1, keepdims=True)
+    post = np.full(400, 1e-9)
+    post[[7, 8]] = [0.6, 0.3]  # hypotheses 7 and 8 ...
+    rows = np.arange(400, dtype=np.int32)
+    rows[[7, 8]] = 42  # ... both designate star 42 now (they moved with a known turn)
+    post[100] = 0.1
+    st = [Step("update", "posterior", extra={"posterior": post.astype(np.float32), "rows": rows}),
+          Step("update", "posterior without a row map", extra={"posterior": post.astype(np.float32)})]
+    d = steps.step_drawables(st, xyz, n_observed=0)
+    # summed per star (0.9 on star 42), the negligible ones left dark, tinted on a log scale
+    np.testing.assert_allclose(d[0].points, xyz[[42, 100]], atol=1e-6)
+    assert d[0].point_weights[0] == 1.0 and 0.0 < d[0].point_weights[1] < 1.0 and "summed per star" in d[0].points_name
+    np.testing.assert_allclose(d[1].points, xyz[[7, 8, 100]], atol=1e-6)  # weight i is catalog row i
+    # a GA population whose costs hold inf (invalid individuals) is still tinted: the lowest cost brightest
+    pop = xyz[:4].astype(np.float32)
+    ga = Step("generation", "GA", extra={"population": pop, "costs": np.array([1.0, np.inf, 3.0, 2.0], np.float32)})
+    g = steps.step_drawables([ga], xyz, n_observed=0)[0]
+    assert g.point_weights.tolist() == [1.0, 0.0, 0.0, 0.5] and "tinted by costs" in g.points_name
 
 
 def test_match_triangles_and_centroid_outcomes():
@@ -350,6 +374,145 @@ def test_compare_and_export(session, tmp_path):
     assert rrd.stat().st_size > 10_000 and rrd.read_bytes()[:4] == b"RRF2"
 
 
+ORION_30 = SceneConfig(ra_deg=83.8, dec_deg=-5.4, roll_deg=30.0, fov_deg=30.0, resolution="1024x1024", mag_limit=4.5,
+                       noise_arcsec=10.0)  # the stochastic paper's camera and field, 10 arcsec of noise
+
+
+@pytest.mark.parametrize("variant, turn", [("paper", "along RA"), ("improved", "pan about camera y")])
+def test_a_stochastic_sequence_identifies_orion_with_known_truth(variant, turn):
+    solvers = Solvers()
+    seq = solve_sequence_run(ORION_30, SequenceConfig(n_frames=5, turn=turn, step_deg=10.0), "stochastic", variant,
+                             solvers)
+    res = seq.result
+    assert len(seq) == len(res.identifications) == 5
+    assert seq.frame == 4 and seq.identified[-1] == 4  # identified by the last frame
+    if variant == "improved":
+        assert seq.identified[0] <= 2  # the geometric check decides within a few frames
+    for k in seq.identified:
+        run = seq.frames[k]
+        assert run.result.solved and run.wrong_matches == 0 and len(run.matches) >= 5
+        assert run.error_arcsec["total"] < 60.0 and res.frame_dict(k)["wrong_matches"] == 0
+        # the frame's SolveResult (from the pipeline's code) agrees with the sequence's own attitude
+        assert attitude_error_arcsec(run.result.R, res.identifications[k].R)["total"] < 5.0
+    for k in set(range(5)) - set(seq.identified):  # not identified: drawn at the truth
+        assert not seq.frames[k].result.solved and np.allclose(seq.frames[k].R_shown, seq.frames[k].R_true)
+    # the truth: the frames follow the known turn from the scene's attitude
+    turn_obj = SequenceConfig(turn=turn).turn_per_frame()
+    R = ORION_30.R
+    for f in seq.frames:
+        assert attitude_error_arcsec(f.R_true, R)["total"] < 1e-3
+        R = turn_obj.apply(R)
+    # the series the panel plots are the SequenceResult's per-frame stats
+    ser = seq.series()
+    for k in range(5):
+        fd = res.frame_dict(k)
+        for key in ("above_prior", "top_posterior", "true_posterior"):
+            assert ser[key][k] == fd[key], (key, k)
+    assert ser["above_prior"][0] > 50 and ser["above_prior"][-1] <= 5  # the hypotheses narrow frame by frame
+    assert ser["true_posterior"][-1] > 0.95
+    # every frame's steps are drawn from that frame's record
+    for k, f in enumerate(seq.frames):
+        assert [d.kind for d in f.drawables] == [st.kind for st in res.identifications[k].steps]
+    upd = [d for d in seq.frames[0].drawables if d.kind == "update"][0]
+    assert len(upd.candidates) == 10 and upd.weights is not None  # the leading stars, tinted by posterior
+    assert len(upd.points) > 50 and upd.point_weights is not None  # the posterior over the sky
+
+
+def test_sequence_settings_are_checked():
+    for bad, what in [(SequenceConfig(n_frames=0), "frames"), (SequenceConfig(n_frames=2.5), "whole"),
+                      (SequenceConfig(turn="sideways"), "unknown turn"), (SequenceConfig(step_deg=-1), "turn step"),
+                      (SequenceConfig(step_deg=float("nan")), "turn step")]:
+        with pytest.raises(Exception, match=what):
+            bad.checked()
+    with pytest.raises(Exception, match="single images"):
+        solve_sequence_run(ORION_30, SequenceConfig(), "angle", "paper", Solvers())
+
+
+def test_compare_says_a_sequence_method_needs_a_sequence():
+    from skyview.viewer.panel import compare_markdown
+
+    solvers = Solvers()
+    src = simulate(ORION_30, solvers.base_catalog)
+    rows = compare(src, 4.5, solvers, methods=["stochastic"])
+    paper = rows[0]
+    assert paper["status"] == "failed" and paper["needs_sequence"] and "sequence of frames" in paper["reason"]
+    assert "needs a sequence" in compare_markdown(rows, src.name)
+
+
+def _set_quietly(s, **values):
+    """Set panel controls without a solve per control (as `Session.randomise` does)."""
+    s._mute = True
+    try:
+        for name, v in values.items():
+            getattr(s.panel, name).value = v
+    finally:
+        s._mute = False
+
+
+def test_session_shows_a_stochastic_sequence_frame_by_frame(session, monkeypatch):
+    import skyview.viewer.session as session_mod
+
+    server, s = session
+    p = s.panel
+    assert not p.seq_controls.visible and not p.seq_box.visible  # the default method runs single images
+    _set_quietly(s, fov=30.0, resolution="1024x1024", mag=4.5, noise=10.0, variant="improved", n_frames=5,
+                 turn="pan about camera y", turn_step=10.0)
+    p.method.value = "stochastic"
+    assert s.wait_idle(60) and s.error == "", s.error
+    seq = s.seq
+    assert seq is not None and len(seq) == 5 and p.seq_controls.visible and p.seq_box.visible
+    assert s.frame_index == 4 and s.run is seq.frames[4] and p.frame.value == 4 and p.frame.max == 4
+    assert not p.frame.disabled and _node(server, "track") is not None  # every frame's footprint
+    # the result text: which frame was identified, the error against the truth
+    first, err = seq.identified[0], seq.frames[4].error_arcsec["total"]
+    assert "identified" in p.status.content and f"at frame {first}" in p.status.content
+    assert f"identified at frame {first}" in p.result.content and "error vs truth" in p.result.content
+    assert "Frame 4" in p.frame_text.content and "identified" in p.frame_text.content and err < 60
+    # the plot across frames is the SequenceResult's per-frame stats, the shown frame marked
+    x, above, top, true, now = s._frame_plot.data
+    assert x.tolist() == [0, 1, 2, 3, 4]
+    for k in range(5):
+        fd = seq.result.frame_dict(k)
+        assert (above[k], top[k], true[k]) == (fd["above_prior"], fd["top_posterior"], fd["true_posterior"])
+    assert now[4] == top[4] and np.isnan(now[:4]).all()
+    # the camera at frame 4's estimate; frame 0 (not identified) shows its own image at the truth
+    cam, frustum = _node(server, "camera"), _node(server, "frustum")
+    wxyz4, tex4, uv4 = cam.wxyz.copy(), frustum.image.copy(), s.run.result.centroids.uv.copy()
+    assert abs(float(np.dot(wxyz4, pose_wxyz(seq.frames[4].result.R)))) > 1 - 1e-9
+    p.frame.value = 0  # as the slider does
+    assert s.frame_index == 0 and s.run is seq.frames[0] and not s.run.result.solved
+    cam, frustum = _node(server, "camera"), _node(server, "frustum")
+    assert abs(float(np.dot(cam.wxyz, pose_wxyz(seq.frames[0].R_true)))) > 1 - 1e-9
+    assert abs(float(np.dot(cam.wxyz, wxyz4))) < 0.999  # turned by 40 degrees
+    assert not np.array_equal(frustum.image, tex4)  # that frame's sensor image ...
+    uv0 = s.run.result.centroids.uv
+    assert len(uv0) != len(uv4) or not np.allclose(uv0, uv4)  # ... and its centroids
+    assert "Frame 0" in p.frame_text.content and "not identified" in p.frame_text.content
+    assert np.isnan(s._frame_plot.data[4][1:]).all() and s._frame_plot.data[4][0] == top[0]
+    # that frame's steps in the Steps tab; its update lights the leading hypotheses, tinted by posterior
+    kinds = [d.kind for d in s.run.drawables]
+    assert kinds == [st.kind for st in seq.result.identifications[0].steps] and p.step.max == max(1, len(kinds) - 1)
+    p.step.value = kinds.index("update")
+    stars, pts = _node(server, "candidate_stars"), _node(server, "extra_points")
+    assert stars.visible and len(stars.points) == 10 and len(np.unique(stars.colors, axis=0)) > 2
+    assert pts.visible and len(pts.points) > 50 and len(np.unique(pts.colors, axis=0)) > 5
+    # a crafted frame number is an error in the panel, the session keeps its sequence
+    p.frame.value = 99
+    assert "outside 0..4" in s.error and s.seq is seq and s.frame_index == 0 and p.frame.value == 0
+    # Play runs through the frames to the last
+    monkeypatch.setattr(session_mod, "FRAME_INTERVAL_S", 0.05)
+    s.toggle_play_frames()
+    deadline = time.monotonic() + 20
+    while s._playing_frames and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert s.frame_index == 4 and p.play_frames.label == "Play the frames"
+    # back to a single-image method: no frames, no track; the default scene again
+    _set_quietly(s, fov=8.0, mag=6.0, noise=0.0, variant="paper")
+    p.method.value = "angle"
+    assert s.wait_idle(60) and s.error == "" and s.seq is None and s.run.result.solved
+    assert not p.seq_box.visible and not p.seq_controls.visible and _node(server, "track") is None
+
+
 def test_compare_covers_every_method_by_default():
     from skyview.identify import METHODS
 
@@ -471,6 +634,29 @@ def _open(browser, url: str, nbytes: list | None = None):
     return pg
 
 
+def _control(pg, label: str):
+    """The row of a labelled panel control."""
+    return pg.locator("label", has_text=label).first.locator("xpath=ancestor::div[contains(@class,'Flex-root')][1]")
+
+
+def _choose(pg, label: str, option: str) -> None:
+    """Pick an option of a dropdown, as a user does."""
+    _control(pg, label).locator("input").first.click()
+    pg.get_by_role("option", name=option, exact=True).click()
+
+
+def _type(pg, label: str, value) -> None:
+    """Type a value into a slider's or number's box and press Enter."""
+    box = _control(pg, label).locator("input:not([type='hidden'])").last
+    box.fill(str(value))
+    box.press("Enter")
+
+
+JS_PANEL_TOP = ("() => document.querySelectorAll('*').forEach(e => { if (e.scrollHeight > e.clientHeight + 4) "
+                "e.scrollTop = 0; })")  # the panel scrolled back to its top
+JS_UPLOTS = "() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(p => p.chart.data.length)"
+
+
 def _not_blank(png: Path, panel_from_x: int) -> float:
     gray = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)[:, :panel_from_x]
     return float((gray > 110).mean())
@@ -550,6 +736,77 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                 pg2.screenshot(path=str(shot2))
                 _keep(shot2)
                 assert _not_blank(shot2, 1000) > 0.002
+
+                # the genetic method: its population on the sphere (the (N, 3) extra of its steps), tinted by cost
+                pg2.set_viewport_size({"width": 1400, "height": 1000})
+                pg2.get_by_role("tab", name="Scenario").click()
+                _choose(pg2, "Variant", "improved")
+                _choose(pg2, "Method", "genetic")
+                pg2.get_by_text("solved by genetic (improved)", exact=False).first.wait_for(timeout=60000)
+                pg2.get_by_role("tab", name="View").click()
+                pg2.get_by_role("button", name="Wide sky").click()
+                pg2.get_by_role("tab", name="Steps").click()
+                _type(pg2, "Step", 0)  # the first generation: a population over the whole sky, tinted by cost
+                pg2.get_by_text("Step 1 / ", exact=False).first.wait_for(timeout=10000)
+                pg2.get_by_text("population (tinted by costs)", exact=False).first.wait_for(timeout=10000)
+                pg2.wait_for_timeout(500)
+                population = pg2.evaluate(JS_GEOMETRY, NODES["extra_points"])
+                assert population[0] > 10, "no GA population drawn on the sphere"
+                pg2.mouse.move(5, 5)
+                _settle(pg2)
+                ga = tmp_path / "viewer-genetic-population.png"
+                pg2.screenshot(path=str(ga))
+                _keep(ga)
+                FIGURES["genetic_population_points"] = population[0]
+
+                # the stochastic method: a sequence of frames, the posterior across them, frame by frame
+                pg2.set_viewport_size({"width": 1400, "height": 1100})
+                pg2.get_by_role("tab", name="Scenario").click()
+                pg2.get_by_role("checkbox", name="Solve on every change").uncheck()
+                _choose(pg2, "Method", "stochastic")
+                _type(pg2, "Centroid noise", 10)
+                pg2.get_by_role("button", name="The paper's camera").click()  # 30 deg, Hp <= 4.5
+                t = time.perf_counter()
+                pg2.get_by_role("button", name="Solve", exact=True).click()
+                pg2.get_by_text("identified by stochastic (improved) at frame", exact=False).first.wait_for(
+                    timeout=60000)
+                FIGURES["sequence_solve_s"] = round(time.perf_counter() - t, 2)
+                pg2.get_by_role("tab", name="Steps").click()
+                assert _control(pg2, "Frame").count() == 1  # the frame slider, with its player
+                assert pg2.get_by_role("button", name="Play the frames").is_visible()
+                pg2.get_by_text("Frame 4 (frames 0–4) · identified", exact=False).first.wait_for(timeout=10000)
+                assert pg2.evaluate(JS_HAS, NODES["track"])  # every frame's footprint
+                assert 5 in pg2.evaluate(JS_UPLOTS)  # the plot across frames: x and four series
+                rings4 = pg2.evaluate(JS_GEOMETRY, NODES["centroids"])
+                pg2.wait_for_timeout(500)
+                pg2.evaluate(JS_PANEL_TOP)
+                pg2.mouse.move(5, 5)  # not hovering the panel's image (its expand button would show)
+                _settle(pg2)
+                seq_shot = tmp_path / "viewer-sequence.png"
+                pg2.screenshot(path=str(seq_shot))
+                _keep(seq_shot)
+                assert _not_blank(seq_shot, 1000) > 0.002
+                # frame 0: its own image and centroids, and its update step lighting the hypotheses
+                t = time.perf_counter()
+                _type(pg2, "Frame", 0)
+                pg2.get_by_text("Frame 0 (frames 0–4) · not identified", exact=False).first.wait_for(timeout=10000)
+                FIGURES["frame_switch_round_trip_ms"] = round((time.perf_counter() - t) * 1e3)
+                pg2.wait_for_timeout(500)
+                assert pg2.evaluate(JS_GEOMETRY, NODES["centroids"]) != rings4
+                _type(pg2, "Step", 1)
+                pg2.get_by_text("Step 2 / 2 · update", exact=False).first.wait_for(timeout=10000)
+                pg2.get_by_role("tab", name="View").click()
+                pg2.get_by_role("button", name="Wide sky").click()
+                pg2.get_by_role("tab", name="Steps").click()
+                pg2.wait_for_timeout(800)
+                hypotheses = pg2.evaluate(JS_GEOMETRY, NODES["extra_points"])
+                assert hypotheses[0] > 50  # the posterior's leading stars lit across the sky
+                pg2.evaluate(JS_PANEL_TOP)
+                pg2.mouse.move(5, 5)
+                _settle(pg2)
+                wide0 = tmp_path / "viewer-sequence-frame0-wide.png"
+                pg2.screenshot(path=str(wide0))
+                _keep(wide0)
                 assert pg.external == [] and pg2.external == []  # nothing fetched from outside
             finally:
                 browser.close()

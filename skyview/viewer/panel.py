@@ -13,10 +13,15 @@ import numpy as np
 
 from skyview.attitude import radec_roll_from_R
 from skyview.viewer.picture import HIGHLIGHT_RGB, OUTCOME_RGB
-from skyview.viewer.run import FOV_RANGE_DEG, RESOLUTIONS, Run, SceneConfig
+from skyview.viewer.run import FOV_RANGE_DEG, RESOLUTIONS, SEQUENCE_NOTE, Run, SceneConfig, needs_sequence
+from skyview.viewer.scene import STAR_NAMES
+from skyview.viewer.sequence_run import FRAMES_RANGE, STEP_RANGE_DEG, TURNS, SequenceConfig, SequenceRun
 from skyview.viewer.steps import StepDrawable, format_number
 
 PLOT_COLORS = ("#e848d2", "#ffd23c")
+# The plot across frames: stars above the prior, the leading star's and the true star's posterior, now.
+FRAME_PLOT_COLORS = ("#e848d2", "#ffb830", "#46d7ff", "#ffffff")
+PAPER_CAMERA = {"fov_deg": 30.0, "resolution": "1024x1024", "mag_limit": 4.5}  # Udomkesmalee et al.'s camera
 
 
 @dataclass
@@ -29,6 +34,12 @@ class Panel:
     image: object
     legend: object
     tabs: object
+    # frames (a sequence)
+    seq_box: object  # folder shown when a sequence is on screen
+    frame: object
+    play_frames: object
+    frame_text: object
+    frame_plot_box: object  # holds the uPlot across frames (re-created per sequence)
     # steps
     step: object
     play: object
@@ -49,6 +60,11 @@ class Panel:
     seed: object
     method: object
     variant: object
+    seq_controls: object  # folder shown when the method identifies over sequences
+    n_frames: object
+    turn: object
+    turn_step: object
+    paper_camera: object
     auto: object
     solve: object
     compare: object
@@ -87,7 +103,15 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig) 
     legend = gui.add_markdown(legend_markdown())
     tabs = gui.add_tab_group()
 
+    seq_cfg = SequenceConfig()
     with tabs.add_tab("Steps", icon="player-play"):
+        seq_box = gui.add_folder("Frames of the sequence", visible=False)
+        with seq_box:
+            frame = gui.add_slider("Frame", min=0, max=1, step=1, initial_value=0, disabled=True,
+                                   hint="frames are numbered from 0, as in the method's steps")
+            play_frames = gui.add_button("Play the frames", icon="player-track-next")
+            frame_text = gui.add_markdown("")
+            frame_plot_box = gui.add_folder(None)
         step = gui.add_slider("Step", min=0, max=1, step=1, initial_value=0, disabled=True)
         play = gui.add_button("Play the steps", icon="player-play")
         step_text = gui.add_markdown("")
@@ -112,6 +136,18 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig) 
         method = gui.add_dropdown("Method", tuple(methods), initial_value=methods[0])
         variant = gui.add_dropdown("Variant", tuple(variants), initial_value=variants[0],
                                    hint="the paper's parameters, or the method's improvements")
+        seq_controls = gui.add_folder("Sequence", visible=needs_sequence(methods[0]))
+        with seq_controls:
+            gui.add_markdown("<small>This method identifies over a <b>sequence</b> of frames with a known turn "
+                             "between them: N frames from the attitude above. It needs many stars per frame "
+                             "(the paper: 30° field, Hp ≤ 4.5).</small>")
+            n_frames = gui.add_slider("Frames", min=FRAMES_RANGE[0], max=FRAMES_RANGE[1], step=1,
+                                      initial_value=seq_cfg.n_frames)
+            turn = gui.add_dropdown("Turn", TURNS, initial_value=seq_cfg.turn,
+                                    hint="the known turn between consecutive frames")
+            turn_step = gui.add_slider("Turn step (deg)", min=STEP_RANGE_DEG[0], max=STEP_RANGE_DEG[1], step=0.5,
+                                       initial_value=seq_cfg.step_deg)
+            paper_camera = gui.add_button("The paper's camera (30°, Hp ≤ 4.5)", icon="camera")
         auto = gui.add_checkbox("Solve on every change", initial_value=True)
         solve = gui.add_button("Solve", icon="target")
         compare = gui.add_button("Compare every method", icon="table")
@@ -140,13 +176,18 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig) 
             "true": gui.add_checkbox("True attitude (simulated)", initial_value=True),
             "candidates": gui.add_checkbox("Step candidates", initial_value=True),
             "matches": gui.add_checkbox("Matched triangles", initial_value=True),
+            "track": gui.add_checkbox("Footprints of a sequence's frames", initial_value=True),
         }
         picked = gui.add_markdown("Click a star on the sphere for its HIP number and magnitude.")
 
     return Panel(status=status, progress=progress, error=error, image=image, legend=legend, tabs=tabs,
-                 step=step, play=play, step_text=step_text, plot_key=plot_key, plot_box=plot_box,
+                 seq_box=seq_box, frame=frame, play_frames=play_frames, frame_text=frame_text,
+                 frame_plot_box=frame_plot_box, step=step, play=play, step_text=step_text, plot_key=plot_key,
+                 plot_box=plot_box,
                  ra=ra, dec=dec, roll=roll, random=random, fov=fov, resolution=resolution, mag=mag, noise=noise,
-                 false_stars=false_stars, dropped=dropped, seed=seed, method=method, variant=variant, auto=auto,
+                 false_stars=false_stars, dropped=dropped, seed=seed, method=method, variant=variant,
+                 seq_controls=seq_controls, n_frames=n_frames, turn=turn, turn_step=turn_step,
+                 paper_camera=paper_camera, auto=auto,
                  solve=solve, compare=compare, upload_fov=upload_fov, upload=upload, back=back,
                  result=result, compare_table=compare_table, export=export, boresight=boresight, wide=wide,
                  follow=follow, checks=checks, picked=picked)
@@ -174,7 +215,9 @@ def status_markdown(run: Run) -> str:
             err = f" · error {_arcsec(run.error_arcsec['boresight'])}"
         return (f"<span style='color:rgb(90,230,130)'>● solved</span> by {head}: RA {ra:.3f}° Dec {dec:+.3f}° "
                 f"roll {roll:+.2f}°{err} · {len(r.matches)}/{len(r.centroids)} stars")
-    return f"<span style='color:rgb(255,150,40)'>● not solved</span> by {head}: {r.reason}"
+    note = (" (one image only: this method identifies over a sequence of frames, which the viewer runs on "
+            "simulated scenes)") if needs_sequence(r.method) else ""
+    return f"<span style='color:rgb(255,150,40)'>● not solved</span> by {head}: {r.reason}{note}"
 
 
 def result_markdown(run: Run, viewer_ms: dict | None = None) -> str:
@@ -243,11 +286,111 @@ def compare_markdown(rows: list[dict], image_name: str) -> str:
         if r.get("wrong_matches"):
             err_s += f" ({r['wrong_matches']} wrong)"
         status = r["status"] if r["status"] != "error" else f"error: {r.get('reason', '')}"
+        if r.get("needs_sequence"):
+            status += " (one frame: needs a sequence)"
         lines.append(f"| {r['method']} | {r['variant']} | {status} | {r['steps']} | {r['time_ms']:.1f} ms | "
                      f"{err_s} | {r['matches']} |")
+    if any(r.get("needs_sequence") for r in rows):
+        lines += ["", f"<small>One frame of a sequence method: {SEQUENCE_NOTE.split(': ', 1)[1]}.</small>"]
     return "\n".join(lines)
 
 
 def star_markdown(hip: int, mag: float, ra_deg: float, dec_deg: float, name: str | None) -> str:
     title = f"**{name}** · " if name else ""
     return f"{title}**HIP {hip}** · Hp {mag:.2f}  \nRA {ra_deg:.4f}° · Dec {dec_deg:+.4f}°"
+
+
+# ---------------------------------------------------------------------------------------------- sequences
+
+def _frames(seq: SequenceRun) -> str:
+    n = len(seq)
+    return "one frame" if n == 1 else f"frames 0–{n - 1}"
+
+
+def _hip_name(hip: int) -> str:
+    name = STAR_NAMES.get(int(hip))
+    return f"HIP {int(hip)}" + (f" ({name})" if name else "")
+
+
+def _listing(ks: list[int]) -> str:
+    if not ks:
+        return "none"
+    if len(ks) > 2 and ks == list(range(ks[0], ks[-1] + 1)):
+        return f"{ks[0]}–{ks[-1]}"
+    return ", ".join(str(k) for k in ks)
+
+
+def sequence_status_markdown(seq: SequenceRun, k: int) -> str:
+    """The status line of a sequence: which frame was identified (or not), its error, the frame shown."""
+    head = f"{seq.method} ({seq.variant})"
+    shown = f" · showing frame {k}"
+    if seq.frame is not None:
+        first = seq.identified[0]
+        run = seq.frames[seq.frame]
+        err = f" · frame {seq.frame}: error {_arcsec(run.error_arcsec['total'])}" if run.error_arcsec else ""
+        return (f"<span style='color:rgb(90,230,130)'>● identified</span> by {head} at frame {first} "
+                f"({_frames(seq)}; verified at {_listing(seq.identified)}){err}{shown}")
+    last = seq.result.identifications[-1] if seq.result.identifications else None
+    reason = f": {last.reason}" if last is not None and last.reason else ""
+    return (f"<span style='color:rgb(255,150,40)'>● not identified</span> in {_frames(seq)} by {head}"
+            f"{reason}{shown}")
+
+
+def frame_markdown(seq: SequenceRun, k: int) -> str:
+    """What frame k of a sequence says: identified or not, the posterior's summary, error vs truth."""
+    run = seq.frames[k]
+    ident = seq.result.identifications[k]
+    st = ident.stats
+    lines = []
+    if run.result.solved:
+        err = ""
+        if run.error_arcsec:
+            e = run.error_arcsec
+            err = (f" · error vs truth {_arcsec(e['total'])} (boresight {_arcsec(e['boresight'])}, roll "
+                   f"{_arcsec(e['roll'])}) · {run.wrong_matches} wrong match{'es' if run.wrong_matches != 1 else ''}")
+        lines.append(f"**Frame {k}** ({_frames(seq)}) · <span style='color:rgb(90,230,130)'>identified</span>, "
+                     f"{len(run.result.matches)} stars matched{err}")
+    else:
+        lines.append(f"**Frame {k}** ({_frames(seq)}) · <span style='color:rgb(255,150,40)'>not identified</span>"
+                     f"{': ' + ident.reason if ident.reason else ''}")
+    parts = []
+    if st.get("above_prior") is not None:
+        parts.append(f"{int(st['above_prior'])} of {len(seq.result.catalog)} stars above the prior")
+    if st.get("top_hips"):
+        parts.append(f"leading {_hip_name(st['top_hips'][0])} at {format_number(float(st['top_posterior']))}")
+    if st.get("true_row") is not None and st.get("true_row", -1) >= 0:
+        hip = int(seq.result.catalog.hip[st["true_row"]])
+        parts.append(f"true star {_hip_name(hip)} at {format_number(float(st['true_posterior']))}")
+    if parts:
+        lines.append(" · ".join(parts))
+    return "\n\n".join(lines)
+
+
+def sequence_markdown(seq: SequenceRun) -> str:
+    """The Result tab's head for a sequence: settings, which frames were identified, a row per frame."""
+    sc = seq.scene
+    lines = [f"**{'Identified' if seq.frame is not None else 'Not identified'}** by **{seq.method}** "
+             f"({seq.variant}) over a sequence of {seq.config.describe()}, from RA {sc.ra_deg:g}° Dec "
+             f"{sc.dec_deg:+g}° roll {sc.roll_deg:g}°  "]
+    if seq.frame is not None:
+        run = seq.frames[seq.frame]
+        err = f"; error vs truth {_arcsec(run.error_arcsec['total'])}" if run.error_arcsec else ""
+        lines.append(f"identified at frame {seq.identified[0]}; verified at frames {_listing(seq.identified)}; "
+                     f"the answer is frame {seq.frame}'s attitude{err}  ")
+    else:
+        lines.append("no frame verified: the posterior has not concentrated on one star (or the leading "
+                     "hypotheses did not verify)  ")
+    ser = seq.series()
+    lines += ["", "| frame | status | above 1/N | leading | P | P(true) | error |", "|---|---|---|---|---|---|---|"]
+    for k, run in enumerate(seq.frames):
+        st = seq.result.identifications[k].stats
+        lead = f"HIP {st['top_hips'][0]}" if st.get("top_hips") else "-"
+        err = _arcsec(run.error_arcsec["total"]) if run.error_arcsec else "-"
+        if run.wrong_matches:
+            err += f" ({run.wrong_matches} wrong)"
+        lines.append(f"| {k} | {seq.result.identifications[k].status} | {format_number(ser['above_prior'][k])} | "
+                     f"{lead} | {format_number(ser['top_posterior'][k])} | {format_number(ser['true_posterior'][k])} "
+                     f"| {err} |")
+    lines.append("")
+    lines.append(" · ".join(f"{name} {v:.0f} ms" for name, v in seq.time_ms.items()) + f" ({len(seq)} frames)")
+    return "\n".join(lines)

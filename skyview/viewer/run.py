@@ -160,7 +160,9 @@ class Run:
 
 
 class Solvers:
-    """Solvers keyed by camera, method, variant, catalog limit and sigma; at most `size` kept."""
+    """Solvers keyed by camera, method, variant, catalog limit and sigma; at most `size` kept.
+
+    `get_or_build` caches other solvers the same way (the sequence solvers of `sequence_run`)."""
 
     def __init__(self, size: int = 12):
         self._size = size
@@ -178,7 +180,14 @@ class Solvers:
 
     def get(self, camera: Camera, method: str, variant: str, mag_limit: float,
             sigma_rad: float) -> tuple[Solver, threading.Lock]:
+        """The single-image `Solver` for this configuration (built once, then shared)."""
         key = (camera, method, variant, round(float(mag_limit), 3), round(float(sigma_rad), 12))
+        return self.get_or_build(key, lambda catalog: Solver(camera, method, catalog=catalog, mag_limit=mag_limit,
+                                                             sigma_rad=sigma_rad, variant=variant))
+
+    def get_or_build(self, key: tuple, build) -> tuple[object, threading.Lock]:
+        """The item cached under `key`, else `build(base_catalog)` (one build per key at a time), with a
+        lock that serialises its use."""
         with self._lock:
             if key in self._items:
                 self._items.move_to_end(key)
@@ -189,19 +198,20 @@ class Solvers:
             with self._lock:
                 if key in self._items:
                     return self._items[key]
-            solver = Solver(camera, method, catalog=catalog, mag_limit=mag_limit, sigma_rad=sigma_rad,
-                            variant=variant)
+            item = build(catalog)
             with self._lock:
-                self._items[key] = (solver, threading.Lock())
+                self._items[key] = (item, threading.Lock())
                 self._building.pop(key, None)
                 while len(self._items) > self._size:
                     self._items.popitem(last=False)
                 return self._items[key]
 
-    def cached(self, camera: Camera, method: str, variant: str, mag_limit: float, sigma_rad: float) -> bool:
-        key = (camera, method, variant, round(float(mag_limit), 3), round(float(sigma_rad), 12))
+    def has(self, key: tuple) -> bool:
         with self._lock:
             return key in self._items
+
+    def cached(self, camera: Camera, method: str, variant: str, mag_limit: float, sigma_rad: float) -> bool:
+        return self.has((camera, method, variant, round(float(mag_limit), 3), round(float(sigma_rad), 12)))
 
 
 def simulate(config: SceneConfig, catalog: GuideCatalog) -> Source:
@@ -231,20 +241,37 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
     solver, lock = solvers.get(camera, method, variant, mag_limit, sigma_for(source))
     with lock:
         result = solver.solve_array(source.image)
+    time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
+    return make_run(source, result, solver.catalog, solver.max_stars, time_ms)
+
+
+def make_run(source: Source, result: SolveResult, catalog: GuideCatalog, max_stars: int,
+             time_ms: dict | None = None) -> Run:
+    """A `Run` from a solved image: centroid outcomes (scored against the truth when simulated), step
+    drawables, match triangles and the error against the truth."""
     ident = result.identification
-    catalog = solver.catalog
     uv = result.centroids.uv
-    n_used = min(len(uv), solver.max_stars)
+    n_used = min(len(uv), int(max_stars))
     matches = dict(ident.matches) if ident is not None and ident.identified else {}
     outcomes = centroid_outcomes(len(uv), n_used, matches, uv, catalog.hip, source.truth)
     drawables = step_drawables(ident.steps if ident else [], catalog.xyz, n_used, catalog.hip)
     run = Run(source=source, result=result, catalog=catalog, n_used=n_used, outcomes=outcomes,
               drawables=drawables, matches=matches, match_groups=match_groups(matches, uv),
-              time_ms={"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms))
+              time_ms=dict(result.time_ms) if time_ms is None else dict(time_ms))
     if source.truth and result.R is not None:
         run.error_arcsec = attitude_error_arcsec(result.R, np.asarray(source.truth["R"]))
         run.wrong_matches = sum(o == "wrong match" for o in outcomes)
     return run
+
+
+def needs_sequence(method: str) -> bool:
+    """Whether `method` identifies over a sequence of frames (its identifier has `identify_sequence`):
+    one image alone is then only its first step."""
+    return hasattr(METHODS.get(method), "identify_sequence")
+
+
+SEQUENCE_NOTE = ("one frame only: this method identifies over a sequence of frames with known turns "
+                 "(choose it as the Method to run a sequence)")
 
 
 def compare(source: Source, mag_limit: float, solvers: Solvers, progress=None, methods=None) -> list[dict]:
@@ -264,7 +291,11 @@ def compare(source: Source, mag_limit: float, solvers: Solvers, progress=None, m
                          "wrong_matches": None})
             continue
         r = run.result
-        rows.append({"method": m, "variant": v, "status": r.status, "reason": r.reason,
+        reason = r.reason
+        if needs_sequence(m) and not r.solved:
+            reason = f"{SEQUENCE_NOTE}: {r.reason}" if r.reason else SEQUENCE_NOTE
+        rows.append({"method": m, "variant": v, "status": r.status, "reason": reason,
+                     "needs_sequence": needs_sequence(m) and not r.solved,
                      "steps": len(r.identification.steps) if r.identification else 0,
                      "time_ms": r.time_ms.get("total", float("nan")),
                      "error_arcsec": run.error_arcsec, "matches": len(r.matches),

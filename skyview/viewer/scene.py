@@ -43,9 +43,10 @@ EST_RGB = (255, 184, 48)
 TRUE_RGB = (70, 215, 255)
 CANDIDATE_RGB = (236, 72, 210)
 CANDIDATE_HI_RGB = (255, 236, 120)
-EXTRA_RGB = (150, 120, 255)
+EXTRA_RGB = (175, 80, 255)
 EXTRA_HI_RGB = (120, 255, 230)
 MATCH_RGB = (90, 240, 140)
+TRACK_RGB = (60, 120, 150)  # the footprints of a sequence's frames
 BACKGROUND_TOP = (10, 13, 30)
 BACKGROUND_BOTTOM = (3, 4, 10)
 
@@ -80,6 +81,8 @@ NODES = {
     "matches": "/matches/triangles",
     "match_stars": "/matches/stars",
     "match_labels": "/matches/labels",
+    "track": "/sequence/track",  # every frame's true footprint, when a sequence is shown
+    "track_labels": "/sequence/labels",  # frame numbers at the frames' boresights
 }
 
 
@@ -194,7 +197,7 @@ class SkyScene:
         self._catalog_key = None
         self._grid_key = None
         self.bytes_catalog = 0
-        self.visible = {"grid": True, "names": True, "image": True, "true": True, "matches": True,
+        self.visible = {"grid": True, "names": True, "image": True, "true": True, "matches": True, "track": True,
                         "numbers": True, "hips": False, "stars": True, "candidates": True}
         self._run: Run | None = None
         self._image_plane_xy = np.zeros((0, 2))
@@ -395,12 +398,13 @@ class SkyScene:
             self.h["candidate_stars"] = s.add_point_cloud(
                 NODES["candidate_stars"], np.zeros((1, 3), np.float32), np.array([CANDIDATE_RGB], np.uint8),
                 point_size=base * self.zoom, point_shape="circle", precision="float32", visible=False)
+            extra_base = float(STAR_SIZE * star_radius(0.5))  # a population / posterior stands out from the stars
             self.h["extra_points"] = s.add_point_cloud(
                 NODES["extra_points"], np.zeros((1, 3), np.float32), np.array([EXTRA_RGB], np.uint8),
-                point_size=base * self.zoom, point_shape="diamond", precision="float32", visible=False)
+                point_size=extra_base * self.zoom, point_shape="diamond", precision="float32", visible=False)
             self.h["attitudes"] = s.add_line_segments(NODES["attitudes"], empty_seg, EXTRA_RGB, thickness=1.4,
                                                       thickness_units="screen", visible=False)
-            self._sized["step"] = [(self.h["candidate_stars"], base), (self.h["extra_points"], base)]
+            self._sized["step"] = [(self.h["candidate_stars"], base), (self.h["extra_points"], extra_base)]
         if "camera" in self.h and "observed" not in self.h:  # children of the camera frame
             self.h["observed"] = s.add_line_segments(NODES["observed"], empty_seg, HIGHLIGHT_RGB, thickness=2.5,
                                                      thickness_units="screen", visible=False)
@@ -473,6 +477,25 @@ class SkyScene:
                 pat.visible = False
         return d
 
+    # ------------------------------------------------------------------ a sequence
+    def draw_track(self, camera: Camera | None, attitudes: list[np.ndarray] | None) -> None:
+        """The footprints of a sequence's frames (at their true attitudes), numbered; None removes them."""
+        for hd in self.h.pop("track_labels", []):
+            hd.remove()
+        if "track" in self.h:
+            self.h.pop("track").remove()
+        if camera is None or not attitudes:
+            return
+        segs = polylines_as_segments([sensor_footprint(camera, R) for R in attitudes])
+        self.h["track"] = self.scene.add_line_segments(NODES["track"], _f32(segs), TRACK_RGB, thickness=1.0,
+                                                       thickness_units="screen", visible=self.visible["track"])
+        top = np.array([0.0, -0.9 * camera.height / (2.0 * camera.fy), 1.0])  # just inside the top edge
+        top /= np.linalg.norm(top)
+        self.h["track_labels"] = [
+            self.scene.add_label(f"{NODES['track_labels']}/{k}", f"frame {k}", position=_f32(R.T @ top),
+                                 font_screen_scale=0.75, anchor="top-center", visible=self.visible["track"])
+            for k, R in enumerate(attitudes)]
+
     # ------------------------------------------------------------------ interaction
     def set_zoom(self, zoom: float) -> None:
         """Scale every star-like point cloud (stars look alike at every zoom)."""
@@ -508,6 +531,7 @@ class SkyScene:
             "true": ["true_camera", "true_footprint"],
             "matches": ["matches", "match_stars"],
             "numbers": ["numbers"],
+            "track": ["track", "track_labels"],
         }
         for key in groups.get(what, []):
             hd = self.h.get(key)

@@ -26,13 +26,15 @@ from skyview.errors import BadInput
 from skyview.identify import METHODS, VARIANTS
 from skyview.viewer import panel as P
 from skyview.viewer.picture import annotate, decode_image_bytes, panel_base, stretch, texture
-from skyview.viewer.run import (Run, SceneConfig, Solvers, Source, check_fov, check_method, compare,
+from skyview.viewer.run import (Run, SceneConfig, Solvers, Source, check_fov, check_method, compare, needs_sequence,
                                 random_pointing, sigma_for, simulate, solve)
 from skyview.viewer.scene import STAR_NAMES, SkyScene, nearest_star, ray_to_sphere
+from skyview.viewer.sequence_run import SequenceConfig, SequenceRun, solve_sequence_run
 from skyview.viewer.steps import default_plot_key, numeric_keys, series
 from skyview.viewer.worker import Worker
 
 PLAY_INTERVAL_S = 0.7
+FRAME_INTERVAL_S = 1.5  # Play the frames: each frame redraws the sensor image, the camera and its steps
 WIDE_FOV_DEG = 70.0
 REFERENCE_TAN = math.tan(math.radians(30.0))  # star sizes are tuned for a 60-degree view
 
@@ -50,7 +52,9 @@ class Session:
         self.client = owner if isinstance(owner, viser.ClientHandle) else None
         self.solvers = solvers
         self.lock = threading.RLock()
-        self.run: Run | None = None
+        self.run: Run | None = None  # the image on screen (with a sequence: the frame shown)
+        self.seq: SequenceRun | None = None  # the sequence on screen, if any
+        self.frame_index: int | None = None
         self.upload: Source | None = initial
         self.step_index: int | None = None
         self.error: str = ""
@@ -60,6 +64,9 @@ class Session:
         self._mute = False  # programmatic control changes do not trigger solves
         self._playing = False
         self._play_id = 0
+        self._playing_frames = False
+        self._frame_play_id = 0
+        self._frame_plot = None
         self._panel_base: np.ndarray | None = None
         self._camera_pending: tuple[str, np.ndarray] | None = None
         self._view_applied: tuple | None = None
@@ -91,6 +98,7 @@ class Session:
     def close(self) -> None:
         self._closed = True
         self._playing = False
+        self._playing_frames = False
         self.worker.close()
 
     def _guard(self, fn: Callable) -> Callable:
@@ -134,8 +142,14 @@ class Session:
         p = self.panel
         for h in (p.ra, p.dec, p.roll, p.fov, p.resolution, p.noise, p.false_stars, p.dropped, p.seed):
             h.on_update(self._guard(lambda _e: self._scenario_changed()))
-        for h in (p.mag, p.method, p.variant):
+        for h in (p.mag, p.variant):
             h.on_update(self._guard(lambda _e: self._solver_changed()))
+        for h in (p.n_frames, p.turn, p.turn_step):  # only a sequence method uses them
+            h.on_update(self._guard(lambda _e: self._solver_changed() if needs_sequence(p.method.value) else None))
+        p.method.on_update(self._guard(lambda _e: self._method_changed()))
+        p.paper_camera.on_click(self._guard(lambda _e: self.use_paper_camera()))
+        p.frame.on_update(self._guard(lambda _e: self.set_frame(int(p.frame.value))))
+        p.play_frames.on_click(self._guard(lambda _e: self.toggle_play_frames()))
         p.solve.on_click(self._guard(lambda _e: self.request_solve()))
         p.compare.on_click(self._guard(lambda _e: self.request_compare()))
         p.random.on_click(self._guard(lambda _e: self.randomise()))
@@ -164,6 +178,27 @@ class Session:
     def _solver_changed(self) -> None:
         if not self._mute and self.panel.auto.value:
             self.request_solve()
+
+    def _method_changed(self) -> None:
+        self.panel.seq_controls.visible = needs_sequence(self.panel.method.value)
+        self._solver_changed()
+
+    def sequence_config(self) -> SequenceConfig:
+        """The sequence the controls describe (validated: BadInput names a bad control)."""
+        p = self.panel
+        return SequenceConfig(n_frames=p.n_frames.value, turn=p.turn.value, step_deg=p.turn_step.value).checked()
+
+    def use_paper_camera(self) -> None:
+        """Udomkesmalee et al.'s camera: a 30-degree field, 1024 x 1024, catalog to Hp 4.5."""
+        p = self.panel
+        self._mute = True
+        try:
+            p.fov.value = P.PAPER_CAMERA["fov_deg"]
+            p.resolution.value = P.PAPER_CAMERA["resolution"]
+            p.mag.value = P.PAPER_CAMERA["mag_limit"]
+        finally:
+            self._mute = False
+        self._scenario_changed()
 
     def config(self) -> SceneConfig:
         """The scenario the controls describe (validated: BadInput names a bad control)."""
@@ -221,6 +256,14 @@ class Session:
 
     def _job_solve(self, t_request: float) -> None:
         method, variant = check_method(self.panel.method.value, self.panel.variant.value)
+        if self.upload is None and needs_sequence(method):
+            seq = solve_sequence_run(self.config(), self.sequence_config(), method, variant, self.solvers,
+                                     label=self._label)
+            if self.worker.superseded:
+                return
+            self._label("drawing")
+            self.show_sequence(seq, t_request)
+            return
         self._label("simulating" if self.upload is None else "loading the image")
         source = self._source()
         mag = float(self.panel.mag.value)
@@ -252,6 +295,66 @@ class Session:
 
     # ------------------------------------------------------------------ drawing a run
     def show_run(self, run: Run, t_request: float | None = None) -> None:
+        """Show one solved image (no sequence)."""
+        with self.lock, self.atomic():
+            self._playing_frames = False
+            self.seq = None
+            self.frame_index = None
+            self.panel.seq_box.visible = False
+            if self._frame_plot is not None:
+                self._frame_plot.remove()
+                self._frame_plot = None
+            self.sky.draw_track(None, None)
+        self._draw_run(run, t_request)
+
+    def show_sequence(self, seq: SequenceRun, t_request: float | None = None) -> None:
+        """Show a solved sequence, on its last frame (the final state)."""
+        n = len(seq)
+        with self.lock, self.atomic():
+            self._playing_frames = False
+            self.seq = seq
+            self.frame_index = n - 1
+            p = self.panel
+            self._mute = True
+            try:
+                p.frame.max = max(1, n - 1)
+                p.frame.value = n - 1
+                p.frame.disabled = n == 1
+            finally:
+                self._mute = False
+            p.play_frames.label = "Play the frames"
+            p.play_frames.disabled = n == 1
+            p.seq_box.visible = True
+            self.sky.draw_track(seq.frames[0].source.camera, [f.R_true for f in seq.frames])
+            self._draw_frame_plot()
+        self._draw_run(seq.frames[n - 1], t_request)
+
+    def set_frame(self, k: int) -> None:
+        """Show frame k of the sequence: its image, centroids, camera, steps and result."""
+        if self._mute or self.seq is None:
+            return
+        seq = self.seq
+        if not 0 <= k < len(seq):
+            self._mute = True
+            try:
+                self.panel.frame.value = self.frame_index if self.frame_index is not None else len(seq) - 1
+            finally:
+                self._mute = False
+            raise BadInput(f"frame {k} is outside 0..{len(seq) - 1}")
+        t0 = time.perf_counter()
+        with self.lock:
+            if self.seq is not seq:
+                return
+            self.frame_index = k
+            self._draw_run(seq.frames[k])
+        self.timings["frame_ms"] = (time.perf_counter() - t0) * 1e3
+
+    def _status_text(self) -> str:
+        if self.seq is not None and self.frame_index is not None:
+            return P.sequence_status_markdown(self.seq, self.frame_index)
+        return P.status_markdown(self.run) if self.run is not None else ""
+
+    def _draw_run(self, run: Run, t_request: float | None = None) -> None:
         t0 = time.perf_counter()
         tex = texture(run.source.image)
         base = panel_base(stretch(run.source.image))
@@ -278,13 +381,21 @@ class Session:
             self.step_index = None
             self._show_step(n - 1 if n else None)
             self._draw_plot()
-            p.status.content = P.status_markdown(run)
+            seq, k = self.seq, self.frame_index
+            if seq is not None and k is not None:
+                p.frame_text.content = P.frame_markdown(seq, k)
+                if self._frame_plot is not None:
+                    self._frame_plot.data = self._frame_plot_data(k)
+            p.status.content = self._status_text()
         self.timings["draw_ms"] = (time.perf_counter() - t0) * 1e3
         if t_request is not None:
             self.timings["update_ms"] = (time.perf_counter() - t_request) * 1e3
         viewer_ms = {"update (control to scene)": self.timings.get("update_ms", float("nan")),
                      "drawing": self.timings["draw_ms"]}
-        self.panel.result.content = P.result_markdown(run, viewer_ms)
+        text = P.result_markdown(run, viewer_ms)
+        if seq is not None and k is not None:
+            text = f"{P.sequence_markdown(seq)}\n\n---\n\n**Frame {k}** (shown)  \n{text}"
+        self.panel.result.content = text
         R = run.R_shown
         if R is not None and self.panel.follow.value:
             cam = run.source.camera
@@ -389,6 +500,94 @@ class Session:
                 self.panel.play.label = "Play the steps"
 
         threading.Thread(target=self._guard(play), name="skyview-viewer-play", daemon=True).start()
+
+    # ------------------------------------------------------------------ frames
+    def _frame_plot_data(self, k: int | None):
+        """x = frame; stars above the prior, the leading star's and the true star's posterior, and the
+        frame shown (marked on the leading star's posterior)."""
+        ser = self.seq.series()
+        n = len(self.seq)
+        now = np.full(n, np.nan)
+        if k is not None and 0 <= k < n:
+            now[k] = ser["top_posterior"][k]
+        return (np.arange(n, dtype=np.float64), ser["above_prior"], ser["top_posterior"], ser["true_posterior"], now)
+
+    def _draw_frame_plot(self) -> None:
+        if self._frame_plot is not None:
+            self._frame_plot.remove()
+            self._frame_plot = None
+        seq = self.seq
+        n = len(seq)
+        c = P.FRAME_PLOT_COLORS
+
+        def line(label, color, scale, width=2.0, dash=None):
+            s = uplot.Series(label=label, scale=scale, stroke=color, width=width,
+                             points={"show": True, "size": 6, "fill": color})
+            if dash:
+                s["dash"] = dash
+            return s
+
+        above = seq.series()["above_prior"]
+        top = max(1, math.ceil(math.log10(max(float(np.nanmax(above)) if np.isfinite(above).any() else 1.0, 2.0))))
+        decades = tuple(float(10 ** i) for i in range(top + 1))  # a log axis labelled by decades only
+        with self.panel.frame_plot_box:
+            self._frame_plot = self.owner.gui.add_uplot(
+                data=self._frame_plot_data(self.frame_index),
+                series=(
+                    uplot.Series(label="frame"),
+                    line("stars above 1/N", c[0], "n"),
+                    line("P(leading star)", c[1], "p", 2.5),
+                    line("P(true star)", c[2], "p", 1.5, (4, 5)),
+                    uplot.Series(label="frame shown", scale="p", stroke=c[3], width=0,
+                                 points={"show": True, "size": 14, "fill": "transparent", "stroke": c[3],
+                                         "width": 2}),
+                ),
+                scales={"x": {"time": False, "range": (-0.3, max(n - 1, 0) + 0.3)},
+                        "n": {"distr": 3, "log": 10, "range": (1.0, decades[-1])}, "p": {"range": (0.0, 1.0)}},
+                axes=(
+                    uplot.Axis(scale="x", label="frame", incrs=(1, 2, 5, 10), space=18, size=28, labelSize=16),
+                    uplot.Axis(scale="n", side=3, label="stars above 1/N", splits=decades,
+                               values=tuple(f"{int(v):d}" for v in decades), size=42, labelSize=16),
+                    uplot.Axis(scale="p", side=1, label="posterior", splits=(0.0, 0.25, 0.5, 0.75, 1.0),
+                               values=("0", ".25", ".5", ".75", "1"), size=36, labelSize=16, grid={"show": False}),
+                ),
+                legend={"show": True, "live": False},
+                aspect=1.6,
+                padding=(10, 8, 0, 0),
+            )
+
+    def toggle_play_frames(self) -> None:
+        """Play the frames from the first (or the next one) to the last; Pause stops."""
+        p = self.panel
+        if self._playing_frames:
+            self._playing_frames = False
+            p.play_frames.label = "Play the frames"
+            return
+        seq = self.seq
+        if seq is None or len(seq) < 2:
+            return
+        self._playing_frames = True
+        self._frame_play_id += 1
+        me = self._frame_play_id
+        p.play_frames.label = "Pause"
+        k0 = self.frame_index
+        start = 0 if k0 is None or k0 >= len(seq) - 1 else k0 + 1
+
+        def playing() -> bool:
+            return self._playing_frames and self._frame_play_id == me and self.seq is seq and not self._closed
+
+        def play():
+            k = start
+            while playing() and k < len(seq):
+                p.frame.value = k  # fires set_frame
+                k += 1
+                if k < len(seq):
+                    time.sleep(FRAME_INTERVAL_S)
+            if self._frame_play_id == me and self.seq is seq:
+                self._playing_frames = False
+                p.play_frames.label = "Play the frames"
+
+        threading.Thread(target=self._guard(play), name="skyview-viewer-frames", daemon=True).start()
 
     # ------------------------------------------------------------------ view
     def _toggle(self, what: str, on: bool) -> None:
@@ -527,7 +726,7 @@ class Session:
                 with contextlib.suppress(Exception):
                     self.panel.progress.visible = False
                     if self.run is not None:
-                        self.panel.status.content = P.status_markdown(self.run)
+                        self.panel.status.content = self._status_text()
                 shown = False
             time.sleep(0.2)
 

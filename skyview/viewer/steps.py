@@ -11,10 +11,13 @@ returns; it knows no method. A method shows up in the viewer through what its st
 - `numbers`: shown as a table, and any of them can be plotted across the steps;
 - `extra` (the same conventions as the Rerun recorder):
   - an (N, 3) float array of unit vectors (or one 3-vector) is drawn as points on the sphere (a GA
-    population, a boresight); a 1-D float array of the same length tints them (costs);
+    population, a boresight); a 1-D float array of the same length tints them, high values bright,
+    except a cost (a name with "cost"), whose lowest is brightest (+inf: an invalid individual);
   - a 3x3 rotation is an attitude: its sensor footprint is drawn;
   - a 1-D float array as long as `catalog` is a weight per candidate (a posterior) and tints the
-    candidates; one as long as the whole guide catalog lights its highest-weighted stars;
+    candidates; one as long as the whole guide catalog lights its highest-weighted stars, tinted on
+    a log scale (summed per star first when an integer array of the same length maps each weight
+    to a catalog row: hypotheses that have moved to other stars, as after a known turn);
   - everything else is summarised in the step's text.
 """
 
@@ -34,6 +37,7 @@ DEFAULT_PLOT_KEYS = ("hypotheses", "candidates")
 ARC_POINTS = 3  # points per candidate arc: seen from the sphere's centre a chord already is the arc
 OUTCOMES = ("identified", "unidentified", "false star", "wrong match", "not used")
 SKY_WEIGHT_TOP = 300  # stars lit from a whole-catalog weight (a posterior over the catalog)
+SKY_WEIGHT_FLOOR = 1e-3  # ... down to this fraction of the highest weight
 
 
 @dataclass
@@ -74,18 +78,25 @@ def pattern_edges(observed: np.ndarray) -> np.ndarray:
 
 
 def _normalised(a: np.ndarray) -> np.ndarray:
-    a = np.nan_to_num(np.asarray(a, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    lo, hi = float(a.min()), float(a.max())
+    """To [0, 1] over the finite values' range; +inf at the top (an invalid individual's cost), -inf and
+    NaN at the bottom."""
+    a = np.asarray(a, dtype=np.float64)
+    fin = np.isfinite(a)
+    if not fin.any():
+        return np.ones_like(a)
+    lo, hi = float(a[fin].min()), float(a[fin].max())
+    a = np.where(a == np.inf, hi, np.where(fin, a, lo))
     return (a - lo) / (hi - lo) if hi > lo else np.ones_like(a)
 
 
-def _float_array(val) -> np.ndarray | None:
+def _float_array(val, finite: bool = True) -> np.ndarray | None:
+    """`val` as a float array (all finite, or with finite=False at least one finite value), else None."""
     if isinstance(val, (list, tuple, np.ndarray)):
         try:
             a = np.asarray(val)
         except (ValueError, TypeError):
             return None
-        if a.dtype.kind == "f" and a.size and np.all(np.isfinite(a)):
+        if a.dtype.kind == "f" and a.size and (np.all(np.isfinite(a)) if finite else np.any(np.isfinite(a))):
             return a
     return None
 
@@ -105,6 +116,7 @@ def classify_extras(step, n_candidates: int, catalog_xyz: np.ndarray, hip: np.nd
     """Sort a step's extras into what the viewer draws (see the module docstring) and text."""
     out = {"weights": None, "weight_name": "", "points": [], "point_keys": [], "attitudes": [], "text": []}
     series: dict[str, np.ndarray] = {}
+    labels: dict[str, str] = {}
     for key, val in step.extra.items():
         a = _float_array(val)
         if a is not None and _is_rotation(a):
@@ -120,12 +132,18 @@ def classify_extras(step, n_candidates: int, catalog_xyz: np.ndarray, hip: np.nd
                 out["weights"], out["weight_name"] = _normalised(a), key
                 continue
             if len(a) == len(catalog_xyz) and len(a) > SKY_WEIGHT_TOP:
-                top = np.argsort(-a)[:SKY_WEIGHT_TOP]
-                out["points"].append(np.asarray(catalog_xyz, dtype=np.float64)[top])
+                stars, w, by = sky_weights(a, step.extra, len(catalog_xyz))
+                out["points"].append(np.asarray(catalog_xyz, dtype=np.float64)[stars])
                 out["point_keys"].append(key)
-                series[key] = a[top]
+                series[key] = w
+                out["log_tint"] = key
+                labels[key] = f"{key} (summed per star by {by})" if by else key
                 continue
             series[key] = a
+        elif a is None:  # a series with some non-finite values (costs of invalid individuals) still tints
+            loose = _float_array(val, finite=False)
+            if loose is not None and loose.ndim == 1:
+                series[key] = loose
         out["text"].append(summarise_extra(key, val, hip))
     # a series as long as a set of points tints them (the population's costs)
     out["point_weights"] = None
@@ -135,9 +153,49 @@ def classify_extras(step, n_candidates: int, catalog_xyz: np.ndarray, hip: np.nd
         same = [k for k, v in series.items() if len(v) == n]
         pick = key if key in series else (same[0] if same else None)
         if pick is not None:
-            out["point_weights"] = _normalised(series[pick])
+            w = series[pick]
+            if out.get("log_tint") == pick:
+                out["point_weights"] = _log_normalised(w)
+            elif "cost" in pick.lower():  # a cost: the lowest (the best individual) brightest
+                out["point_weights"] = 1.0 - _normalised(w)
+            else:
+                out["point_weights"] = _normalised(w)
             out["point_keys"] = [f"{key} (tinted by {pick})" if pick != key else key]
+    out["point_keys"] = [labels.get(k, k) for k in out["point_keys"]]
     return out
+
+
+def sky_weights(a: np.ndarray, extra: dict, n_catalog: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """The stars to light for a weight over the whole catalog: (rows, weights, name of the row map).
+
+    When the step also carries a 1-D integer array of the same length whose values are catalog rows
+    (the star each hypothesis designates now, e.g. the stochastic method's `rows` after a turn), the
+    weights are hypotheses' and are summed per star first; otherwise weight i is catalog row i. The
+    SKY_WEIGHT_TOP highest are kept, down to SKY_WEIGHT_FLOOR of the highest when the weights are
+    positive (a converged posterior lights its few leading stars, not 300).
+    """
+    w = np.nan_to_num(np.asarray(a, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    by = ""
+    for key, val in extra.items():
+        r = np.asarray(val) if isinstance(val, (list, tuple, np.ndarray)) else None
+        if r is not None and r.dtype.kind in "iu" and r.shape == w.shape and r.size \
+                and r.min() >= 0 and r.max() < n_catalog:
+            w = np.bincount(r.astype(np.int64), weights=w, minlength=n_catalog)
+            by = str(key)
+            break
+    top = np.argsort(-w, kind="stable")[:SKY_WEIGHT_TOP]
+    if np.all(w >= 0) and w[top[0]] > 0:
+        top = top[w[top] >= SKY_WEIGHT_FLOOR * w[top[0]]]
+    return top, w[top], by
+
+
+def _log_normalised(w: np.ndarray) -> np.ndarray:
+    """Positive weights to [0, 1] on a log scale over SKY_WEIGHT_FLOOR (3 decades) below the highest."""
+    w = np.asarray(w, dtype=np.float64)
+    if len(w) == 0 or not np.all(w > 0):
+        return _normalised(w)
+    lo = math.log10(SKY_WEIGHT_FLOOR)
+    return np.clip((np.log10(w / w.max()) - lo) / -lo, 0.0, 1.0)
 
 
 def summarise_extra(key: str, val, hip: np.ndarray | None = None) -> str:
