@@ -313,11 +313,16 @@ def _hip_name(hip: int) -> str:
 
 
 def _listing(ks: list[int]) -> str:
+    """Frame numbers with runs compressed: 1, 3–5, 9."""
     if not ks:
         return "none"
-    if len(ks) > 2 and ks == list(range(ks[0], ks[-1] + 1)):
-        return f"{ks[0]}–{ks[-1]}"
-    return ", ".join(str(k) for k in ks)
+    runs: list[list[int]] = []
+    for k in ks:
+        if runs and k == runs[-1][-1] + 1:
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    return ", ".join(f"{r[0]}–{r[-1]}" if len(r) > 2 else ", ".join(map(str, r)) for r in runs)
 
 
 def sequence_status_markdown(seq: SequenceRun, k: int) -> str:

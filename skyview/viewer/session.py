@@ -370,8 +370,9 @@ class Session:
             p = self.panel
             self._mute = True
             try:
-                p.plot_key.options = tuple(keys) if keys else ("-",)
-                p.plot_key.value = default_plot_key(run.drawables) or "-"
+                default = default_plot_key(run.drawables)
+                p.plot_key.options = tuple(keys) if default is not None else ("-", *keys)  # "-": no plot
+                p.plot_key.value = default or "-"
                 p.step.disabled = n == 0
                 p.step.max = max(1, n - 1)
                 p.step.value = max(0, n - 1)

@@ -276,7 +276,8 @@ def series(drawables: list[StepDrawable], key: str) -> np.ndarray:
 
 
 def default_plot_key(drawables: list[StepDrawable]) -> str | None:
-    """hypotheses / candidates when recorded, else the first number that changes from step to step."""
+    """hypotheses / candidates when recorded, else the first number that changes from step to step, else
+    None (nothing worth a plot: e.g. one frame of a sequence, each number recorded by one step only)."""
     keys = numeric_keys(drawables)
     for p in DEFAULT_PLOT_KEYS:
         if p in keys or p + "_after" in keys:
@@ -285,7 +286,7 @@ def default_plot_key(drawables: list[StepDrawable]) -> str | None:
         v = series(drawables, k)
         if len(np.unique(v[np.isfinite(v)])) >= 2:
             return k
-    return keys[0] if keys else None
+    return None
 
 
 def match_groups(matches: dict[int, int], uv: np.ndarray) -> list[tuple[int, ...]]:
