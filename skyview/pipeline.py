@@ -155,45 +155,58 @@ class Solver:
 
     def solve_centroids(self, centroids: Centroids) -> SolveResult:
         t0 = time.perf_counter()
-        common = dict(method=self.method, variant=self.variant, camera=self.camera, centroids=centroids,
-                      database_key=self.identifier.database_key, epoch=self.catalog.epoch,
-                      sigma_rad=self.sigma_rad)
-        if len(centroids) == 0:
-            return SolveResult(status=NOT_SOLVED, reason="no stars found in the image (blank or empty sky)",
-                               identification=None, time_ms={"identify": 0.0, "attitude": 0.0, "solve": 0.0},
-                               **common)
         obs = self.observation(centroids)
-        ident = self.identifier.identify(obs)
-        t1 = time.perf_counter()
-        result = SolveResult(status=NOT_SOLVED, reason=ident.reason or ident.status, identification=ident, **common)
-        if ident.identified:
-            idx = np.array(sorted(ident.matches))
-            rows = np.array([ident.matches[i] for i in idx])
-            b, r = obs.vectors[idx], self.catalog.xyz[rows]
-            est = ESTIMATORS[self.estimator](b, r, self.sigma_rad)
-            result.status, result.reason = SOLVED, ""
-            result.R = est.R
-            # The reported 1-sigma uses the noise measured from the residuals when there are enough
-            # matches (2n - 3 degrees of freedom >= 5), else the assumed sigma.
-            resid = np.linalg.norm(np.cross(b, r @ est.R.T), axis=1)
-            dof = 2 * len(idx) - 3
-            scale = 1.0
-            if dof >= 5:
-                result.sigma_measured_rad = float(np.sqrt(np.sum(resid ** 2) / dof))
-                scale = result.sigma_measured_rad / self.sigma_rad
-            result.sigma_boresight_arcsec = est.sigma_boresight_arcsec * scale
-            result.sigma_roll_arcsec = est.sigma_roll_arcsec * scale
-            result.residuals_arcsec = (resid * RAD_TO_ARCSEC).tolist()
-            result.matches = [{"index": int(i), "u": float(obs.uv[i, 0]), "v": float(obs.uv[i, 1]),
-                               "hip": int(self.catalog.hip[k]), "mag": float(self.catalog.mag[k]),
-                               "residual_arcsec": float(e * RAD_TO_ARCSEC)}
-                              for i, k, e in zip(idx, rows, resid)]
-        t2 = time.perf_counter()
-        result.time_ms = {"identify": (t1 - t0) * 1e3, "attitude": (t2 - t1) * 1e3, "solve": (t2 - t0) * 1e3}
-        return result
+        ident = self.identifier.identify(obs) if len(centroids) else None
+        return result_from_identification(
+            centroids, obs, ident, camera=self.camera, catalog=self.catalog, method=self.method,
+            variant=self.variant, sigma_rad=self.sigma_rad, estimator=self.estimator,
+            database_key=self.identifier.database_key, identify_ms=(time.perf_counter() - t0) * 1e3)
 
     def solve_path(self, path: str | Path) -> SolveResult:
         return self.solve_array(load_image(path))
+
+
+def result_from_identification(centroids: Centroids, obs: Observation, ident: Identification | None, *,
+                               camera: Camera, catalog: GuideCatalog, method: str, variant: str, sigma_rad: float,
+                               estimator: str = "svd", database_key: dict | None = None,
+                               identify_ms: float = 0.0) -> SolveResult:
+    """The `SolveResult` of an identification of `obs` (the observation of `centroids`): the attitude
+    from every match by `estimator`, its 1-sigma, the matches with their residuals. `Solver` uses it
+    for each image; a sequence uses it for each of its frames (ident=None: nothing was identified
+    because the image has no stars)."""
+    t1 = time.perf_counter()
+    common = dict(method=method, variant=variant, camera=camera, centroids=centroids,
+                  database_key=database_key or {}, epoch=catalog.epoch, sigma_rad=sigma_rad)
+    if ident is None or len(centroids) == 0:
+        return SolveResult(status=NOT_SOLVED, reason="no stars found in the image (blank or empty sky)",
+                           identification=None, time_ms={"identify": 0.0, "attitude": 0.0, "solve": 0.0},
+                           **common)
+    result = SolveResult(status=NOT_SOLVED, reason=ident.reason or ident.status, identification=ident, **common)
+    if ident.identified:
+        idx = np.array(sorted(ident.matches))
+        rows = np.array([ident.matches[i] for i in idx])
+        b, r = obs.vectors[idx], catalog.xyz[rows]
+        est = ESTIMATORS[estimator](b, r, sigma_rad)
+        result.status, result.reason = SOLVED, ""
+        result.R = est.R
+        # The reported 1-sigma uses the noise measured from the residuals when there are enough
+        # matches (2n - 3 degrees of freedom >= 5), else the assumed sigma.
+        resid = np.linalg.norm(np.cross(b, r @ est.R.T), axis=1)
+        dof = 2 * len(idx) - 3
+        scale = 1.0
+        if dof >= 5:
+            result.sigma_measured_rad = float(np.sqrt(np.sum(resid ** 2) / dof))
+            scale = result.sigma_measured_rad / sigma_rad
+        result.sigma_boresight_arcsec = est.sigma_boresight_arcsec * scale
+        result.sigma_roll_arcsec = est.sigma_roll_arcsec * scale
+        result.residuals_arcsec = (resid * RAD_TO_ARCSEC).tolist()
+        result.matches = [{"index": int(i), "u": float(obs.uv[i, 0]), "v": float(obs.uv[i, 1]),
+                           "hip": int(catalog.hip[k]), "mag": float(catalog.mag[k]),
+                           "residual_arcsec": float(e * RAD_TO_ARCSEC)}
+                          for i, k, e in zip(idx, rows, resid)]
+    attitude_ms = (time.perf_counter() - t1) * 1e3
+    result.time_ms = {"identify": identify_ms, "attitude": attitude_ms, "solve": identify_ms + attitude_ms}
+    return result
 
 
 _SOLVERS: dict[tuple, Solver] = {}

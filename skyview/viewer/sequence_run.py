@@ -20,10 +20,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from skyview.catalog import GuideCatalog
-from skyview.centroid import Centroids
 from skyview.errors import BadInput
-from skyview.identify.base import Identification
-from skyview.pipeline import Solver, SolveResult
+from skyview.pipeline import SolveResult, result_from_identification
 from skyview.sequence import SequenceResult, SequenceSolver, zero_point
 from skyview.simulate import SensorModel, Turn, simulate_sequence, turn_about_camera_axis, turn_along_ra
 from skyview.viewer.run import (ARCSEC, MAG_RANGE, Run, SceneConfig, Solvers, Source, _num, check_method,
@@ -153,28 +151,15 @@ def sequence_cached(solvers: Solvers, source: Source, method: str, variant: str,
     return solvers.has(key)
 
 
-class _Recorded:
-    """Stands in for the identifier inside `pipeline.Solver.solve_centroids`: hands back the
-    identification the sequence already made for one frame, so each frame's `SolveResult` (attitude
-    from the matches, 1-sigma, residuals, match list) comes from the pipeline's own code."""
-
-    def __init__(self, ident: Identification, database_key: dict):
-        self.ident = ident
-        self.database_key = database_key
-
-    def identify(self, _obs) -> Identification:
-        return self.ident
-
-
-def frame_result(seq_solver: SequenceSolver, centroids: Centroids, ident: Identification) -> SolveResult:
-    """One frame of a sequence as the `SolveResult` a single image would give."""
-    solver = Solver.__new__(Solver)  # configured from the sequence solver; no database to build
-    solver.__dict__.update(camera=seq_solver.camera, method=seq_solver.method, variant=seq_solver.variant,
-                           catalog=seq_solver.catalog, estimator="svd", max_stars=seq_solver.max_stars,
-                           k_sigma=seq_solver.k_sigma, sigma_rad=seq_solver.sigma_rad,
-                           method_params=dict(seq_solver.method_params), setup_ms={},
-                           identifier=_Recorded(ident, seq_solver.identifier.database_key))
-    return solver.solve_centroids(centroids)
+def frame_result(seq_solver: SequenceSolver, res: SequenceResult, k: int) -> SolveResult:
+    """Frame k of a sequence as the `SolveResult` a single image would give (attitude from the
+    matches, 1-sigma, residuals, match list: the pipeline's own `result_from_identification`)."""
+    ident = res.identifications[k]
+    return result_from_identification(
+        res.centroids[k], res.observations[k], ident, camera=seq_solver.camera, catalog=seq_solver.catalog,
+        method=seq_solver.method, variant=seq_solver.variant, sigma_rad=seq_solver.sigma_rad,
+        database_key=seq_solver.identifier.database_key,
+        identify_ms=float(ident.stats.get("time_s", float("nan"))) * 1e3)
 
 
 def solve_sequence_run(scene: SceneConfig, config: SequenceConfig, method: str, variant: str, solvers: Solvers,
@@ -202,9 +187,8 @@ def solve_sequence_run(scene: SceneConfig, config: SequenceConfig, method: str, 
     n = config.n_frames
     frames = []
     for k, (src, ident) in enumerate(zip(sources, res.identifications)):
-        result = frame_result(seq_solver, res.centroids[k], ident)
-        identify_ms = float(ident.stats.get("time_s", float("nan"))) * 1e3
-        result.time_ms["identify"] = identify_ms
+        result = frame_result(seq_solver, res, k)
+        identify_ms = result.time_ms["identify"]
         time_ms = {"simulate": src.simulate_ms, "centroid": res.time_ms.get("centroid", float("nan")) / n,
                    "identify": identify_ms, "attitude": result.time_ms.get("attitude", 0.0)}
         time_ms["total"] = sum(time_ms.values())
