@@ -20,7 +20,8 @@ groups, numbers, extra): nothing here knows a method. Entity paths (see docs/rec
     sky/candidates              the step's candidate groups (pairs, triangles, ...) as great-circle arcs
     sky/step/observed           the step's observed stars (3D, under the shown attitude)
     sky/step/catalog            the step's catalog stars
-    sky/step/extra/<name>       a step extra that is an (N, 3) array of unit vectors
+    sky/step/extra/<name>       a step extra that is an (N, 3) array of unit vectors (points), or a dict
+                                that outlines a region of the sky (a LineStrips3D: see below)
     camera                      camera pose: Transform3D(mat3x3=R, relation=ChildFromParent)
     camera/image                Pinhole + the sensor image (JPEG, stretched to 8 bit for display)
     camera/image/centroids      centroids, labelled with their brightness rank (#0 brightest)
@@ -33,6 +34,13 @@ groups, numbers, extra): nothing here knows a method. Entity paths (see docs/rec
     steps/numbers/<name>        one Scalars series per `Step.numbers` entry
     steps/series/<name>         a step extra that is a 1-D float array, as a bar chart
     result                      the result as a Markdown document (static)
+
+Step extras follow the viewer's conventions (skyview/viewer/steps.py): an (N, 3) float array of unit
+vectors is points on the sphere; a 1-D float array a bar chart; a dict with "corners" ((K, 3) unit
+vectors, K >= 3) a closed polygon of great-circle arcs, or else with "center" (a unit 3-vector) and
+"radius_rad" the small circle at that angular radius (`sky_geometry.outline_polyline`; a GA's search
+box), logged as one closed line strip when it changes and cleared at a step without it; anything else
+is left out.
 
 "The shown attitude" is the estimated attitude when the image was solved, else the true one when it is
 known; without either, the 3D view has no observed stars (the image still has them).
@@ -105,6 +113,7 @@ C_CANDIDATE = (60, 255, 140)
 C_STEP_OBS = (255, 230, 0)
 C_STEP_CAT = (255, 80, 80)
 C_EXTRA = (255, 150, 40)
+C_OUTLINE = (190, 140, 255)  # a step's outlined region of the sky (a GA's search box), lavender
 C_CENTROID = (255, 60, 60)
 C_TRUTH = (80, 220, 120)
 C_FALSE = (255, 150, 0)
@@ -505,6 +514,7 @@ def _write_steps(rec, steps, result, catalog, R_view, first: int = 0,
     cents = result.centroids
     obs_icrs = camera.unproject(cents.uv) @ R_view if (R_view is not None and len(cents)) else None
     shown_extra, shown_series = (set(), set()) if shown is None else (set(shown[0]), set(shown[1]))
+    outlines: dict[str, tuple] = {}  # per extra name: (the dict, its outline) last drawn, in this call
     for k, step in enumerate(steps, start=first):
         rec.set_time(TIMELINE, sequence=k)
         rec.log(STEP_LOG, rr.TextLog(f"[{step.kind}] {step.note}", level=step.kind))
@@ -532,12 +542,30 @@ def _write_steps(rec, steps, result, catalog, R_view, first: int = 0,
         cat = [int(i) for i in step.catalog if 0 <= int(i) < len(catalog)]
         rec.log(STEP_CATALOG, rr.Points3D(catalog.xyz[cat].astype(np.float32).reshape(-1, 3), radii=0.005,
                                           colors=C_STEP_CAT))
-        # method-specific extras: (N, 3) unit vectors as points, 1-D float arrays as bar charts
+        # method-specific extras: (N, 3) unit vectors as points, outlines as line strips, 1-D floats as bar charts
         now_extra, now_series = set(), set()
         for name, value in step.extra.items():
             ename = _entity_name(name)
+            last = outlines.get(ename)
+            if isinstance(value, dict) and ename in shown_extra and last is not None and last[0] is value:
+                now_extra.add(ename)  # the same dict as the step before (a GA stage's box): drawn already
+                continue
+            poly = sg.outline_polyline(value)
+            if poly is not None:
+                poly = poly.astype(np.float32)
+                if ename in shown_extra and last is None:  # points at the step before: not under the outline
+                    rec.log(f"{STEP_EXTRA}/{ename}", rr.Clear(recursive=False))
+                if ename not in shown_extra or last is None or not np.array_equal(last[1], poly):
+                    rec.log(f"{STEP_EXTRA}/{ename}", rr.LineStrips3D(poly[None], colors=C_OUTLINE,
+                                                                     radii=rr.Radius.ui_points(1.5)))
+                outlines[ename] = (value, poly)  # an unchanged outline is not logged again
+                now_extra.add(ename)
+                continue
+            was_outline = outlines.pop(ename, None) is not None
             pts = _unit_rows(value)
             if pts is not None:
+                if was_outline and ename in shown_extra:  # an outline at the step before: not under the points
+                    rec.log(f"{STEP_EXTRA}/{ename}", rr.Clear(recursive=False))
                 rec.log(f"{STEP_EXTRA}/{ename}", rr.Points3D(pts, radii=0.004, colors=C_EXTRA))
                 now_extra.add(ename)
                 continue
@@ -547,6 +575,7 @@ def _write_steps(rec, steps, result, catalog, R_view, first: int = 0,
                 now_series.add(ename)
         for ename in shown_extra - now_extra:  # an extra drawn at the previous step but not at this one
             rec.log(f"{STEP_EXTRA}/{ename}", rr.Clear(recursive=False))
+            outlines.pop(ename, None)
         for ename in shown_series - now_series:
             rec.log(f"{STEP_SERIES}/{ename}", rr.Clear(recursive=False))
         shown_extra, shown_series = now_extra, now_series

@@ -35,6 +35,7 @@ from skyview.cli import main
 from skyview.errors import BadInput
 from skyview.identify.base import Step
 from skyview.record_replay import free_port, rerun_binary
+from skyview.sky_geometry import OUTLINE_EDGE_POINTS, outline_polyline
 
 ENV = {**os.environ, "RERUN_ANALYTICS": "0"}
 HAS_LAVAPIPE = bool(glob.glob("/usr/share/vulkan/icd.d/lvp_icd*.json"))
@@ -252,6 +253,83 @@ def test_step_extras_are_drawn_generically(solved, tmp_path):
     assert [v[0] for v in column(ents["/steps/numbers/best_cost"], "Scalars:scalars")] == [3.5, 1.25]  # NaN left out
     # no truth: no truth entities
     assert not any(k.startswith(("/truth", "/camera/image/truth", "/sky/fov/true")) for k in ents)
+
+
+def _by_step(entity: dict, name: str) -> list[tuple[int, object]]:
+    """(step, value) of one component column, in step order."""
+    rows = []
+    for b in entity["batches"]:
+        if name in b.schema.names:
+            rows += list(zip(b.column("step").to_pylist(), b.column(name).to_pylist()))
+    return sorted(rows, key=lambda r: r[0])
+
+
+def test_an_outline_extra_is_logged_once_and_cleared(solved, tmp_path):
+    """One extra name that is points, then an outline dict (twice: logged once), then points, then gone:
+    each change clears what was drawn before it."""
+    case = solved[0]
+    pop = np.array([[0.0, 0.6, 0.8], [0.6, 0.0, 0.8]])
+    tri = {"kind": "triangle", "corners": np.eye(3)}  # an octant of the sky
+    steps = [Step("a", "points", extra={"x": pop}), Step("b", "outline", extra={"x": tri}),
+             Step("c", "the same outline", extra={"x": tri}), Step("d", "points", extra={"x": pop}),
+             Step("e", "nothing")]
+    ident = dataclasses.replace(case.result.identification, steps=steps)
+    path = tmp_path / "outline.rrd"
+    rec.record_solve(path, dataclasses.replace(case.result, identification=ident), case.frame.image,
+                     catalog=case.solver.catalog)
+    x = read(path)["/sky/step/extra/x"]
+    assert [k for k, _ in _by_step(x, "Points3D:positions")] == [0, 3]
+    assert [k for k, _ in _by_step(x, "Clear:is_recursive")] == [1, 3, 4]
+    (k, strip), = _by_step(x, "LineStrips3D:strips")
+    strip, n = np.array(strip[0]), OUTLINE_EDGE_POINTS - 1
+    assert k == 1 and len(strip) == 3 * n + 1  # three edges of n segments each, closed
+    np.testing.assert_allclose(strip[::n], [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 0, 0]], atol=1e-7)
+    np.testing.assert_allclose(np.linalg.norm(strip, axis=1), 1.0, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def genetic(tmp_path_factory):
+    """Case 1 of sun20 solved by the genetic method (improved variant), recorded."""
+    runner = rec.CaseRunner("genetic", "sun20", variant="improved")
+    case = runner.run(1)
+    assert case.result.solved, case.result.reason
+    path = tmp_path_factory.mktemp("rec") / "genetic-sun20-1.rrd"
+    info = runner.record(case, path)
+    return case, path, info, read(path)
+
+
+def test_a_genetic_search_box_is_recorded_as_an_outline(genetic):
+    """A real genetic solve: its square boxes and roll circle (dict extras with corners / centre + radius)
+    become closed line strips at sky/step/extra/box, logged when the box changes, cleared without one."""
+    case, path, info, ents = genetic
+    box = ents["/sky/step/extra/box"]
+    assert box["timelines"] == {"step"} and not box["static"]
+    # what should be there, step by step: a strip when the outline appears or changes, a clear when it goes
+    steps = case.result.identification.steps
+    logged, cleared, prev = [], [], None
+    for k, s in enumerate(steps):
+        poly = outline_polyline(s.extra.get("box"))
+        if poly is not None and (prev is None or not np.array_equal(prev, poly.astype(np.float32))):
+            logged.append((k, poly))
+        if poly is None and prev is not None:
+            cleared.append(k)
+        prev = None if poly is None else poly.astype(np.float32)
+    kinds = {steps[k].extra["box"]["kind"] for k, _ in logged}
+    assert kinds == {"square", "roll"}  # the whole-sky box of the first GA is not drawn
+    strips = _by_step(box, "LineStrips3D:strips")
+    assert [k for k, _ in strips] == [k for k, _ in logged]
+    assert [k for k, _ in _by_step(box, "Clear:is_recursive")] == cleared
+    for (k, want), (_, got) in zip(logged, strips):
+        got = np.array(got[0], dtype=np.float64)
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        np.testing.assert_allclose(got[0], got[-1], atol=1e-7)  # closed
+        np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-6)
+        b = steps[k].extra["box"]
+        if b["kind"] == "square":  # the strip runs through the 4 corners
+            np.testing.assert_allclose(got[::OUTLINE_EDGE_POINTS - 1][:4], b["corners"], atol=1e-6)
+        else:  # the roll circle, at its radius from the found boresight
+            ang = np.arccos(np.clip(got @ b["center"], -1, 1))
+            np.testing.assert_allclose(ang, b["radius_rad"], atol=1e-5)
 
 
 # ============================================================================ paths and the CLI
@@ -573,3 +651,32 @@ def test_viewer_puts_the_image_centre_on_the_camera_axis(viewer, solved, tmp_pat
     for rgb in colors:
         a, b2 = centre(s3, rgb), centre(s2, rgb)
         assert np.linalg.norm(a - b2) < 4.0, (rgb, a, b2)
+
+
+@needs_lavapipe
+def test_viewer_draws_the_genetic_search_box(genetic, tmp_path):
+    """Rendered by Rerun (a viewer of its own: one that showed other recordings keeps their 3D eye): the
+    lavender outline is on screen at the first spiral-stage and the first roll step, not at the first
+    (whole-sky) GA's."""
+    case, path, info, _ = genetic
+    steps = case.result.identification.steps
+    first: dict[str, int] = {}
+    for k, s in enumerate(steps):
+        if "box" in s.extra:
+            first.setdefault(s.extra["box"]["kind"], k)
+    proc, port = _headless_viewer()
+    try:
+        client = _connect(port)
+        _open(client, path)
+
+        def lavender(k: int) -> float:
+            img = _shot(client, k)
+            Image.fromarray(img.astype(np.uint8)).save(tmp_path / f"genetic-step{k}.png")
+            sky = img[:, :int(0.6 * img.shape[1])]
+            return float((np.abs(sky - np.array(rec.C_OUTLINE)).sum(-1) < 60).mean())
+
+        none, square, roll = lavender(first["sky"]), lavender(first["square"]), lavender(first["roll"])
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+    assert square > none + 2e-4 and roll > none + 2e-4, (none, square, roll)

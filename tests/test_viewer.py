@@ -28,11 +28,15 @@ import cv2
 import numpy as np
 import pytest
 
-from skyview.attitude import R_from_radec_roll, attitude_error_arcsec
+from skyview import sky_geometry as sg
+from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes
 from skyview.camera import Camera
-from skyview.catalog import radec_to_vec
+from skyview.catalog import load_guide_catalog, radec_to_vec
 from skyview.cli import main
+from skyview.identify import IDENTIFIED, make_identifier
 from skyview.identify.base import Step
+from skyview.identify.genetic import tangent_basis
+from skyview.identify.synthetic import synthetic_frame
 from skyview.viewer import picture, steps
 from skyview.viewer.panel import result_markdown, step_markdown
 from skyview.viewer.run import SceneConfig, Solvers, compare, simulate, solve
@@ -138,6 +142,111 @@ def test_a_posterior_over_hypotheses_lights_their_stars_and_costs_with_inf_still
     ga = Step("generation", "GA", extra={"population": pop, "costs": np.array([1.0, np.inf, 3.0, 2.0], np.float32)})
     g = steps.step_drawables([ga], xyz, n_observed=0)[0]
     assert g.point_weights.tolist() == [1.0, 0.0, 0.0, 0.5] and "tinted by costs" in g.points_name
+
+
+def _angle(a, b) -> np.ndarray:
+    return np.arccos(np.clip(np.asarray(a) @ np.asarray(b), -1.0, 1.0))
+
+
+def test_a_square_box_and_a_roll_circle_become_closed_lines_on_the_sphere():
+    # a square box: four corners at known RA/Dec, in order around it
+    corners = radec_to_vec(np.radians([40.0, 44.0, 44.0, 40.0]), np.radians([10.0, 10.0, 14.0, 14.0]))
+    center = radec_to_vec(np.radians(42.0), np.radians(12.0))
+    st = [Step("generation", "square", extra={"box": {"kind": "square", "center": center, "half_width_rad": 0.03,
+                                                      "corners": corners.astype(np.float32)}}),
+          Step("generation", "roll", extra={"box": {"kind": "roll", "center": center, "half_width_rad": 0.05,
+                                                    "corners": None, "radius_rad": 0.05}}),
+          Step("generation", "sky", extra={"box": {"kind": "sky", "center": None, "half_width_rad": np.pi,
+                                                   "corners": None}}),
+          Step("other", "not outlines", extra={"a": {"corners": corners[:2]},
+                                               "b": {"center": center * 2, "radius_rad": 0.1},
+                                               "c": {"center": center, "radius_rad": 4.0}, "d": {"center": center}})]
+    d = steps.step_drawables(st, _tiny_catalog(), n_observed=0)
+    # the square: a closed polyline through the 4 corners, every point on the sphere and on its edge's great circle
+    assert len(d[0].outlines) == 1 and d[0].outline_names == "box"
+    poly = d[0].outlines[0]
+    n = sg.OUTLINE_EDGE_POINTS - 1  # segments per edge
+    assert len(poly) == 4 * n + 1
+    np.testing.assert_allclose(poly[::n], np.vstack([corners, corners[:1]]), atol=1e-6)  # corners, loop closed
+    np.testing.assert_allclose(np.linalg.norm(poly, axis=1), 1.0, atol=1e-9)
+    for k in range(4):
+        a, b = corners[k], corners[(k + 1) % 4]
+        edge = poly[k * n:(k + 1) * n + 1]
+        np.testing.assert_allclose(edge @ np.cross(a, b), 0.0, atol=1e-7)  # on the great circle through a and b
+        np.testing.assert_allclose(_angle(edge, a) + _angle(edge, b), _angle(a, b), atol=1e-7)  # between them
+    seg = d[0].outline_segments
+    assert seg.shape == (4 * n, 2, 3) and seg.dtype == np.float32
+    np.testing.assert_allclose(seg[1:, 0], seg[:-1, 1], atol=1e-7)  # joined end to end ...
+    np.testing.assert_allclose(seg[-1, 1], seg[0, 0], atol=1e-7)  # ... and closed
+    ends = np.concatenate([seg[:, 0], seg[:, 1]])
+    for c in corners:
+        assert np.min(np.linalg.norm(ends - c, axis=1)) < 1e-6  # each corner is a segment endpoint
+    assert "kind square" in " ".join(d[0].extras)  # the rest of the dict is text
+    # the roll circle: every point at the radius from the centre, all the way round, closed
+    circ = d[1].outlines[0]
+    np.testing.assert_allclose(_angle(circ, center), 0.05, atol=1e-9)
+    np.testing.assert_allclose(circ[0], circ[-1])
+    np.testing.assert_allclose(circ[:-1].mean(axis=0) / np.linalg.norm(circ[:-1].mean(axis=0)), center, atol=1e-9)
+    assert len(d[1].outline_segments) == sg.OUTLINE_CIRCLE_POINTS - 1
+    # the whole sky, two corners, a centre that is not a unit vector, a radius beyond pi, no radius: no outline
+    assert d[2].outlines == [] and len(d[2].outline_segments) == 0 and "box: kind sky" in d[2].extras[0]
+    assert d[3].outlines == [] and len(d[3].extras) == 4
+
+
+@pytest.fixture(scope="module")
+def genetic_solve():
+    """The genetic method (improved variant) on a seeded synthetic 20-degree frame, as in test_genetic.py."""
+    cat = load_guide_catalog().brighter_than(6.0)
+    cam = Camera.from_fov(20.0, 1024)
+    ga = make_identifier("genetic", cat, cam, 87e-6, variant="improved", seed=3)
+    rng = np.random.default_rng(42)
+    f = synthetic_frame(cat, cam, random_attitudes(1, rng)[0], 87e-6, rng)
+    r = ga.identify(f.obs)
+    assert r.status == IDENTIFIED, r.reason
+    return ga, cat, f, r
+
+
+def test_a_genetic_solve_draws_its_search_box_shrinking_around_the_truth(genetic_solve):
+    ga, cat, f, r = genetic_solve
+    d = steps.step_drawables(r.steps, cat.xyz, n_observed=len(f.obs.vectors))
+    gens = [(s, dd) for s, dd in zip(r.steps, d) if s.kind == "generation"]
+    drawn = [(s, dd) for s, dd in gens if dd.outlines]
+    assert drawn and {s.extra["box"]["kind"] for s, _ in drawn} == {"square", "roll"}
+    b_true = f.R[2]
+    halves: dict[int, list[float]] = {}
+    for s, dd in gens:
+        box = s.extra["box"]
+        if box["kind"] == "sky":  # the first GA searches the whole sky: nothing to outline
+            assert dd.outlines == []
+        elif box["kind"] == "square":
+            poly = dd.outlines[0]
+            np.testing.assert_allclose(poly[::sg.OUTLINE_EDGE_POINTS - 1][:4], box["corners"], atol=1e-6)
+            # the true boresight is inside the box (gnomonic offsets within the half width)
+            e, n = tangent_basis(box["center"])
+            xi, eta = (b_true @ e, b_true @ n) / (b_true @ box["center"])
+            assert max(abs(xi), abs(eta)) < box["half_width_rad"]
+            if "population" in s.extra:  # the stage's chromosomes live in the box
+                assert np.all(_angle(s.extra["population"].astype(np.float64), box["center"])
+                              <= np.sqrt(2) * box["half_width_rad"] + 1e-6)
+            h = halves.setdefault(int(s.numbers["attempt"]), [])
+            if not h or h[-1] != box["half_width_rad"]:
+                h.append(box["half_width_rad"])
+        else:  # the roll GA: a circle where the image-up directions of its chromosomes sit
+            circ = dd.outlines[0]
+            np.testing.assert_allclose(_angle(circ, box["center"]), box["radius_rad"], atol=1e-9)
+            if "population" in s.extra:
+                np.testing.assert_allclose(_angle(s.extra["population"].astype(np.float64), box["center"]),
+                                           box["radius_rad"], atol=1e-5)
+            # centred on the spiral stages' answer, near the truth (within the last square's half width)
+            assert _angle(box["center"], b_true) < halves[int(s.numbers["attempt"])][-1]
+    # the spiral stages of each attempt: a box of box_factor x the previous stage's cost, shrinking on this frame
+    conv = [s for s in r.steps if s.kind == "converged"]
+    for att, h in halves.items():
+        assert len(h) == len(ga.deltas) - 1, h
+        costs = [s.numbers["best_cost"] for s in conv if s.numbers["attempt"] == att][:len(h)]
+        np.testing.assert_allclose(h, [ga.box_factor * c for c in costs], rtol=1e-9)
+        assert all(b <= a for a, b in zip(h, h[1:])), h
+    assert any(len(h) >= 2 for h in halves.values())
 
 
 def test_match_triangles_and_centroid_outcomes():
@@ -657,6 +766,46 @@ JS_PANEL_TOP = ("() => document.querySelectorAll('*').forEach(e => { if (e.scrol
 JS_UPLOTS = "() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(p => p.chart.data.length)"
 
 
+# the largest distance between two points a node draws (its diameter; 0 when hidden)
+JS_DIAMETER = """(n) => { const o = window.__viserMutable?.nodeRefFromName?.[n]; if (!o || !o.visible) return 0;
+  const p = []; o.traverse(x => { const g = x.geometry?.attributes; if (!g) return;
+    const a = g.instanceStart ?? g.position; const arr = a.data ? a.data.array : a.array;
+    for (let i = 0; i + 2 < arr.length; i += 3) p.push([arr[i], arr[i + 1], arr[i + 2]]); });
+  let d = 0; for (const a of p) for (const b of p) d = Math.max(d, Math.hypot(a[0] - b[0], a[1] - b[1], a[2] - b[2]));
+  return d; }"""
+# A genetic solve whose search box shrinks plainly (2.5 deg, then 0.6 deg half widths), near Sirius
+GA_SCENE = {"FOV (deg)": 20.0, "RA (deg)": 107.9, "Dec (deg)": -8.9, "Roll (deg)": -170.0}
+
+
+def _ga_box_steps() -> tuple[dict[int, tuple[str, float]], int]:
+    """Step index -> (stage name, half width or radius) of the last generation of every boxed GA stage of
+    the GA_SCENE solve (the server's solve is seeded: the same steps), and the number of steps."""
+    cfg = SceneConfig(ra_deg=107.9, dec_deg=-8.9, roll_deg=-170.0, fov_deg=20.0)
+    sv = Solvers()
+    run = solve(simulate(cfg, sv.base_catalog), "genetic", "improved", cfg.mag_limit, sv)
+    last: dict[str, tuple[int, float]] = {}
+    for k, st in enumerate(run.result.identification.steps):
+        box = st.extra.get("box")
+        if st.kind == "generation" and box["kind"] != "sky" and st.numbers["attempt"] == 0:
+            name = "roll" if box["kind"] == "roll" else f"stage{int(st.numbers['stage'])}"
+            last[name] = (k, box["half_width_rad"])
+    return {k: (name, h) for name, (k, h) in last.items()}, len(run.result.identification.steps)
+
+
+def _montage(shots: list[Path], out: Path, captions: list[str]) -> None:
+    """The 3-D views of the screenshots side by side (the middle of each, a caption on top)."""
+    tiles = []
+    for shot, cap in zip(shots, captions):
+        img = cv2.imread(str(shot))[:, :1000]
+        h, w = img.shape[:2]
+        tile = np.ascontiguousarray(img[h // 2 - 330:h // 2 + 330, w // 2 - 330:w // 2 + 330])
+        tile[:48] = (tile[:48] * 0.3).astype(np.uint8)  # a dark band under the caption
+        cv2.putText(tile, cap, (14, 33), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (235, 235, 235), 2, cv2.LINE_AA)
+        tile[:, -2:] = 90  # a thin divider
+        tiles.append(tile)
+    cv2.imwrite(str(out), np.concatenate(tiles, axis=1))
+
+
 def _not_blank(png: Path, panel_from_x: int) -> float:
     gray = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)[:, :panel_from_x]
     return float((gray > 110).mean())
@@ -737,27 +886,76 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                 _keep(shot2)
                 assert _not_blank(shot2, 1000) > 0.002
 
-                # the genetic method: its population on the sphere (the (N, 3) extra of its steps), tinted by cost
+                # the genetic method (20 deg, near Sirius): its population on the sphere (the (N, 3) extra of its
+                # steps), tinted by cost, and its search box (the dict extra with corners / centre + radius)
                 pg2.set_viewport_size({"width": 1400, "height": 1000})
                 pg2.get_by_role("tab", name="Scenario").click()
+                pg2.get_by_role("checkbox", name="Solve on every change").uncheck()
+                for label, value in GA_SCENE.items():
+                    _type(pg2, label, value)
+                    pg2.wait_for_timeout(200)
                 _choose(pg2, "Variant", "improved")
                 _choose(pg2, "Method", "genetic")
-                pg2.get_by_text("solved by genetic (improved)", exact=False).first.wait_for(timeout=60000)
+                box_steps, n_steps = _ga_box_steps()
+                pg2.get_by_role("button", name="Solve", exact=True).click()
+                pg2.get_by_text("solved by genetic (improved): RA 107.900° Dec -8.900°", exact=False).first.wait_for(
+                    timeout=60000)
                 pg2.get_by_role("tab", name="View").click()
                 pg2.get_by_role("button", name="Wide sky").click()
                 pg2.get_by_role("tab", name="Steps").click()
                 _type(pg2, "Step", 0)  # the first generation: a population over the whole sky, tinted by cost
-                pg2.get_by_text("Step 1 / ", exact=False).first.wait_for(timeout=10000)
+                pg2.get_by_text(f"Step 1 / {n_steps} ", exact=False).first.wait_for(timeout=10000)  # the same solve
                 pg2.get_by_text("population (tinted by costs)", exact=False).first.wait_for(timeout=10000)
                 pg2.wait_for_timeout(500)
                 population = pg2.evaluate(JS_GEOMETRY, NODES["extra_points"])
                 assert population[0] > 10, "no GA population drawn on the sphere"
+                assert pg2.evaluate(JS_DIAMETER, NODES["outlines"]) == 0  # the whole sky: no box
+                pg2.evaluate(JS_PANEL_TOP)
                 pg2.mouse.move(5, 5)
                 _settle(pg2)
                 ga = tmp_path / "viewer-genetic-population.png"
                 pg2.screenshot(path=str(ga))
                 _keep(ga)
                 FIGURES["genetic_population_points"] = population[0]
+                # down the boresight: the last generation of each spiral stage (a square) and of the roll GA
+                # (a circle), the box shrinking around the population
+                pg2.get_by_role("tab", name="View").click()
+                pg2.get_by_role("button", name="Look down the boresight").click()
+                pg2.get_by_role("checkbox", name="Matched triangles").uncheck()  # the box alone over the image
+                pg2.get_by_role("tab", name="Steps").click()
+                extents, shots = [], []
+                for k, (stage, half) in box_steps.items():
+                    _type(pg2, "Step", k)
+                    pg2.get_by_text(f"Step {k + 1} / ", exact=False).first.wait_for(timeout=10000)
+                    pg2.get_by_text("outlined on the sphere (orange): box", exact=False).first.wait_for(timeout=10000)
+                    pg2.wait_for_timeout(500)
+                    extents.append((stage, half, pg2.evaluate(JS_DIAMETER, NODES["outlines"])))
+                    pg2.evaluate(JS_PANEL_TOP)
+                    pg2.mouse.move(5, 5)
+                    _settle(pg2)
+                    shot = tmp_path / f"viewer-genetic-box-{stage}.png"
+                    pg2.screenshot(path=str(shot))
+                    shots.append(shot)
+                FIGURES["genetic_box_diameter"] = {st: round(x, 4) for st, _, x in extents}
+                # what the page draws: a square of half width h (gnomonic) spans 2 sin(atan(sqrt(2) h)) corner to
+                # corner, the roll circle of radius r 2 sin(r)
+                for st, h, x in extents:
+                    want = 2 * np.sin(h) if st == "roll" else 2 * np.sin(np.arctan(np.sqrt(2) * h))
+                    assert x == pytest.approx(want, rel=2e-3), extents
+                squares = [x for st, _, x in extents if st != "roll"]
+                assert len(squares) >= 2 and all(b < a for a, b in zip(squares, squares[1:])), extents  # shrinking
+                montage = tmp_path / "viewer-genetic-box.png"
+                _montage(shots, montage, [f"{st}: half width {np.degrees(h):.2f} deg" if st != "roll" else
+                                          f"roll: circle of radius {np.degrees(h):.1f} deg" for st, h, _ in extents])
+                _keep(montage)
+                for shot in shots:
+                    _keep(shot)
+                # back to Orion, with the triangles, for what follows
+                pg2.get_by_role("tab", name="View").click()
+                pg2.get_by_role("checkbox", name="Matched triangles").check()
+                pg2.get_by_role("tab", name="Scenario").click()
+                for label, value in (("RA (deg)", 83.8), ("Dec (deg)", -5.4), ("Roll (deg)", 30.0)):
+                    _type(pg2, label, value)
 
                 # the stochastic method: a sequence of frames, the posterior across them, frame by frame
                 pg2.set_viewport_size({"width": 1400, "height": 1100})

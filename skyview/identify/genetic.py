@@ -72,7 +72,9 @@ the same as with workers=1.
 
 Step record. One step per generation (kind "generation"): numbers best_cost, threshold, stage,
 generation, evaluations, attempt, box_half_width_deg; extra["box"] the search box: {"kind": "sky" |
-"square" | "roll", "center", "half_width_rad", "corners" ((4, 3) ICRS, square only)}.
+"square" | "roll", "center", "half_width_rad", "corners" ((4, 3) ICRS, square only), "radius_rad" (roll
+only: the circle of the image-up directions, = half_width_rad)}; viewers draw the square and the circle
+(skyview.sky_geometry.outline_polyline).
 extra["population"] is the population as (P, 3) ICRS unit vectors (float32, best first) with
 extra["costs"] — for the roll GA the direction of image-up at half the circle radius from the
 boresight, one per roll chromosome, with extra["roll_rad"] the rolls (skyview's convention). To keep
@@ -1003,7 +1005,8 @@ class GeneticMethod(Identifier):
         def roll_vectors(g):
             return _up_directions(best, g[:, 0], ring)
 
-        box = {"kind": "roll", "center": best.copy(), "half_width_rad": float(ring), "corners": None}
+        box = {"kind": "roll", "center": best.copy(), "half_width_rad": float(ring), "corners": None,
+               "radius_rad": float(ring)}  # the circle the roll chromosomes' image-up directions sit on
         res = self._run(att, len(ths) + 1, lambda g: angle_cost(theta_a, theta_i, g[:, 0], partners),
                         GeneSpace(lo=(0.0,), hi=(2 * np.pi,), periodic=(True,)), self.roll, th_roll, rng, box,
                         roll_vectors, roll=True)

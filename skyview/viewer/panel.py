@@ -271,6 +271,8 @@ def step_markdown(run: Run, d: StepDrawable | None) -> str:
         parts.append(f"{len(d.points)} points on the sphere: {d.points_name}")
     if d.attitudes:
         parts.append(f"{len(d.attitudes)} attitude footprint(s)")
+    if d.outlines:
+        parts.append(f"outlined on the sphere (orange): {d.outline_names}")
     lines.append(" · ".join(parts))
     for e in d.extras:
         lines.append(f"  \n{e}")

@@ -45,6 +45,7 @@ CANDIDATE_RGB = (236, 72, 210)
 CANDIDATE_HI_RGB = (255, 236, 120)
 EXTRA_RGB = (175, 80, 255)
 EXTRA_HI_RGB = (120, 255, 230)
+OUTLINE_RGB = (255, 92, 28)  # a step's outlined region of the sky (a GA's search box), orange
 MATCH_RGB = (90, 240, 140)
 TRACK_RGB = (60, 120, 150)  # the footprints of a sequence's frames
 BACKGROUND_TOP = (10, 13, 30)
@@ -78,6 +79,7 @@ NODES = {
     "candidate_stars": "/steps/candidate_stars",
     "extra_points": "/steps/extra_points",
     "attitudes": "/steps/attitudes",
+    "outlines": "/steps/outlines",
     "matches": "/matches/triangles",
     "match_stars": "/matches/stars",
     "match_labels": "/matches/labels",
@@ -404,6 +406,8 @@ class SkyScene:
                 point_size=extra_base * self.zoom, point_shape="diamond", precision="float32", visible=False)
             self.h["attitudes"] = s.add_line_segments(NODES["attitudes"], empty_seg, EXTRA_RGB, thickness=1.4,
                                                       thickness_units="screen", visible=False)
+            self.h["outlines"] = s.add_line_segments(NODES["outlines"], empty_seg, OUTLINE_RGB, thickness=2.5,
+                                                     thickness_units="screen", visible=False)
             self._sized["step"] = [(self.h["candidate_stars"], base), (self.h["extra_points"], extra_base)]
         if "camera" in self.h and "observed" not in self.h:  # children of the camera frame
             self.h["observed"] = s.add_line_segments(NODES["observed"], empty_seg, HIGHLIGHT_RGB, thickness=2.5,
@@ -454,6 +458,13 @@ class SkyScene:
             att.visible = True
         else:
             att.visible = False
+        box = self.h["outlines"]
+        if on and len(d.outline_segments):
+            box.points = _f32(d.outline_segments)
+            box.colors = np.broadcast_to(np.array(OUTLINE_RGB, np.uint8), d.outline_segments.shape).copy()
+            box.visible = True
+        else:
+            box.visible = False
         if "observed" in self.h:
             obs, pat = self.h["observed"], self.h["pattern"]
             xy = self._image_plane_xy
@@ -519,7 +530,7 @@ class SkyScene:
         if what == "image" and "frustum" in self.h:
             self.h["frustum"].image = self._tex if on else None
         if what == "candidates":
-            for key in ("candidates", "candidate_stars", "extra_points", "attitudes"):
+            for key in ("candidates", "candidate_stars", "extra_points", "attitudes", "outlines"):
                 if key in self.h and not on:
                     self.h[key].visible = False
         if what in ("hips", "matches"):

@@ -14,6 +14,11 @@ returns; it knows no method. A method shows up in the viewer through what its st
     population, a boresight); a 1-D float array of the same length tints them, high values bright,
     except a cost (a name with "cost"), whose lowest is brightest (+inf: an invalid individual);
   - a 3x3 rotation is an attitude: its sensor footprint is drawn;
+  - a dict that outlines a region of the sky (`skyview.sky_geometry.outline_polyline`) is drawn as a
+    closed line on the sphere: with "corners" ((K, 3) unit vectors, K >= 3) a polygon whose edges are
+    great-circle arcs; else with "center" (a unit 3-vector) and "radius_rad" the small circle at that
+    angular radius (a GA's search box: a square, or the circle of its roll chromosomes); its other
+    entries go to the step's text, and a dict with neither is text only;
   - a 1-D float array as long as `catalog` is a weight per candidate (a posterior) and tints the
     candidates; one as long as the whole guide catalog lights its highest-weighted stars, tinted on
     a log scale (summed per star first when an integer array of the same length maps each weight
@@ -29,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from skyview.sky_geometry import arcs_as_segments, group_edges
+from skyview.sky_geometry import arcs_as_segments, group_edges, outline_polyline, polylines_as_segments
 from skyview.truth import centroid_truth
 
 # Numbers plotted across the steps by default, first found wins (with a `_after` variant first).
@@ -59,6 +64,9 @@ class StepDrawable:
     point_weights: np.ndarray | None = None  # per point, in [0, 1]
     points_name: str = ""
     attitudes: list[np.ndarray] = field(default_factory=list)  # 3x3 rotations whose footprint is drawn
+    outlines: list[np.ndarray] = field(default_factory=list)  # closed polylines (M, 3) on the sphere
+    outline_segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.float32))  # the same
+    outline_names: str = ""
     extras: list[str] = field(default_factory=list)  # one line per extra not drawn
 
 
@@ -112,12 +120,28 @@ def _unit_rows(a: np.ndarray) -> np.ndarray | None:
     return None
 
 
-def classify_extras(step, n_candidates: int, catalog_xyz: np.ndarray, hip: np.ndarray | None = None) -> dict:
-    """Sort a step's extras into what the viewer draws (see the module docstring) and text."""
-    out = {"weights": None, "weight_name": "", "points": [], "point_keys": [], "attitudes": [], "text": []}
+def classify_extras(step, n_candidates: int, catalog_xyz: np.ndarray, hip: np.ndarray | None = None,
+                    dict_cache: dict | None = None) -> dict:
+    """Sort a step's extras into what the viewer draws (see the module docstring) and text.
+
+    dict_cache: (key, id) -> (dict, outline, text) of the dict extras already seen (a GA stage's steps
+    share one box dict), kept by the caller for one list of live steps."""
+    out = {"weights": None, "weight_name": "", "points": [], "point_keys": [], "attitudes": [], "text": [],
+           "outlines": [], "outline_keys": []}
     series: dict[str, np.ndarray] = {}
     labels: dict[str, str] = {}
     for key, val in step.extra.items():
+        if isinstance(val, dict):
+            seen = dict_cache.get((key, id(val))) if dict_cache is not None else None
+            if seen is None or seen[0] is not val:
+                seen = (val, outline_polyline(val), summarise_extra(key, val, hip))
+                if dict_cache is not None:
+                    dict_cache[(key, id(val))] = seen
+            if seen[1] is not None:
+                out["outlines"].append(seen[1])
+                out["outline_keys"].append(key)
+            out["text"].append(seen[2])
+            continue
         a = _float_array(val)
         if a is not None and _is_rotation(a):
             out["attitudes"].append(a.astype(np.float64))
@@ -198,8 +222,36 @@ def _log_normalised(w: np.ndarray) -> np.ndarray:
     return np.clip((np.log10(w / w.max()) - lo) / -lo, 0.0, 1.0)
 
 
+def _short(key: str, val) -> str:
+    """A dict entry in a few characters: numbers by value (an angle named *_rad in degrees too), a unit
+    3-vector as RA/Dec, other arrays by shape, None as '-'."""
+    if val is None:
+        return "-"
+    if isinstance(val, (bool, np.bool_)):
+        return str(bool(val))
+    if isinstance(val, (int, float, np.integer, np.floating)):
+        v = float(val)
+        deg = f" ({math.degrees(v):.3g}°)" if str(key).endswith("_rad") and math.isfinite(v) else ""
+        return format_number(v) + deg
+    if isinstance(val, (list, tuple, np.ndarray)):
+        try:
+            a = np.asarray(val)
+        except (ValueError, TypeError):
+            return f"{len(val)} items"
+        if a.shape == (3,) and a.dtype.kind == "f" and np.all(np.isfinite(a)) and abs(np.linalg.norm(a) - 1) < 1e-3:
+            ra = math.degrees(math.atan2(a[1], a[0])) % 360.0
+            dec = math.degrees(math.asin(max(-1.0, min(1.0, float(a[2])))))
+            return f"RA {ra:.2f}° Dec {dec:+.2f}°"
+        return "[" + " x ".join(str(n) for n in a.shape) + "]"
+    text = str(val)
+    return text[:24] + ("..." if len(text) > 24 else "")
+
+
 def summarise_extra(key: str, val, hip: np.ndarray | None = None) -> str:
-    """One line for an extra the viewer does not draw (arrays by shape, scalars by value)."""
+    """One line for an extra (arrays by shape, scalars by value, a dict by its entries)."""
+    if isinstance(val, dict):
+        text = ", ".join(f"{k} {_short(k, v)}" for k, v in val.items())
+        return f"{key}: {text[:120]}" + ("..." if len(text) > 120 else "")
     if isinstance(val, (list, tuple, np.ndarray)):
         try:
             a = np.asarray(val)
@@ -225,6 +277,7 @@ def step_drawables(steps, catalog_xyz: np.ndarray, n_observed: int, hip: np.ndar
     """Every step of an identification as drawables; catalog rows index `catalog_xyz`."""
     xyz = np.asarray(catalog_xyz, dtype=np.float64)
     out = []
+    dict_cache: dict = {}
     for k, st in enumerate(steps):
         obs = np.array([int(i) for i in st.observed if 0 <= int(i) < n_observed], dtype=np.int64)
         cand = _valid_rows(st.catalog, len(xyz))
@@ -237,7 +290,7 @@ def step_drawables(steps, catalog_xyz: np.ndarray, n_observed: int, hip: np.ndar
             segs = np.zeros((0, 2, 3), dtype=np.float32)
         if len(cand) == 0 and groups:  # a step with groups only: light their stars
             cand = np.unique(np.concatenate([np.asarray(g) for g in groups]))
-        ex = classify_extras(st, len(cand), xyz, hip)
+        ex = classify_extras(st, len(cand), xyz, hip, dict_cache)
         pts = np.concatenate(ex["points"]).astype(np.float32) if ex["points"] else np.zeros((0, 3), np.float32)
         pw = ex["point_weights"] if len(ex["points"]) == 1 else None
         numbers = {str(key): (float(v) if v is not None else float("nan")) for key, v in st.numbers.items()
@@ -247,7 +300,9 @@ def step_drawables(steps, catalog_xyz: np.ndarray, n_observed: int, hip: np.ndar
                                 n_groups=len(groups), numbers=numbers,
                                 weights=ex["weights"], weight_name=ex["weight_name"], points=pts,
                                 point_weights=pw, points_name=", ".join(ex["point_keys"]),
-                                attitudes=ex["attitudes"], extras=ex["text"]))
+                                attitudes=ex["attitudes"], extras=ex["text"], outlines=ex["outlines"],
+                                outline_segments=polylines_as_segments(ex["outlines"]).astype(np.float32),
+                                outline_names=", ".join(ex["outline_keys"])))
     return out
 
 
