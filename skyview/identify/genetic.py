@@ -79,8 +79,8 @@ extra["population"] is the population as (P, 3) ICRS unit vectors (float32, best
 extra["costs"] — for the roll GA the direction of image-up at half the circle radius from the
 boresight, one per roll chromosome, with extra["roll_rad"] the rolls (skyview's convention). To keep
 a failing 600-generation stage small, the population is attached to generations 0-20, every 10th,
-those that improve the best cost or converge, and the last of each stage; a viewer holds the last
-one it saw in between. Steps "converged", "restart", "answer" and "verify" mark the stages.
+those that improve the best cost or converge, and the last of each stage (the generations in
+between show none). Steps "converged", "restart", "answer" and "verify" mark the stages.
 """
 
 from __future__ import annotations
