@@ -585,9 +585,20 @@ def _open(client, path: Path):
     return client.get_state()
 
 
-def _shot(client, step: int) -> np.ndarray:
+def _shot(client, step: int, settle_s: float = 10.0) -> np.ndarray:
+    """A screenshot at `step` once the picture has settled (two shots in a row alike): on a loaded
+    machine the first shot after moving the time cursor can still show the previous frame."""
     client.set_time("step", sequence=step, play_state="paused")
-    return np.asarray(Image.open(io.BytesIO(client.take_screenshot())).convert("RGB")).astype(int)
+    grab = lambda: np.asarray(Image.open(io.BytesIO(client.take_screenshot())).convert("RGB")).astype(int)  # noqa: E731
+    last = grab()
+    deadline = time.monotonic() + settle_s
+    while time.monotonic() < deadline:
+        time.sleep(0.25)
+        now = grab()
+        if np.array_equal(now, last):
+            return now
+        last = now
+    return last
 
 
 @needs_lavapipe
