@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
@@ -82,13 +84,9 @@ class ViewerApp:
 
 def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, fov_deg: float | None = None,
           say: Callable[[str], None] = print) -> int:
-    """`skyview view`: run the viewer until Ctrl-C."""
+    """`skyview view`: run the viewer until Ctrl-C (or SIGTERM)."""
     initial = load_initial_image(image, fov_deg) if image is not None else None
     config = SceneConfig(fov_deg=check_fov(fov_deg)) if fov_deg is not None and image is None else None
-    app = ViewerApp(host, port, initial=initial, config=config)
-    say(f"skyview viewer: {app.url}  (Ctrl-C stops it)")
-    if host not in ("127.0.0.1", "localhost", "::1"):
-        say(f"listening on {host}: other machines can reach it")
 
     def _terminate(_signum, _frame):
         raise KeyboardInterrupt
@@ -96,14 +94,38 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _terminate)  # a plain `kill` stops it as cleanly as Ctrl-C
+    app = None
     try:
+        app = ViewerApp(host, port, initial=initial, config=config)
+        # the address is announced inside the try: a Ctrl-C right after it still stops the server
+        say(f"skyview viewer: {app.url}  (Ctrl-C stops it)")
+        if host not in ("127.0.0.1", "localhost", "::1"):
+            say(f"listening on {host}: other machines can reach it")
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
         pass
     finally:
-        app.stop()
+        clean = True
+        if app is not None:
+            clean = _stop_within(app, STOP_TIMEOUT_S)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-    say("skyview viewer stopped")
+    say("skyview viewer stopped" if clean else
+        f"skyview viewer stopped (the server did not shut down within {STOP_TIMEOUT_S:g} s; exiting anyway)")
+    if not clean:  # a server thread that will not end must not keep the process alive
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0
+
+
+STOP_TIMEOUT_S = 10.0
+
+
+def _stop_within(app: ViewerApp, timeout_s: float) -> bool:
+    """Stop the app (sessions, then the viser server) in a helper thread; False if it took longer."""
+    t = threading.Thread(target=app.stop, name="skyview-viewer-stop", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    return not t.is_alive()
