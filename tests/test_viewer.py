@@ -691,7 +691,12 @@ def _start_view(*args) -> tuple[subprocess.Popen, str]:
 
 def _stop_view(p: subprocess.Popen) -> None:
     p.send_signal(signal.SIGINT)
-    out, err = p.communicate(timeout=30)
+    try:
+        out, err = p.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        p.kill()  # do not leave a server behind
+        p.communicate()
+        raise
     assert p.returncode == 0, err
     assert "stopped" in out
 
@@ -1022,3 +1027,18 @@ def test_view_command_serves_locally_and_stops_on_ctrl_c():
             assert r.status == 200 and b"<html" in r.read().lower()
     finally:
         _stop_view(proc)
+
+
+def test_view_stops_on_ctrl_c_even_when_started_with_sigint_ignored():
+    """A background job (`cmd &` in a script, as CI may run the tests) starts its children with SIGINT
+    ignored; the viewer must still stop on Ctrl-C."""
+    exe = Path(sys.executable).with_name("skyview")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "skyview"]
+    p = subprocess.Popen(cmd + ["view", "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert p.stdout.readline().startswith("skyview viewer: http://127.0.0.1:")
+    except BaseException:
+        p.kill()
+        raise
+    _stop_view(p)

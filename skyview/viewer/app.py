@@ -91,9 +91,11 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
     def _terminate(_signum, _frame):
         raise KeyboardInterrupt
 
-    previous = None
+    # Ctrl-C (SIGINT) and a plain `kill` (SIGTERM) both stop it cleanly. SIGINT is set explicitly: a
+    # process started from a background job inherits it ignored, and would then never stop on Ctrl-C.
+    previous = {}
     if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _terminate)  # a plain `kill` stops it as cleanly as Ctrl-C
+        previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGINT, signal.SIGTERM)}
     app = None
     try:
         app = ViewerApp(host, port, initial=initial, config=config)
@@ -109,8 +111,8 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
         clean = True
         if app is not None:
             clean = _stop_within(app, STOP_TIMEOUT_S)
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     say("skyview viewer stopped" if clean else
         f"skyview viewer stopped (the server did not shut down within {STOP_TIMEOUT_S:g} s; exiting anyway)")
     if not clean:  # a server thread that will not end must not keep the process alive
