@@ -325,8 +325,8 @@ class StochasticMethod(Identifier):
         if hypothesis not in HYPOTHESES:
             raise BadInput(f"unknown hypothesis {hypothesis!r}: choose from {', '.join(HYPOTHESES)}")
         if hypothesis == "boresight" and (registration != "boresight" or prediction_likelihood):
-            raise BadInput("hypothesis='boresight' (the paper's literal model) registers by the boresight and has "
-                           "no prediction likelihood")
+            raise BadInput("hypothesis='boresight' (the paper's literal model) goes with the paper variant only: "
+                           "it registers by the boresight and has no prediction likelihood")
         if statistic not in STATISTICS:
             raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
         if threshold is not None and not (0 < float(threshold) <= 1):
