@@ -212,11 +212,7 @@ class AngleMethod(Identifier):
                 steps.append(verification_step(ver, hyp, cap=CAP))
                 result.verification = vd
                 if ver.passed:
-                    result.status = IDENTIFIED
-                    result.matches = ver.matches
-                    result.R = ver.R
-                    result.attitude_covariance = ver.covariance
-                    result.reason = ""
+                    result.accept(ver)
                     break
                 reasons.append(f"verification failed: {ver.reason}")
                 suspects = chain.used[::-1]

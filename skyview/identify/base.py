@@ -88,6 +88,15 @@ class Identification:
     def identified(self) -> bool:
         return self.status == IDENTIFIED
 
+    def accept(self, verification) -> None:
+        """Take a verification that passed (`verify.Verification`): identified, with its matches
+        (every observed star that agrees), its attitude and covariance; no failure reason."""
+        self.status = IDENTIFIED
+        self.matches = verification.matches
+        self.R = verification.R
+        self.attitude_covariance = verification.covariance
+        self.reason = ""
+
     def to_dict(self) -> dict:
         """JSON-ready summary (steps included)."""
         return {

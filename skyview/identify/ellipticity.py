@@ -88,7 +88,7 @@ from skyview.camera import Camera
 from skyview.catalog import FLAG_DOUBLE, FLAG_VARIABLE, GuideCatalog, chord
 from skyview.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
+from skyview.identify.base import (FAILED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
 from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius, verify
 
@@ -452,11 +452,7 @@ class EllipticityMethod(Identifier):
                                   extra={"R_singular_vectors": R_sv}))
                 result.verification = vd
                 if ver.passed:
-                    result.status = IDENTIFIED
-                    result.matches = ver.matches
-                    result.R = ver.R
-                    result.attitude_covariance = ver.covariance
-                    result.reason = ""
+                    result.accept(ver)
                     stats["pattern"] = {"pivot": p, "adjacent": o[1:], "catalog": rows.tolist(), "eps": float(eps[m])}
                     stats["R_singular_vectors"] = R_sv
                     return True

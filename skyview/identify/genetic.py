@@ -896,11 +896,7 @@ class GeneticMethod(Identifier):
                               extra={"hypothesis": dict(hyp)}))
             result.verification = vd
             if ver.passed:
-                result.status = IDENTIFIED
-                result.matches = ver.matches
-                result.R = ver.R
-                result.attitude_covariance = ver.covariance
-                result.reason = ""
+                result.accept(ver)
                 break
             reasons.append(f"verification failed: {ver.reason}")
         return n_hyp

@@ -99,7 +99,7 @@ from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, chord
 from skyview.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
+from skyview.identify.base import (FAILED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
 from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, frame_stars,
                                      match_one_to_one, match_radius, verify, verification_step)
@@ -895,11 +895,7 @@ class StochasticMethod(Identifier):
                                                               "p_magnitudes": vd.get("p_magnitudes", float("nan"))}))
             result.verification = vd
             if ver.passed:
-                result.status = IDENTIFIED
-                result.matches = ver.matches
-                result.R = ver.R
-                result.attitude_covariance = ver.covariance
-                result.reason = ""
+                result.accept(ver)
                 state.R[r] = ver.R  # the verified attitude carries on to the next frame
                 return True
             result.reason = f"HIP {int(self.catalog.hip[s])}: verification failed: {ver.reason}"

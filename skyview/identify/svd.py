@@ -614,10 +614,7 @@ class SVDMethod(Identifier):
         reasons = []
         if verified_any:
             ver, S_used, rows, C_eq24 = verified_any[0]
-            result.status = IDENTIFIED
-            result.matches = ver.matches
-            result.R = ver.R
-            result.attitude_covariance = ver.covariance
+            result.accept(ver)
             result.verification = ver.to_dict()
         else:
             result.status = INCONCLUSIVE

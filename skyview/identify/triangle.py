@@ -428,7 +428,6 @@ class TriangleMethod(Identifier):
         partial blocks at the ends one by one.
         """
         s1, e1, s2, e2 = t["s1"], t["e1"], t["s2"], t["e2"]
-        n = len(self.tri)
         b = BLOCK
         q = np.arange(len(s1))
         live = (e1 > s1) & (e2 > s2)
@@ -600,11 +599,7 @@ class TriangleMethod(Identifier):
                 steps.append(verification_step(ver, hyp, cap=CAP))
                 result.verification = vd
                 if ver.passed:
-                    result.status = IDENTIFIED
-                    result.matches = ver.matches
-                    result.R = ver.R
-                    result.attitude_covariance = ver.covariance
-                    result.reason = ""
+                    result.accept(ver)
                     break
                 reasons.append(f"verification failed: {ver.reason}")
                 suspects = chain.used[::-1]
