@@ -119,6 +119,10 @@ def _print_human(out: dict, file=sys.stdout) -> None:
               f"P(false) {out['verification'].get('p_false', float('nan')):.2e}", file=file)
         q = out["quaternion"]
         print(f"  quaternion [w x y z]: {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}", file=file)
+        d = out.get("distortion") or {}
+        print(f"  camera{' (fitted)' if out.get('camera_fitted') else ''}: FOV {out['fov_deg']:.4f} deg, "
+              f"{out['plate_scale_arcsec_per_px']:.3f} arcsec/px, k1 {d.get('k1', 0.0):+.4f}, "
+              f"k2 {d.get('k2', 0.0):+.4f}; catalog to Hp {out.get('mag_limit') or 0:.2f}", file=file)
     else:
         print(f"not solved by {out['method']}: {out.get('reason', '')} ({out['n_centroids']} centroids)", file=file)
     t = out["time_ms"]
@@ -150,10 +154,18 @@ def cmd_solve(a) -> int:
         from skyview.record import check_output_path
 
         check_output_path(a.record, a.force)
-    result = solve_image(image, a.fov_deg, a.method, mag_limit=a.mag_limit, epoch=a.epoch,
+    if a.wcs:
+        wcs_path = Path(a.wcs)
+        if wcs_path.exists() and not a.force:
+            raise BadInput(f"{wcs_path} exists; use --force to overwrite it")
+        if not wcs_path.parent.is_dir():
+            raise BadInput(f"cannot write {wcs_path}: the folder {wcs_path.parent} does not exist")
+    if a.method is None and method_params:
+        raise BadInput("--param and --statistic go with --method (the default pipeline has no method parameters)")
+    result = solve_image(image, a.fov_deg, a.method, fov_error=a.fov_error, mag_limit=a.mag_limit, epoch=a.epoch,
                          estimator=a.estimator, max_stars=a.max_stars, k_sigma=a.k_sigma,
                          distortion=tuple(a.distortion), method_params=method_params or None,
-                         variant=a.variant, **params)
+                         variant=a.variant, memory_mb=a.memory_mb, progress=_progress_line, **params)
     truth = None
     if a.truth:
         truth = Path(a.truth)
@@ -163,7 +175,12 @@ def cmd_solve(a) -> int:
     out["image"] = str(path)
     if a.record:
         _record_solve(a, result, image, truth, path)
-    text = json.dumps(out, indent=1 if a.json else None)
+    if a.wcs and result.solved:
+        from skyview.wcs import write_wcs
+
+        write_wcs(a.wcs, result.R, result.camera, force=a.force)
+        out["wcs"] = str(a.wcs)
+    text = json.dumps(out, indent=1 if a.json else None, allow_nan=False)
     if output is not None:
         _write_text_new(output, text + "\n", a.force)
     if a.json:
@@ -176,12 +193,18 @@ def cmd_solve(a) -> int:
     return EXIT_SOLVED
 
 
+def _progress_line(line: str) -> None:
+    print(f"skyview: {line.strip()}", file=sys.stderr, flush=True)
+
+
 def _record_solve(a, result, image, truth_path: Path | None, image_path: Path) -> None:
     from skyview.catalog import load_guide_catalog
     from skyview.record import record_solve
 
     truth = json.loads(Path(truth_path).read_text()) if truth_path is not None else None
-    catalog = load_guide_catalog(epoch=a.epoch).brighter_than(a.mag_limit)  # the rows the solver used
+    catalog = load_guide_catalog(epoch=a.epoch)  # the rows the solver used
+    if result.method != "blind":
+        catalog = catalog.brighter_than(result.mag_limit if result.mag_limit is not None else 6.0)
     info = record_solve(a.record, result, image, catalog=catalog, truth=truth, force=a.force,
                         meta={"image": str(image_path), "fov_deg": a.fov_deg, "truth": str(truth_path or "-")})
     print(f"recorded {info.path} ({info.steps} steps, {info.bytes / 1e6:.2f} MB, written in {info.write_ms:.0f} ms)",
@@ -455,6 +478,24 @@ def cmd_catalog(a) -> int:
     return EXIT_SOLVED
 
 
+def cmd_cache(a) -> int:
+    from skyview.catalog import cache_dir
+    from skyview.identify.database import cached_databases, clear_cache
+
+    if a.action == "clear":
+        n, b = clear_cache(a.method)
+        print(f"removed {n} cached database file(s), {b / 2 ** 20:.1f} MB, from {cache_dir() / 'databases'}")
+        return EXIT_SOLVED
+    rows = cached_databases()
+    total = sum(r["bytes"] for r in rows)
+    print(f"{cache_dir() / 'databases'}: {len(rows)} database(s), {total / 2 ** 20:.1f} MB "
+          f"(SKYVIEW_CACHE moves it; 'skyview cache clear' empties it)")
+    for r in rows:
+        print(f"  {r['bytes'] / 2 ** 20:9.1f} MB  {time.strftime('%Y-%m-%d %H:%M', time.localtime(r['used']))}  "
+              f"{Path(r['path']).name}")
+    return EXIT_SOLVED
+
+
 def cmd_view(a) -> int:
     from skyview.viewer.app import serve
 
@@ -508,17 +549,32 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--force", action="store_true", help="overwrite existing files")
     s.set_defaults(func=cmd_simulate)
 
-    v = sub.add_parser("solve", help="image -> attitude")
-    v.add_argument("image")
-    v.add_argument("--fov-deg", type=_float, required=True, help="horizontal full field of view, deg")
-    v.add_argument("--method", default="angle")
+    v = sub.add_parser("solve", help="image -> attitude (blind: no field of view needed)",
+                       description="Solve a star-field image (PNG, TIFF, JPEG; grey or colour). With no options "
+                                   "it runs the default pipeline: blind four-star patterns over a horizontal FOV "
+                                   "of about 5-36 deg, then the camera (FOV, k1, k2) fitted to the stars and the "
+                                   "shared verification.")
+    v.add_argument("image", help="the image file")
+    v.add_argument("--fov-deg", type=_float, default=None,
+                   help="horizontal full field of view, deg, as far as it is known (default: searched blind)")
+    v.add_argument("--fov-error", type=_float, default=0.1,
+                   help="how far --fov-deg may be off, as a fraction (default 0.1 = +-10 %%; 0 = exact: the "
+                        "papers' calibrated mode)")
+    v.add_argument("--method", default=None,
+                   help="an identification method (angle, triangle, svd, ellipticity, stochastic, genetic); "
+                        "default: the default pipeline (blind, camera fitted)")
     v.add_argument("--variant", choices=("paper", "improved"), default="paper",
-                   help="the paper's parameters, or the method's improvements (see docs/methods.md)")
+                   help="with --method: the paper's parameters, or the method's improvements (docs/methods.md)")
+    v.add_argument("--wcs", default=None, metavar="FILE.wcs",
+                   help="also write the solution as a FITS WCS header (TAN-SIP), for DS9 / astropy")
+    v.add_argument("--memory-mb", type=_float, default=None,
+                   help="memory budget for building the blind database (default 1024 MB)")
     v.add_argument("--json", action="store_true", help="print one JSON object")
     v.add_argument("--sigma-arcsec", type=_float, default=None,
                    help="1-sigma centroid direction error (default: half a pixel)")
-    v.add_argument("--mag-limit", type=_float, default=6.0, help="guide catalog limit, Hp")
-    v.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH)
+    v.add_argument("--mag-limit", type=_float, default=None,
+                   help="guide catalog limit, Hp (default: from the image; methods other than angle: 6)")
+    v.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH, help="epoch of the catalog positions, Julian year")
     v.add_argument("--estimator", choices=("svd", "q-method"), default="svd")
     v.add_argument("--statistic", choices=("calibrated", "tetra3"), default=None)
     v.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
@@ -526,7 +582,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(genetic: both cores), --param p_identify=0.99")
     v.add_argument("--max-stars", type=int, default=40, help="use at most this many brightest centroids")
     v.add_argument("--k-sigma", type=_float, default=5.0, help="detection threshold in noise sigmas")
-    v.add_argument("--distortion", type=_float, nargs=2, default=(0.0, 0.0), metavar=("K1", "K2"))
+    v.add_argument("--distortion", type=_float, nargs=2, default=(0.0, 0.0), metavar=("K1", "K2"),
+                   help="radial distortion of a calibrated camera (OpenCV k1 k2; with --fov-error 0)")
     v.add_argument("--truth", default=None, help="truth sidecar to compare with (default: IMAGE.json if present)")
     v.add_argument("--no-truth", action="store_true", help="do not look for a truth sidecar")
     v.add_argument("--output", default=None, help="also write the JSON result to this file")
@@ -634,6 +691,13 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--grpc-port", type=int, default=0,
                     help="port that serves the recording to the viewer (default: any free port)")
     rp.set_defaults(func=cmd_replay)
+
+    k = sub.add_parser("cache", help="list or clear the cached databases")
+    ksub = k.add_subparsers(dest="action", required=True, parser_class=_Parser)
+    ksub.add_parser("list", help="the cached databases, their size and last use")
+    kc = ksub.add_parser("clear", help="delete the cached databases (they are rebuilt when next needed)")
+    kc.add_argument("--method", default=None, help="only this method's (e.g. patterns, angle, triangle)")
+    k.set_defaults(func=cmd_cache)
 
     c = sub.add_parser("catalog", help="build or describe the guide catalog")
     csub = c.add_subparsers(dest="action", required=True, parser_class=_Parser)

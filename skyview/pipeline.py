@@ -1,8 +1,14 @@
 """Image -> centroids -> unit vectors -> identification -> verified attitude.
 
 `Solver` holds what is slow to make (guide catalog, camera, the method's database) and solves many
-images; `solve_image` is the one-call API. The CLI (`skyview solve`) and the bench both go through
-`Solver`, so what is measured is what users run.
+images of one camera with one method (the calibrated mode of the papers' benches). `BlindSolver`
+solves images of any camera with no field of view given: scale-free patterns, then the camera
+(FOV, k1, k2) fitted and the shared verification (`skyview.identify.blind`). `solve_image` is the
+one-call API: with no method it runs the default pipeline, the strongest one skyview has (blind,
+then, when an FOV estimate is given and the blind search fails, the improved angle method at that
+FOV); with a method it runs that method, on the camera that the blind front end fitted when the
+FOV is only an estimate (fov_error > 0). The CLI (`skyview solve`) and the bench go through these
+classes, so what is measured is what users run.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import numpy as np
 from skyview.attitude import ESTIMATORS, RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R
 from skyview.camera import Camera
 from skyview.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
-from skyview.centroid import Centroids, detect_centroids, load_image
+from skyview.centroid import Centroids, detect_centroids, load_image, to_gray
 from skyview.errors import BadInput
 from skyview.identify import make_identifier
 from skyview.identify.base import Identification, Observation
@@ -25,6 +31,15 @@ from skyview.identify.base import Identification, Observation
 SOLVED = "solved"
 NOT_SOLVED = "failed"
 DEFAULT_CENTROID_SIGMA_PX = 0.5
+DEFAULT_FOV_ERROR = 0.1  # an FOV given without a tolerance is taken as good to +-10 %
+BLIND = "blind"
+MAX_CACHED_SOLVERS = 8
+PAPER_MAG_LIMIT = 6.0
+# methods whose database stays small when the catalog deepens (pairs): their improved variant takes
+# the depth from the image; paper variants (the papers' conditions) and the others keep Hp 6 unless
+# a limit is given (the triangle database grows with the cube of
+# the stars in a field and has no memory budget yet)
+AUTO_DEPTH_METHODS = ("angle",)
 
 
 @dataclass
@@ -46,6 +61,8 @@ class SolveResult:
     sigma_rad: float = 0.0  # assumed per-star direction sigma
     sigma_measured_rad: float | None = None  # from the match residuals (a posteriori)
     residuals_arcsec: list[float] = field(default_factory=list)
+    mag_limit: float | None = None  # the catalog depth the solve used (Hp)
+    camera_fitted: bool = False  # the camera (FOV, distortion) was fitted to the stars, not given
 
     @property
     def solved(self) -> bool:
@@ -82,6 +99,11 @@ class SolveResult:
             "sigma_measured_arcsec": (None if self.sigma_measured_rad is None
                                       else self.sigma_measured_rad * RAD_TO_ARCSEC),
             "camera": self.camera.to_dict(),
+            "fov_deg": self.camera.fov_deg,
+            "plate_scale_arcsec_per_px": self.camera.pixel_scale_rad * RAD_TO_ARCSEC,
+            "distortion": {"k1": self.camera.k1, "k2": self.camera.k2},
+            "mag_limit": self.mag_limit,
+            "camera_fitted": self.camera_fitted,
         })
         return out
 
@@ -95,8 +117,8 @@ def _jsonable(obj):
         return obj.tolist()
     if isinstance(obj, (np.integer,)):
         return int(obj)
-    if isinstance(obj, (np.floating,)):
-        return float(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None  # JSON has no NaN or Infinity
     return obj
 
 
@@ -209,23 +231,230 @@ def result_from_identification(centroids: Centroids, obs: Observation, ident: Id
     return result
 
 
-_SOLVERS: dict[tuple, Solver] = {}
-
-
-def solve_image(image: str | Path | np.ndarray, fov_deg: float, method: str = "angle", **kwargs) -> SolveResult:
-    """Solve one image (a path or a 2-D array) for a camera of horizontal FOV `fov_deg`.
-
-    Keyword arguments go to `Solver` (mag_limit, sigma_rad, epoch, estimator, max_stars, k_sigma,
-    method_params, variant) plus `distortion=(k1, k2)`. Solvers are cached per configuration, so a second
-    call reuses the loaded database.
-    """
-    img = load_image(image) if not isinstance(image, np.ndarray) else image
+def as_image(image) -> np.ndarray:
+    """A 2-D numeric array from a path or an array of any layout: colour (BGR/BGRA, OpenCV's order)
+    converted to grey, any memory order made C-contiguous. Anything else is BadInput."""
+    if isinstance(image, (str, Path)):
+        return load_image(image)
+    if not isinstance(image, np.ndarray):
+        raise BadInput(f"an image must be a path or a numpy array, not {type(image).__name__}")
+    if image.dtype.kind not in "uif" or image.dtype.itemsize > 8:
+        raise BadInput(f"image dtype {image.dtype} is not a real number type")
+    img = np.ascontiguousarray(image)
+    if img.dtype.kind == "f" and img.dtype != np.float32:
+        img = img.astype(np.float32)
+    if img.dtype.kind in "ui" and img.dtype.itemsize > 2:
+        img = img.astype(np.float32)
+    if img.dtype.kind == "i" and img.dtype.itemsize <= 2:
+        img = img.astype(np.float32)
+    img = to_gray(img)
     if img.ndim != 2:
-        raise BadInput(f"expected a single-channel image, got shape {img.shape}")
-    k1, k2 = kwargs.pop("distortion", (0.0, 0.0))
-    camera = Camera.from_fov(fov_deg, img.shape[1], img.shape[0], k1=k1, k2=k2)
-    key = (camera, method, repr(sorted(kwargs.items())))
-    solver = _SOLVERS.get(key)
-    if solver is None:
-        solver = _SOLVERS[key] = Solver(camera, method, **kwargs)
-    return solver.solve_array(img)
+        raise BadInput(f"expected a grey (H, W) or colour (H, W, 3|4) image, got shape {image.shape}")
+    if min(img.shape) < 16:
+        raise BadInput(f"image of shape {img.shape} is too small (at least 16 x 16 pixels)")
+    return np.ascontiguousarray(img)
+
+
+def auto_mag_limit(catalog: GuideCatalog, camera: Camera, n_stars: int, *, per_star: float = 1.2,
+                   lo: float = 5.0, hi: float = 7.5) -> float:
+    """Depth from the image: the magnitude at which a field of this camera holds, on average over
+    the sky, per_star catalog stars for each star the image shows (clipped to [lo, hi], rounded up
+    to a quarter magnitude)."""
+    frac = camera.solid_angle_sr / (4.0 * np.pi)
+    want = max(per_star * max(int(n_stars), 1), 8.0) / frac
+    mags = np.sort(catalog.mag)
+    m = float(mags[min(int(want), len(mags) - 1)])
+    return float(np.clip(np.ceil(m * 4.0) / 4.0, lo, hi))
+
+
+class BlindSolver:
+    """Solves images of any camera with no FOV given (`skyview.identify.blind`): one pattern
+    database for the whole sky, the camera fitted to every image.
+
+    The database is built once (~10 s, ~200 MB on disk, a progress line on stderr) and memory-mapped
+    from the cache afterwards (milliseconds)."""
+
+    def __init__(self, *, epoch: float = DEFAULT_EPOCH, catalog: GuideCatalog | None = None,
+                 max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd",
+                 memory_mb: float | None = None, progress=None, params=None, pattern_params=None):
+        from skyview.identify.blind import BlindIdentifier
+        from skyview.identify.patterns import DEFAULT_BUDGET_MB
+
+        if estimator not in ESTIMATORS:
+            raise BadInput(f"unknown estimator {estimator!r}: choose from {', '.join(ESTIMATORS)}")
+        t0 = time.perf_counter()
+        self.catalog = catalog if catalog is not None else load_guide_catalog(epoch=epoch)
+        t1 = time.perf_counter()
+        self.identifier = BlindIdentifier(self.catalog, params=params, pattern_params=pattern_params,
+                                          memory_mb=memory_mb or DEFAULT_BUDGET_MB, progress=progress)
+        self.max_stars = int(max_stars)
+        self.k_sigma = float(k_sigma)
+        self.estimator = estimator
+        self.setup_ms = {"catalog_load": (t1 - t0) * 1e3, "database_load": (time.perf_counter() - t1) * 1e3}
+
+    @property
+    def fov_range_deg(self) -> tuple[float, float]:
+        return self.identifier.fov_range_deg
+
+    def solve_array(self, image: np.ndarray, *, fov_deg: float | None = None,
+                    fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
+        img = as_image(image)
+        t0 = time.perf_counter()
+        centroids = detect_centroids(img, k_sigma=self.k_sigma)
+        t1 = time.perf_counter()
+        result = self.solve_centroids(centroids, img.shape[1], img.shape[0], fov_deg=fov_deg, fov_error=fov_error)
+        result.time_ms = {"centroid": (t1 - t0) * 1e3, **result.time_ms}
+        result.time_ms["total"] = result.time_ms["centroid"] + result.time_ms["solve"]
+        return result
+
+    def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
+                        fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
+        check_fov_error(fov_error)
+        if fov_deg is not None:
+            Camera.from_fov(fov_deg, width, height)  # a one-line error for an impossible FOV
+        t0 = time.perf_counter()
+        n = min(len(centroids), self.max_stars)
+        br = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error)
+        ident = br.identification
+        identify_ms = (time.perf_counter() - t0) * 1e3
+        guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(self.fov_range_deg)))
+        camera = br.camera if br.camera is not None else Camera.from_fov(guess, width, height)
+        sigma = br.sigma_rad if br.sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
+        uv = centroids.uv[:n]
+        obs = Observation(vectors=camera.unproject(uv) if n else np.zeros((0, 3)), uv=uv,
+                          brightness=centroids.brightness[:n], sigma_rad=sigma)
+        result = result_from_identification(
+            centroids, obs, ident if n else None, camera=camera, catalog=self.catalog, method=BLIND,
+            variant="improved", sigma_rad=sigma, estimator=self.estimator,
+            database_key=self.identifier.database_key, identify_ms=identify_ms)
+        result.mag_limit = br.mag_limit
+        result.camera_fitted = br.camera is not None
+        if not result.solved and n:
+            result.reason = explain_failure(result.reason, len(centroids), fov_deg, fov_error, self.fov_range_deg)
+        return result
+
+
+def check_fov_error(fov_error: float) -> None:
+    try:
+        e = float(fov_error)
+    except (TypeError, ValueError):
+        raise BadInput(f"FOV error {fov_error!r} is not a number") from None
+    if not (np.isfinite(e) and 0.0 <= e < 1.0):
+        raise BadInput(f"FOV error {fov_error} must be a fraction in [0, 1) (0.1 = +-10 %)")
+
+
+def explain_failure(reason: str, n_stars: int, fov_deg, fov_error, fov_range) -> str:
+    """The reason a blind solve failed, with the likely cause and the next thing to try."""
+    if n_stars < 4:
+        return f"{reason}; the image shows too few stars: a longer exposure or a lower --k-sigma may find more"
+    if fov_deg is None:
+        return (f"{reason}; searched FOVs {fov_range[0]:.1f}-{fov_range[1]:.1f} deg: if the field is outside that "
+                f"range or the brightest detections are not stars (hot pixels, a roof, a planet), try --fov-deg "
+                f"with the camera's FOV")
+    return (f"{reason}; searched FOV {fov_deg * (1 - fov_error):.2f}-{fov_deg * (1 + fov_error):.2f} deg: if the "
+            f"FOV is not that, leave out --fov-deg or widen --fov-error")
+
+
+class _LRU(dict):
+    """A small least-recently-used cache of solvers (each holds a database)."""
+
+    def get_or_make(self, key, make):
+        if key in self:
+            value = self.pop(key)
+        else:
+            value = make()
+            while len(self) >= MAX_CACHED_SOLVERS:
+                self.pop(next(iter(self)))
+        self[key] = value
+        return value
+
+
+_SOLVERS = _LRU()
+
+
+def blind_solver(epoch: float = DEFAULT_EPOCH, **kwargs) -> BlindSolver:
+    """The process's blind solver for these settings (built or loaded once)."""
+    return _SOLVERS.get_or_make((BLIND, epoch, repr(sorted(kwargs.items()))),
+                                lambda: BlindSolver(epoch=epoch, **kwargs))
+
+
+def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, method: str | None = None, *,
+                fov_error: float = DEFAULT_FOV_ERROR, mag_limit: float | None = None,
+                distortion: tuple[float, float] = (0.0, 0.0), variant: str = "paper", epoch: float = DEFAULT_EPOCH,
+                max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd", memory_mb: float | None = None,
+                progress=None, **kwargs) -> SolveResult:
+    """Solve one image: a path, or a 2-D (grey) or 3-D (BGR/BGRA) numpy array of any layout.
+
+    fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
+    0 means exact: the papers' calibrated mode). method=None runs the default pipeline (blind
+    patterns, camera fitted; then, given an FOV, the improved angle method at it); method="angle",
+    "triangle", ... runs that method (`variant` "paper" or "improved"), on the camera the blind
+    front end fitted when fov_error > 0. mag_limit=None takes the depth from the image. Other
+    keyword arguments go to `Solver` (sigma_rad, method_params). Solvers are cached (the 8 most
+    recently used configurations), so a second call reuses the loaded database.
+    """
+    img = as_image(image)
+    check_fov_error(fov_error)
+    H, W = img.shape
+    k1, k2 = distortion
+    if fov_deg is not None:
+        Camera.from_fov(fov_deg, W, H)  # one-line error for an impossible FOV before any work
+    common = dict(max_stars=max_stars, k_sigma=k_sigma, estimator=estimator)
+
+    def calibrated(method_name: str, camera: Camera, var: str, centroids: Centroids) -> SolveResult:
+        depth = mag_limit
+        if depth is None and (method_name not in AUTO_DEPTH_METHODS or var == "paper"):
+            depth = PAPER_MAG_LIMIT
+        if depth is None:
+            depth = (min(float(np.ceil(blind_depth * 4) / 4), 7.5) if blind_depth is not None else
+                     auto_mag_limit(_base_catalog(epoch), camera, min(len(centroids), max_stars)))
+        key = (method_name, var, camera, depth, epoch, repr(sorted(kwargs.items())), repr(sorted(common.items())))
+        solver = _SOLVERS.get_or_make(key, lambda: Solver(camera, method_name, mag_limit=depth, epoch=epoch,
+                                                          catalog=_base_catalog(epoch), variant=var,
+                                                          **common, **kwargs))
+        res = solver.solve_centroids(centroids)
+        res.mag_limit = depth
+        return res
+
+    t0 = time.perf_counter()
+    centroids = detect_centroids(img, k_sigma=k_sigma)
+    t_cent = (time.perf_counter() - t0) * 1e3
+    exact = fov_deg is not None and fov_error == 0.0
+    result = None
+    fitted = None
+    blind_depth = None
+    if not exact:
+        blind = blind_solver(epoch, memory_mb=memory_mb, progress=progress, **common)
+        result = blind.solve_centroids(centroids, W, H, fov_deg=fov_deg, fov_error=fov_error)
+        if result.solved:
+            fitted = result.camera
+            blind_depth = result.mag_limit
+    if method is None:
+        if result is None or (not result.solved and fov_deg is not None):
+            first = result
+            camera = Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2)
+            result = calibrated("angle", camera, "improved", centroids)
+            if not result.solved and first is not None:
+                result.reason = f"{first.reason}; then the improved angle method at {fov_deg:g} deg: {result.reason}"
+    else:
+        if fov_deg is None and fitted is None:
+            raise BadInput(f"the {method} method needs the field of view: give --fov-deg (an estimate will do), "
+                           f"or leave out --method to solve blind" + (f" (the blind search failed: {result.reason})"
+                                                                      if result is not None else ""))
+        camera = fitted if fitted is not None else Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2)
+        mres = calibrated(method, camera, variant, centroids)
+        mres.camera_fitted = fitted is not None
+        result = mres
+    result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
+    result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return result
+
+
+_CATALOGS: dict[float, GuideCatalog] = {}
+
+
+def _base_catalog(epoch: float) -> GuideCatalog:
+    cat = _CATALOGS.get(epoch)
+    if cat is None:
+        cat = _CATALOGS[epoch] = load_guide_catalog(epoch=epoch)
+    return cat

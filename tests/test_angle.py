@@ -116,12 +116,14 @@ def test_database_content(ident, cat, cam):
     assert info["nbytes"] > 0 and (info["build_s"] is not None or info["load_s"] is not None)
     ang = angular_distance(cat.xyz[ident.pair_i], cat.xyz[ident.pair_j])
     np.testing.assert_allclose(ang, ident.kv.sorted_values, atol=1e-15)
-    assert np.all(np.diff(ident.kv.sorted_values) >= 0) and ang.max() <= diag
+    assert np.all(np.diff(ident.kv.sorted_values) >= 0) and ang.max() <= ident.max_sep_rad
+    # the database belongs to the sky: its range is the diagonal rounded up by at most 5 %
+    assert diag <= ident.max_sep_rad <= 1.05 * diag
     # every pair that fits in the image diagonal is present (brute force on a bright subset)
     bright = np.flatnonzero(cat.mag <= 3.5)
     d = angular_distance(cat.xyz[bright][:, None], cat.xyz[bright][None, :])
     iu = np.triu_indices(len(bright), 1)
-    expected = {(int(bright[a]), int(bright[b])) for a, b in zip(*iu) if d[a, b] <= diag}
+    expected = {(int(bright[a]), int(bright[b])) for a, b in zip(*iu) if d[a, b] <= ident.max_sep_rad}
     in_bright = np.isin(ident.pair_i, bright) & np.isin(ident.pair_j, bright)
     got = {tuple(sorted((int(a), int(b)))) for a, b in zip(ident.pair_i[in_bright], ident.pair_j[in_bright])}
     assert got == expected
@@ -278,3 +280,12 @@ def test_registry_and_bad_input(cache, cat, cam):
         make_identifier("angle", cat, cam, -1.0)
     with pytest.raises(BadInput):
         make_identifier("angle", cat, cam, SIGMA, beta=0)
+
+
+def test_cameras_of_nearly_the_same_field_share_one_database(cat, tmp_path, monkeypatch):
+    monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
+    a = AngleMethod(cat, Camera.from_fov(8.0, 1024), 1e-4)
+    b = AngleMethod(cat, Camera.from_fov(8.03, 1024, 1000), 1e-4)
+    assert a.database_key == b.database_key and b.database_info["source"] == "cache"
+    c = AngleMethod(cat, Camera.from_fov(12.0, 1024), 1e-4)
+    assert c.database_key != a.database_key

@@ -35,10 +35,11 @@ def orion(tmp_path_factory):
 def test_simulate_then_solve_end_to_end(orion, capsys):
     truth = json.loads(orion.with_suffix(".json").read_text())
     assert truth["ra_deg"] == pytest.approx(83.8) and truth["roll_deg"] == pytest.approx(30.0)
-    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--json")
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--json", "--method", "angle",
+                         "--fov-error", "0")
     assert code == 0, err
     res = json.loads(out)
-    assert res["status"] == "solved" and res["method"] == "angle"
+    assert res["status"] == "solved" and res["method"] == "angle" and not res["camera_fitted"]
     for key in ("R", "quaternion", "ra_deg", "dec_deg", "roll_deg", "sigma_arcsec", "matches", "n_centroids",
                 "time_ms", "database_key"):
         assert key in res
@@ -134,11 +135,63 @@ def test_unknown_scenario_and_bad_options(capsys):
 
 def test_method_parameters_by_name(orion, capsys):
     # a parameter reaches the method: this field solves, but not when the angle method may not pivot
-    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--json", "--param", "max_pivots=0")
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--method", "angle", "--json", "--param",
+                         "max_pivots=0")
     assert code == 1, err
     assert "after 0 pivots (the limit)" in json.loads(out)["reason"]
     for bad, words in ((["--param", "max_pivotz=1"], "no parameter 'max_pivotz'"),
                        (["--param", "max_pivots=abc"], "cannot take max_pivots='abc'"),
                        (["--param", "max_pivots"], "not KEY=VALUE")):
-        code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", *bad)
+        code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8", "--method", "angle", *bad)
         assert code == 2 and one_line_error(err) and words in err, err
+
+
+def test_solve_blind_with_no_options(orion, capsys):
+    """The default pipeline: no FOV, no method; the fitted camera is reported."""
+    code, out, err = run(capsys, "solve", str(orion), "--json")
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["status"] == "solved" and res["method"] == "blind" and res["camera_fitted"]
+    assert res["fov_deg"] == pytest.approx(8.0, rel=0.005)
+    assert res["plate_scale_arcsec_per_px"] == pytest.approx(8.0 * 3600 / 1024, rel=0.01)
+    assert res["truth"]["wrong_matches"] == 0 and res["truth"]["error_arcsec"]["boresight"] < 30.0
+    # a wrong FOV estimate within its tolerance still solves; outside it, not (and never wrongly)
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8.6", "--json")
+    assert code == 0 and json.loads(out)["fov_deg"] == pytest.approx(8.0, rel=0.005)
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "8.6", "--fov-error", "0", "--method", "angle")
+    assert code == 1 and one_line_error(err)
+
+
+def test_solve_writes_a_wcs_and_refuses_to_overwrite(orion, capsys, tmp_path):
+    pytest.importorskip("astropy")
+    from astropy.io import fits
+
+    wcs = tmp_path / "orion.wcs"
+    code, out, err = run(capsys, "solve", str(orion), "--wcs", str(wcs))
+    assert code == 0, err
+    hdr = fits.getheader(wcs)
+    truth = json.loads(orion.with_suffix(".json").read_text())
+    assert hdr["CTYPE1"].startswith("RA---TAN") and hdr["CRVAL1"] == pytest.approx(truth["ra_deg"], abs=0.01)
+    before = wcs.read_bytes()
+    code, out, err = run(capsys, "solve", str(orion), "--wcs", str(wcs))
+    assert code == 2 and one_line_error(err) and wcs.read_bytes() == before
+    code, out, err = run(capsys, "solve", str(orion), "--wcs", str(tmp_path / "no" / "x.wcs"))
+    assert code == 2 and one_line_error(err)
+
+
+@pytest.mark.parametrize("bad", [["--fov-error", "2"], ["--fov-error", "-0.1"], ["--param", "x=1"],
+                                 ["--method", "angle", "--fov-deg", "500"]])
+def test_solve_bad_options_are_one_line(orion, capsys, bad):
+    code, out, err = run(capsys, "solve", str(orion), *bad)
+    assert code == 2 and one_line_error(err)
+
+
+def test_cache_list_and_clear(capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
+    (tmp_path / "databases").mkdir()
+    (tmp_path / "databases" / "angle-0123456789abcdef.npz").write_bytes(b"x" * 2048)
+    code, out, err = run(capsys, "cache", "list")
+    assert code == 0 and "1 database(s)" in out and "angle-0123456789abcdef.npz" in out
+    code, out, err = run(capsys, "cache", "clear")
+    assert code == 0 and "removed 1" in out
+    assert not any((tmp_path / "databases").iterdir())

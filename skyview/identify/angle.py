@@ -2,7 +2,8 @@
 
 Database. Every catalog star pair whose separation can appear in one image: the paper uses a
 circular 8 deg FOV and keeps all angles <= 8 deg; our sensor is a rectangle, so the database covers
-pairs up to the image DIAGONAL (2 x camera.half_diagonal_rad). Pairs are sorted by angle and indexed
+pairs up to the image DIAGONAL (2 x camera.half_diagonal_rad, rounded up on a 5 % grid so that one
+database serves every camera below it: the database belongs to the sky, not to one camera). Pairs are sorted by angle and indexed
 with a k-vector (`skyview.identify.kvector`). The database is cached on disk
 (`skyview.identify.database`); its info reports the pairs within the FOV and the total.
 
@@ -138,9 +139,11 @@ class AngleMethod(Identifier):
         self.radius_sigmas = float(radius_sigmas)
         self.close_loops = bool(close_loops)
 
-        self.max_sep_rad = 2.0 * camera.half_diagonal_rad
+        # the database belongs to the sky: pairs up to the diagonal rounded up on a 5 % grid, so one
+        # database serves every camera whose diagonal is below it
+        self.max_sep_rad = database.angular_range(2.0 * camera.half_diagonal_rad)
         params = {"max_sep_rad": self.max_sep_rad, "kvector_fit": kvector_fit, "version": DATABASE_VERSION}
-        self.database_key = database.make_key(self.name, params, catalog, camera)
+        self.database_key = database.make_key(self.name, params, catalog, None)
         arrays, info = database.load_or_build(
             self.database_key, lambda: build_angle_database(catalog, self.max_sep_rad, kvector_fit))
         self.pair_i = arrays["pair_i"].astype(np.int64)

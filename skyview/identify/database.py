@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 import tempfile
+import zipfile
 import time
 import warnings
 from pathlib import Path
@@ -45,6 +46,20 @@ def make_key(method: str, params: dict, catalog: GuideCatalog, camera: Camera | 
     return key
 
 
+RANGE_STEP = 1.05  # angular ranges of databases are rounded up to this geometric grid
+
+
+def angular_range(rad: float) -> float:
+    """An angular range rounded UP to the next step of a 5 % geometric grid (from 0.1 deg).
+
+    A database that covers the rounded range serves every camera whose own range falls below it,
+    so cameras that differ a little (a fitted FOV, another image size) share one database instead
+    of building their own."""
+    base = np.radians(0.1)
+    k = max(0, int(np.ceil(np.log(max(rad, base) / base) / np.log(RANGE_STEP) - 1e-9)))
+    return float(base * RANGE_STEP ** k)
+
+
 def key_hash(key: dict) -> str:
     blob = json.dumps(key, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
@@ -59,17 +74,20 @@ def database_path(key: dict) -> Path:
     return cache_dir() / "databases" / f"{key_string(key)}.npz"
 
 
-def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], dict]:
+def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap: bool = False
+                  ) -> tuple[dict[str, np.ndarray], dict]:
     """The arrays of the database for `key`: loaded from the cache, or built once and saved.
 
     Returns (arrays, info); info holds the key, its string form, the path, whether it was built or
-    loaded, the build or load time, the file size and the in-memory size in bytes.
+    loaded, the build or load time, the file size and the in-memory size in bytes. mmap=True maps
+    the arrays of the (uncompressed) file read-only instead of reading them: a large database then
+    loads in milliseconds and its pages are shared between processes.
     """
     path = database_path(key)
     info = {"key": key, "key_string": key_string(key), "path": str(path)}
     if path.exists():
         t0 = time.perf_counter()
-        arrays = _read(path, key)
+        arrays = _read_mmap(path, key) if mmap else _read(path, key)
         if arrays is not None:
             info.update(source="cache", load_s=time.perf_counter() - t0, build_s=None,
                         file_bytes=path.stat().st_size, nbytes=_nbytes(arrays))
@@ -93,7 +111,46 @@ def _read(path: Path, key: dict) -> dict[str, np.ndarray] | None:
             if stored != json.loads(json.dumps(key)):
                 return None
             return {k: z[k] for k in z.files if k != _KEY_FIELD}
-    except (OSError, ValueError, KeyError, EOFError):
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+
+
+def _read_mmap(path: Path, key: dict) -> dict[str, np.ndarray] | None:
+    """Memory-map every array of an uncompressed .npz (zip members are stored contiguously)."""
+
+    try:
+        out = {}
+        with zipfile.ZipFile(path) as zf, open(path, "rb") as fh:
+            for zi in zf.infolist():
+                if zi.compress_type != zipfile.ZIP_STORED or not zi.filename.endswith(".npy"):
+                    return None
+                fh.seek(zi.header_offset)
+                local = fh.read(30)
+                if local[:4] != b"PK\x03\x04":
+                    return None
+                start = zi.header_offset + 30 + int.from_bytes(local[26:28], "little") \
+                    + int.from_bytes(local[28:30], "little")
+                fh.seek(start)
+                version = np.lib.format.read_magic(fh)
+                reader = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                          else np.lib.format.read_array_header_2_0)
+                shape, fortran, dtype = reader(fh)
+                name = zi.filename[:-4]
+                if dtype.hasobject:
+                    return None
+                if name == _KEY_FIELD:
+                    fh.seek(start)
+                    stored = json.loads(str(np.lib.format.read_array(fh, allow_pickle=False)))
+                    if stored != json.loads(json.dumps(key)):
+                        return None
+                    continue
+                n = int(np.prod(shape)) if shape else 1
+                if fh.tell() + n * dtype.itemsize > path.stat().st_size:
+                    return None  # truncated
+                out[name] = np.memmap(path, dtype=dtype, mode="r", offset=fh.tell(), shape=shape,
+                                      order="F" if fortran else "C")
+        return out
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
 
 
@@ -103,6 +160,8 @@ def _write(path: Path, key: dict, arrays: dict[str, np.ndarray]) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             np.savez(fh, **{_KEY_FIELD: np.array(json.dumps(key, sort_keys=True))}, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -130,3 +189,35 @@ def _jsonable(x):
     if x is None or isinstance(x, (bool, int, float, str)):
         return x
     return str(x)
+
+
+def cached_databases() -> list[dict]:
+    """The databases in the cache: path, method, bytes, last use (POSIX time), newest use first."""
+    folder = cache_dir() / "databases"
+    out = []
+    for p in sorted(folder.glob("*.npz")) if folder.is_dir() else []:
+        try:
+            st = p.stat()
+        except OSError:
+            continue
+        out.append({"path": str(p), "method": p.stem.rsplit("-", 1)[0], "bytes": int(st.st_size),
+                    "used": max(st.st_atime, st.st_mtime)})
+    return sorted(out, key=lambda d: -d["used"])
+
+
+def clear_cache(method: str | None = None) -> tuple[int, int]:
+    """Delete cached databases (of one method, or all) and stray temporary files: (files, bytes)."""
+    folder = cache_dir() / "databases"
+    n = b = 0
+    if not folder.is_dir():
+        return 0, 0
+    for p in list(folder.glob("*.npz")) + list(folder.glob(".*.tmp")):
+        if method is not None and p.stem.rsplit("-", 1)[0] != method:
+            continue
+        try:
+            size = p.stat().st_size
+            p.unlink()
+        except OSError:
+            continue
+        n, b = n + 1, b + size
+    return n, b

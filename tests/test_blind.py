@@ -1,0 +1,234 @@
+"""Blind solving: scale-free patterns, the camera fitted, real photographs against a reference."""
+
+import itertools
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, radec_roll_from_R
+from skyview.camera import Camera
+from skyview.camera_fit import fit_camera
+from skyview.catalog import load_guide_catalog
+from skyview.centroid import load_image
+from skyview.errors import BadInput
+from skyview.identify import database
+from skyview.identify import patterns as pdb
+from skyview.identify.blind import fov_ladder
+from skyview.pipeline import BlindSolver, as_image, solve_image
+from skyview.simulate import SensorModel, simulate_image
+from skyview.truth import wrong_matches
+
+REAL = Path(__file__).parent / "data" / "real-images"
+REFERENCE = json.loads((REAL / "reference.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def catalog():
+    return load_guide_catalog()
+
+
+@pytest.fixture(scope="module")
+def blind(catalog):
+    return BlindSolver(catalog=catalog)
+
+
+# ---------------------------------------------------------------------------------- invariants
+
+def test_edge_ratios_do_not_change_with_rotation_or_scale():
+    rng = np.random.default_rng(1)
+    cam = Camera.from_fov(10.0, 1024, 768)
+    uv = rng.uniform([0, 0], [1024, 768], (4, 2))
+    v = cam.unproject(uv)
+    r0, big0 = pdb.edge_ratios(pdb.separations(v))
+    for _ in range(5):
+        R = Rotation.random(random_state=rng).as_matrix()
+        r1, big1 = pdb.edge_ratios(pdb.separations(v @ R.T))
+        assert np.allclose(r0, r1, atol=1e-12) and big1 == pytest.approx(big0, rel=1e-12)
+    # a field 10 % wider: the ratios barely move (the pinhole is nearly scale-free), the size does
+    r2, big2 = pdb.edge_ratios(pdb.separations(Camera.from_fov(11.0, 1024, 768).unproject(uv)))
+    assert np.abs(r2 - r0).max() < 1e-3 and big2 / big0 == pytest.approx(1.1, rel=0.01)
+
+
+def test_keys_pack_and_look_up():
+    rng = np.random.default_rng(2)
+    q = rng.integers(0, 100, (500, pdb.N_RATIOS))
+    keys = pdb.pack_key(q)
+    assert len(np.unique(keys)) == len(np.unique(q, axis=0))
+    bits = pdb.table_bits(len(keys))
+    bucket = pdb.bucket_of(keys, bits)
+    order = np.lexsort((keys, bucket))
+    start = np.searchsorted(bucket[order], np.arange((1 << bits) + 1))
+    needles = np.r_[keys[:50], pdb.pack_key(np.full((1, 5), 200))]
+    ni, ti = pdb.lookup(keys[order], start, needles)
+    for n in range(50):
+        assert set(order[ti[ni == n]]) == set(np.flatnonzero(keys == needles[n]))
+    assert not np.any(ni == 50)  # a key that is not stored finds nothing
+
+
+def test_level_patterns_enumerates_each_four_once_by_its_largest_edge():
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(40, 3)) * [0.05, 0.05, 1.0]
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    lo, hi = 0.03, 0.06
+    got = pdb.level_patterns(v, lo, hi)
+    got_sets = {tuple(sorted(p)) for p in got.tolist()}
+    assert len(got_sets) == len(got)  # no four twice
+    want = set()
+    for quad in itertools.combinations(range(len(v)), 4):
+        big = pdb.separations(v[list(quad)]).max()
+        if lo <= big < hi:
+            want.add(quad)
+    assert got_sets == want
+
+
+def test_fov_ladder_covers_the_range_with_few_steps():
+    ladder = fov_ladder(5.0, 40.0, 60.0)
+    lo_edges = [c / s for c, s in ladder]
+    hi_edges = [c * s for c, s in ladder]
+    assert lo_edges[0] <= 5.0 and hi_edges[-1] >= 40.0 * 0.999
+    assert all(h >= l2 * 0.999 for h, l2 in zip(hi_edges[:-1], lo_edges[1:]))  # no gap
+    assert len(ladder) <= 8 and len(fov_ladder(10.3, 12.6, 60.0)) == 1
+
+
+def test_pattern_database_refuses_a_size_over_its_budget(catalog):
+    with pytest.raises(BadInput, match="memory budget"):
+        pdb.build(catalog, pdb.PatternParams(), budget_mb=10)
+
+
+# ---------------------------------------------------------------------------------- camera fit
+
+def test_fit_camera_recovers_fov_and_distortion(catalog):
+    true = Camera.from_fov(20.0, 1024, 768, k1=0.08)
+    R = R_from_radec_roll(math.radians(120.0), math.radians(-30.0), math.radians(40.0))
+    idx, uv = true.visible(R, catalog.brighter_than(6.5).xyz)
+    xyz = catalog.brighter_than(6.5).xyz[idx]
+    uv = uv + np.random.default_rng(4).normal(0.0, 0.1, uv.shape)
+    start = Camera.from_fov(21.0, 1024, 768)
+    R0 = Rotation.from_rotvec([2e-3, -1e-3, 3e-3]).as_matrix() @ R
+    fit = fit_camera(uv, xyz, start, R0)
+    assert "k1" in fit.fitted
+    assert fit.camera.fov_deg == pytest.approx(20.0, rel=2e-4)
+    assert fit.camera.k1 == pytest.approx(0.08, abs=0.005)
+    assert attitude_error_arcsec(fit.R, R)["boresight"] < 2.0
+    assert fit.rms_px == pytest.approx(0.1, rel=0.3)
+    # with no distortion in the stars, the chi-square test leaves k1 out
+    idx, uv = Camera.from_fov(20.0, 1024, 768).visible(R, catalog.brighter_than(6.5).xyz)
+    uv = uv + np.random.default_rng(5).normal(0.0, 0.1, uv.shape)
+    assert "k1" not in fit_camera(uv, xyz if len(xyz) == len(uv) else catalog.brighter_than(6.5).xyz[idx],
+                                  start, R0).fitted
+
+
+# ---------------------------------------------------------------------------------- real photographs
+
+@pytest.mark.parametrize("name", sorted(REFERENCE))
+def test_real_photograph_solves_blind(blind, name):
+    ref = REFERENCE[name]
+    image = load_image(REAL / name)
+    assert image.dtype == np.uint16 and image.shape == (768, 1024)
+    res = blind.solve_array(image)
+    assert res.solved, res.reason
+    err = attitude_error_arcsec(res.R, np.array(ref["R"]))
+    assert err["boresight"] < 0.1 * 3600.0
+    _, _, roll = radec_roll_from_R(res.R)
+    assert abs((math.degrees(roll) - ref["roll_deg"] + 180.0) % 360.0 - 180.0) < 0.5
+    assert res.camera.fov_deg == pytest.approx(ref["fov_deg"], rel=0.005)
+    assert res.camera_fitted and len(res.matches) >= 15
+    d = res.to_dict()
+    assert d["fov_deg"] == pytest.approx(res.camera.fov_deg)
+    assert d["plate_scale_arcsec_per_px"] == pytest.approx(3600 * ref["fov_deg"] / 1024, rel=0.01)
+    json.dumps(d, allow_nan=False)
+
+
+def test_real_photograph_with_a_wrong_fov_estimate_and_a_method(blind):
+    name = sorted(REFERENCE)[0]
+    ref = REFERENCE[name]
+    res = solve_image(REAL / name, fov_deg=ref["fov_deg"] * 1.07, method="angle", variant="improved")
+    assert res.solved, res.reason
+    assert res.method == "angle" and res.camera_fitted
+    assert attitude_error_arcsec(res.R, np.array(ref["R"]))["boresight"] < 60.0
+    # an exact but wrong FOV (the calibrated mode) is not solved, and never wrongly
+    bad = solve_image(REAL / name, fov_deg=ref["fov_deg"] * 1.07, method="angle", fov_error=0.0)
+    assert not bad.solved
+
+
+def test_wcs_round_trip_lands_on_the_centroids(blind, catalog):
+    pytest.importorskip("astropy")
+    from skyview.wcs import solution_wcs
+
+    name = "2019-07-29T204726_Alt40_Azi45_Try1.png"
+    res = blind.solve_array(load_image(REAL / name))
+    assert res.solved and res.camera.k1 != 0.0
+    w = solution_wcs(res.R, res.camera)
+    assert w.wcs.ctype[0] == "RA---TAN-SIP"
+    rows = [catalog.index_of(m["hip"]) for m in res.matches]
+    ra, dec = np.degrees(np.array([catalog.ra_dec[0][rows], catalog.ra_dec[1][rows]]))
+    px = w.all_world2pix(np.stack([ra, dec], axis=1), 0)
+    uv = np.array([[m["u"], m["v"]] for m in res.matches])
+    assert np.abs(px - uv).max() < 2.0 and np.median(np.hypot(*(px - uv).T)) < 0.5
+    # the boresight is CRVAL and lands on the principal point
+    assert w.wcs_world2pix([[w.wcs.crval[0], w.wcs.crval[1]]], 0) == pytest.approx(
+        np.array([[res.camera.cx, res.camera.cy]]), abs=1e-6)
+
+
+# ---------------------------------------------------------------------------------- simulated
+
+@pytest.mark.parametrize("fov,mag,k1", [(20.0, 6.5, 0.05), (10.0, 7.0, -0.05), (30.0, 6.0, 0.0)])
+def test_simulated_field_solves_blind_with_distortion(blind, catalog, fov, mag, k1):
+    cam = Camera.from_fov(fov, 1024, 768, k1=k1)
+    R = R_from_radec_roll(math.radians(250.0), math.radians(35.0), math.radians(-70.0))
+    frame = simulate_image(catalog, cam, R, SensorModel(), seed=7, mag_limit=mag)
+    res = blind.solve_array(frame.image)
+    assert res.solved, res.reason
+    assert attitude_error_arcsec(res.R, R)["boresight"] < 30.0
+    assert res.camera.fov_deg == pytest.approx(fov, rel=0.005)
+    wrong = wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in res.matches], frame.truth)
+    assert len(wrong) == 0
+
+
+def test_blank_and_random_images_are_not_solved(blind):
+    rng = np.random.default_rng(8)
+    noise = rng.normal(100, 5, (768, 1024)).astype(np.float32)
+    for u, v in rng.uniform([10, 10], [1014, 758], (30, 2)):  # 30 random "stars": no sky pattern
+        noise[int(v) - 1:int(v) + 2, int(u) - 1:int(u) + 2] += rng.uniform(200, 2000)
+    res = blind.solve_array(noise)
+    assert not res.solved and res.reason
+
+
+# ---------------------------------------------------------------------------------- inputs
+
+def test_as_image_takes_colour_and_any_memory_order():
+    rng = np.random.default_rng(9)
+    grey = rng.integers(0, 4000, (64, 80)).astype(np.uint16)
+    assert np.array_equal(as_image(np.asfortranarray(grey)), grey)
+    assert as_image(grey.T).shape == (80, 64) and as_image(grey.T).flags.c_contiguous
+    colour = np.stack([grey, grey, grey], axis=2)
+    assert as_image(colour).shape == (64, 80)
+    assert as_image(grey.astype(np.float64)).dtype == np.float32
+    for bad in ([[1, 2], [3, 4]], None, b"png", np.zeros((4, 4)), np.zeros((30, 30), dtype=complex)):
+        with pytest.raises(BadInput):
+            as_image(bad)
+
+
+def test_fov_error_out_of_range_is_bad_input():
+    img = np.zeros((64, 64), dtype=np.uint16)
+    with pytest.raises(BadInput, match="FOV error"):
+        solve_image(img, fov_deg=10.0, fov_error=1.5)
+
+
+def test_database_is_memory_mapped_and_a_damaged_file_is_rebuilt(tmp_path, monkeypatch):
+    monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
+    key = {"method": "test-mmap", "n": 1}
+    built = {"a": np.arange(1000, dtype=np.int64), "b": np.ones((10, 4), dtype=np.int32)}
+    arrays, info = database.load_or_build(key, lambda: built, mmap=True)
+    assert info["source"] == "built"
+    arrays, info = database.load_or_build(key, lambda: pytest.fail("rebuilt"), mmap=True)
+    assert info["source"] == "cache" and isinstance(arrays["a"], np.memmap)
+    assert np.array_equal(arrays["a"], built["a"]) and np.array_equal(arrays["b"], built["b"])
+    path = database.database_path(key)
+    path.write_bytes(path.read_bytes()[:2000])  # truncated
+    arrays, info = database.load_or_build(key, lambda: built, mmap=True)
+    assert info["source"] == "built"
