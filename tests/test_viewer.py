@@ -880,7 +880,9 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                 t = time.perf_counter()
                 pg.locator("input[type=file]").first.set_input_files(str(png))
                 pg.get_by_role("tab", name="Result").click()
-                pg.get_by_text("image: mine.png, FOV 12°", exact=False).first.wait_for(timeout=30000)
+                # the upload's camera is fitted to its stars (blind), whatever FOV was typed
+                pg.get_by_text("image: mine.png, FOV", exact=False).first.wait_for(timeout=30000)
+                pg.get_by_text("fitted to the stars", exact=False).first.wait_for(timeout=10000)
                 FIGURES["upload_to_result_s"] = round(time.perf_counter() - t, 2)
                 pg.get_by_text("Solved by", exact=False).first.wait_for(timeout=10000)
 
@@ -1042,3 +1044,21 @@ def test_view_stops_on_ctrl_c_even_when_started_with_sigint_ignored():
         p.kill()
         raise
     _stop_view(p)
+
+
+def test_an_uploaded_photograph_gets_its_camera_fitted_blind():
+    """A user's image needs no exact FOV: the blind front end fits FOV, distortion and depth first."""
+    from pathlib import Path
+
+    from skyview.centroid import load_image
+    from skyview.viewer.run import Solvers, Source, fit_camera_blind
+
+    real = Path(__file__).parent / "data" / "real-images"
+    ref = json.loads((real / "reference.json").read_text())
+    name = sorted(ref)[0]
+    src = fit_camera_blind(Source(image=load_image(real / name), fov_deg=8.0, name=name), Solvers())
+    assert src.fitted and src.fov_deg == pytest.approx(ref[name]["fov_deg"], rel=0.005)
+    assert src.depth_mag is not None and 6.5 <= src.depth_mag <= 7.5
+    # a simulated scene keeps its exact camera
+    sim = Source(image=load_image(real / name), fov_deg=8.0, name="sim", truth={"R": np.eye(3).tolist()})
+    assert fit_camera_blind(sim, Solvers()) is sim

@@ -7,6 +7,8 @@ are cached and shared by every browser tab; one solve at a time per solver.
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import threading
 import time
@@ -20,7 +22,7 @@ from skyview.camera import Camera, check_fov_deg
 from skyview.catalog import GuideCatalog, load_guide_catalog
 from skyview.errors import BadInput
 from skyview.identify import METHODS, VARIANTS
-from skyview.pipeline import DEFAULT_CENTROID_SIGMA_PX, SolveResult, Solver
+from skyview.pipeline import BlindSolver, DEFAULT_CENTROID_SIGMA_PX, SolveResult, Solver
 from skyview.simulate import SensorModel, simulate_image
 from skyview.viewer.steps import StepDrawable, centroid_outcomes, match_groups, step_drawables
 
@@ -126,10 +128,14 @@ class Source:
     truth: dict | None = None
     config: SceneConfig | None = None
     simulate_ms: float = 0.0
+    k1: float = 0.0
+    k2: float = 0.0
+    fitted: bool = False  # fov_deg, k1, k2 were fitted to the stars by the blind front end
+    depth_mag: float | None = None  # the catalog depth the image shows (from the blind front end)
 
     @property
     def camera(self) -> Camera:
-        return Camera.from_fov(self.fov_deg, self.image.shape[1], self.image.shape[0])
+        return Camera.from_fov(self.fov_deg, self.image.shape[1], self.image.shape[0], k1=self.k1, k2=self.k2)
 
 
 @dataclass
@@ -237,12 +243,34 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
     """Centroid and identify `source` with `method`; derive the drawables."""
     method, variant = check_method(method, variant)
     mag_limit = _num("magnitude limit", mag_limit, *MAG_RANGE)
+    source = fit_camera_blind(source, solvers)
+    if source.depth_mag is not None:  # a user's image: the depth it shows, not the panel's limit
+        mag_limit = source.depth_mag
     camera = source.camera
     solver, lock = solvers.get(camera, method, variant, mag_limit, sigma_for(source))
     with lock:
         result = solver.solve_array(source.image)
     time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
     return make_run(source, result, solver.catalog, solver.max_stars, time_ms)
+
+
+AUTO_DEPTH_MAX = 7.5  # deeper catalogs make the pair and triangle databases large
+
+
+def fit_camera_blind(source: Source, solvers: Solvers) -> Source:
+    """A user's image (no truth) gets its camera from the blind front end: FOV and distortion fitted to
+    its stars, as `skyview solve --method M` does; the FOV typed in the panel is kept when the blind
+    search fails. Simulated scenes keep their exact camera (the papers' calibrated mode)."""
+    if source.truth is not None or source.fitted:
+        return source
+    blind, lock = solvers.get_or_build(("blind",), lambda catalog: BlindSolver(catalog=catalog))
+    with lock:
+        res = blind.solve_array(source.image)
+    if not res.solved:
+        return source
+    cam = res.camera
+    depth = min(float(np.ceil(res.mag_limit * 4.0) / 4.0), AUTO_DEPTH_MAX) if res.mag_limit else None
+    return dataclasses.replace(source, fov_deg=cam.fov_deg, k1=cam.k1, k2=cam.k2, fitted=True, depth_mag=depth)
 
 
 def make_run(source: Source, result: SolveResult, catalog: GuideCatalog, max_stars: int,
