@@ -133,6 +133,76 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return a
 
 
+MAX_IMAGE_PIXELS_DEFAULT = 100_000_000  # 100 megapixels; SKYVIEW_MAX_PIXELS overrides
+
+
+def max_image_pixels() -> int:
+    """The largest image (width x height) skyview decodes: SKYVIEW_MAX_PIXELS, else 100 megapixels."""
+    env = os.environ.get("SKYVIEW_MAX_PIXELS")
+    try:
+        return int(float(env)) if env else MAX_IMAGE_PIXELS_DEFAULT
+    except ValueError:
+        raise BadInput(f"SKYVIEW_MAX_PIXELS={env!r} is not a number") from None
+
+
+def header_size(data: bytes | np.ndarray) -> tuple[int, int] | None:
+    """(width, height) read from the header of a PNG, JPEG, TIFF, BMP or WebP file without decoding
+    it; None for other formats or a header that cannot be read."""
+    b = bytes(data[:65536]) if not isinstance(data, bytes) else data[:65536]
+    try:
+        if b[:8] == b"\x89PNG\r\n\x1a\n" and b[12:16] == b"IHDR":
+            return int.from_bytes(b[16:20], "big"), int.from_bytes(b[20:24], "big")
+        if b[:2] == b"\xff\xd8":  # JPEG: walk the markers to a start-of-frame
+            i = 2
+            while i + 9 < len(b):
+                if b[i] != 0xFF:
+                    i += 1
+                    continue
+                marker = b[i + 1]
+                if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7 or marker == 0xFF:
+                    i += 1 if marker == 0xFF else 2
+                    continue
+                length = int.from_bytes(b[i + 2:i + 4], "big")
+                if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                    return int.from_bytes(b[i + 7:i + 9], "big"), int.from_bytes(b[i + 5:i + 7], "big")
+                i += 2 + length
+            return None
+        if b[:4] in (b"II*\x00", b"MM\x00*"):  # TIFF: tags 256 (width) and 257 (height) of the first IFD
+            order = "little" if b[:2] == b"II" else "big"
+            off = int.from_bytes(b[4:8], order)
+            n = int.from_bytes(b[off:off + 2], order)
+            w = h = None
+            for k in range(n):
+                e = b[off + 2 + 12 * k: off + 14 + 12 * k]
+                tag, typ = int.from_bytes(e[0:2], order), int.from_bytes(e[2:4], order)
+                val = int.from_bytes(e[8:10], order) if typ == 3 else int.from_bytes(e[8:12], order)
+                if tag == 256:
+                    w = val
+                elif tag == 257:
+                    h = val
+            return (w, h) if w and h else None
+        if b[:2] == b"BM":
+            return abs(int.from_bytes(b[18:22], "little", signed=True)), abs(int.from_bytes(b[22:26], "little",
+                                                                                              signed=True))
+        if b[:4] == b"RIFF" and b[8:12] == b"WEBP":
+            if b[12:16] == b"VP8X":
+                return 1 + int.from_bytes(b[24:27], "little"), 1 + int.from_bytes(b[27:30], "little")
+            if b[12:16] == b"VP8 ":
+                return int.from_bytes(b[26:28], "little") & 0x3FFF, int.from_bytes(b[28:30], "little") & 0x3FFF
+    except (IndexError, ValueError):
+        return None
+    return None
+
+
+def check_pixel_count(data: bytes | np.ndarray, name: str) -> None:
+    """Refuse an image whose header announces more pixels than max_image_pixels(), before decoding."""
+    size = header_size(data)
+    limit = max_image_pixels()
+    if size is not None and size[0] * size[1] > limit:
+        raise BadInput(f"{name} is {size[0]} x {size[1]} pixels ({size[0] * size[1] / 1e6:.0f} MP), more than the "
+                       f"{limit / 1e6:.0f} MP skyview decodes (set SKYVIEW_MAX_PIXELS to raise the limit)")
+
+
 def load_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image file (PNG, TIFF, JPEG, ... anything cv2 decodes) unchanged in depth, as grey.
 
@@ -150,6 +220,7 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
         raise BadInput(f"image {p} cannot be read: {exc.strerror or exc}") from None
     if data.size == 0:
         raise BadInput(f"image {p} is empty (0 bytes)")
+    check_pixel_count(data, f"image {p}")
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
@@ -246,7 +317,7 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         raise BadInput(f"window={window} must be an odd number >= 3")
     if not (k_sigma > 0):
         raise BadInput(f"k_sigma={k_sigma} must be positive")
-    img = to_gray(image)
+    img = np.ascontiguousarray(to_gray(image))  # any memory order (Fortran, transposed views)
     if img.ndim != 2:
         raise BadInput(f"image must be 2-D (grey) or BGR/BGRA, got an array of shape {np.shape(image)}")
     if img.dtype.kind not in "uif":

@@ -232,3 +232,38 @@ def test_database_is_memory_mapped_and_a_damaged_file_is_rebuilt(tmp_path, monke
     path.write_bytes(path.read_bytes()[:2000])  # truncated
     arrays, info = database.load_or_build(key, lambda: built, mmap=True)
     assert info["source"] == "built"
+
+
+def test_database_with_a_missing_array_is_rebuilt_and_the_cache_stays_in_budget(tmp_path, monkeypatch, capsys):
+    import zipfile
+
+    monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
+    key = {"method": "test-names", "n": 2}
+    built = {"a": np.arange(10), "b": np.arange(5)}
+    database.load_or_build(key, lambda: built)
+    path = database.database_path(key)
+    # rewrite the file without array "b"
+    with zipfile.ZipFile(path) as zin:
+        members = {n: zin.read(n) for n in zin.namelist() if n != "b.npy"}
+    with zipfile.ZipFile(path, "w") as zout:
+        for n, data in members.items():
+            zout.writestr(n, data)
+    for mmap in (False, True):
+        arrays, info = database.load_or_build(key, lambda: built, mmap=mmap)
+        assert info["source"] == "built" and set(arrays) == {"a", "b"}
+        assert "damaged" in capsys.readouterr().err
+        with zipfile.ZipFile(path) as zin:
+            members = {n: zin.read(n) for n in zin.namelist() if n != "b.npy"}
+        with zipfile.ZipFile(path, "w") as zout:
+            for n, data in members.items():
+                zout.writestr(n, data)
+    # least recently used go first when the cache is over its budget
+    monkeypatch.setenv("SKYVIEW_CACHE_MB", "0.05")
+    big = {"x": np.zeros(4000)}  # 32 kB each
+    import os
+    import time as _t
+    database.load_or_build({"method": "old", "n": 1}, lambda: big)
+    old = database.database_path({"method": "old", "n": 1})
+    os.utime(old, (_t.time() - 100, _t.time() - 100))
+    database.load_or_build({"method": "new", "n": 1}, lambda: big)
+    assert not old.exists() and database.database_path({"method": "new", "n": 1}).exists()

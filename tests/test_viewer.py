@@ -31,6 +31,7 @@ import pytest
 from skyview import sky_geometry as sg
 from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes
 from skyview.camera import Camera
+from skyview.errors import BadInput
 from skyview.catalog import load_guide_catalog, radec_to_vec
 from skyview.cli import main
 from skyview.identify import IDENTIFIED, make_identifier
@@ -1062,3 +1063,18 @@ def test_an_uploaded_photograph_gets_its_camera_fitted_blind():
     # a simulated scene keeps its exact camera
     sim = Source(image=load_image(real / name), fov_deg=8.0, name="sim", truth={"R": np.eye(3).tolist()})
     assert fit_camera_blind(sim, Solvers()) is sim
+
+
+def test_a_host_that_cannot_be_bound_is_one_line_and_exit_2(capsys):
+    """An address that is not this machine's fails at once (no hang), with one line."""
+    from skyview.cli import main
+    from skyview.viewer.app import check_host
+
+    check_host("127.0.0.1")
+    with pytest.raises(BadInput, match="cannot listen"):
+        check_host("192.0.2.1")  # TEST-NET-1: never an address of this machine; bind() fails locally
+    t0 = time.perf_counter()
+    code = main(["view", "--host", "192.0.2.1", "--port", "0"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip().startswith("skyview: error:") and len(err.strip().splitlines()) == 1
+    assert time.perf_counter() - t0 < 10.0

@@ -140,7 +140,7 @@ class BlindIdentifier:
         self.database_info = {**info, "patterns": int(len(self.keys))}
         edges = self.pattern_params.levels()
         # a field shows patterns up to about its diagonal and down to a quarter of its width
-        self.fov_range_deg = (max(edges[-1] / self.pattern_params.step * 2.0, 1.0), min(edges[0] * 1.2, 90.0))
+        self.fov_range_deg = (max(edges[-1] / self.pattern_params.step * 1.4, 1.0), min(edges[0] * 1.2, 90.0))
         self._depth_catalogs: dict[float, GuideCatalog] = {}
 
     # ------------------------------------------------------------------ depth
@@ -232,7 +232,7 @@ class BlindIdentifier:
             found_p.append(prow[keep])
             found_f.append(fov[keep])
             found_err.append(err[keep])
-        if not found_q:
+        if sum(len(x) for x in found_q) == 0:
             e = np.zeros(0, dtype=np.int64)
             return {"quad": e, "pattern": e, "fov": np.zeros(0), "err": np.zeros(0)}
         q, pr, f, er = (np.concatenate(x) for x in (found_q, found_p, found_f, found_err))

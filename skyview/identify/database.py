@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 import os
 import tempfile
 import zipfile
@@ -24,9 +25,12 @@ import numpy as np
 
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, cache_dir
+from skyview.errors import BadInput
 
 FORMAT_VERSION = 1
 _KEY_FIELD = "__key__"
+_NAMES_FIELD = "__names__"
+DEFAULT_CACHE_MB = 4096  # SKYVIEW_CACHE_MB overrides; the least recently used databases go first
 
 
 def make_key(method: str, params: dict, catalog: GuideCatalog, camera: Camera | None) -> dict:
@@ -60,6 +64,31 @@ def angular_range(rad: float) -> float:
     return float(base * RANGE_STEP ** k)
 
 
+DEFAULT_MEMORY_MB = 4096  # budget of one database build; SKYVIEW_MEMORY_MB overrides
+
+
+def memory_budget_mb() -> float:
+    env = os.environ.get("SKYVIEW_MEMORY_MB")
+    try:
+        return float(env) if env else float(DEFAULT_MEMORY_MB)
+    except ValueError:
+        raise BadInput(f"SKYVIEW_MEMORY_MB={env!r} is not a number") from None
+
+
+def check_memory(estimated_bytes: float, what: str, budget_mb: float | None = None) -> None:
+    """Refuse, before any work, a build whose estimated peak memory exceeds the budget."""
+    budget = memory_budget_mb() if budget_mb is None else float(budget_mb)
+    mb = estimated_bytes / 2 ** 20
+    if mb > budget:
+        raise BadInput(f"{what} would need about {mb:,.0f} MB of memory, over the budget of {budget:,.0f} MB: "
+                       f"use a brighter --mag-limit or a narrower field, or raise SKYVIEW_MEMORY_MB")
+
+
+def pairs_estimate(n_stars: int, max_sep_rad: float) -> float:
+    """Expected number of star pairs closer than max_sep_rad among n_stars spread over the sky."""
+    return 0.5 * n_stars * max(n_stars - 1, 0) * (1.0 - np.cos(min(max_sep_rad, np.pi))) / 2.0
+
+
 def key_hash(key: dict) -> str:
     blob = json.dumps(key, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
@@ -91,13 +120,17 @@ def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap
         if arrays is not None:
             info.update(source="cache", load_s=time.perf_counter() - t0, build_s=None,
                         file_bytes=path.stat().st_size, nbytes=_nbytes(arrays))
+            _touch(path)
             return arrays, info
+        print(f"skyview: the cached database {path.name} is damaged or from another version; rebuilding it",
+              file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     arrays = build()
     info.update(source="built", build_s=time.perf_counter() - t0, load_s=None, nbytes=_nbytes(arrays))
     try:
         _write(path, key, arrays)
         info["file_bytes"] = path.stat().st_size
+        evict_to_budget(keep=path)
     except OSError as exc:  # a read-only cache still works, it just rebuilds next time
         warnings.warn(f"could not cache the database at {path}: {exc}", RuntimeWarning, stacklevel=2)
         info["file_bytes"] = None
@@ -110,7 +143,10 @@ def _read(path: Path, key: dict) -> dict[str, np.ndarray] | None:
             stored = json.loads(str(z[_KEY_FIELD]))
             if stored != json.loads(json.dumps(key)):
                 return None
-            return {k: z[k] for k in z.files if k != _KEY_FIELD}
+            names = json.loads(str(z[_NAMES_FIELD]))
+            if set(names) - set(z.files):
+                return None  # an array is missing
+            return {k: z[k] for k in names}
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
 
@@ -120,6 +156,7 @@ def _read_mmap(path: Path, key: dict) -> dict[str, np.ndarray] | None:
 
     try:
         out = {}
+        names = None
         with zipfile.ZipFile(path) as zf, open(path, "rb") as fh:
             for zi in zf.infolist():
                 if zi.compress_type != zipfile.ZIP_STORED or not zi.filename.endswith(".npy"):
@@ -144,12 +181,18 @@ def _read_mmap(path: Path, key: dict) -> dict[str, np.ndarray] | None:
                     if stored != json.loads(json.dumps(key)):
                         return None
                     continue
+                if name == _NAMES_FIELD:
+                    fh.seek(start)
+                    names = json.loads(str(np.lib.format.read_array(fh, allow_pickle=False)))
+                    continue
                 n = int(np.prod(shape)) if shape else 1
                 if fh.tell() + n * dtype.itemsize > path.stat().st_size:
                     return None  # truncated
                 out[name] = np.memmap(path, dtype=dtype, mode="r", offset=fh.tell(), shape=shape,
                                       order="F" if fortran else "C")
-        return out
+        if names is None or set(names) - set(out):
+            return None  # no list of arrays, or an array is missing
+        return {k: out[k] for k in names}
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
 
@@ -159,7 +202,8 @@ def _write(path: Path, key: dict, arrays: dict[str, np.ndarray]) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **{_KEY_FIELD: np.array(json.dumps(key, sort_keys=True))}, **arrays)
+            np.savez(fh, **{_KEY_FIELD: np.array(json.dumps(key, sort_keys=True)),
+                            _NAMES_FIELD: np.array(json.dumps(sorted(arrays)))}, **arrays)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
@@ -191,6 +235,43 @@ def _jsonable(x):
     return str(x)
 
 
+def cache_budget_bytes() -> int:
+    env = os.environ.get("SKYVIEW_CACHE_MB")
+    try:
+        return int(float(env) * 2 ** 20) if env else DEFAULT_CACHE_MB * 2 ** 20
+    except ValueError:
+        return DEFAULT_CACHE_MB * 2 ** 20
+
+
+def _touch(path: Path) -> None:
+    """Mark a database as just used (its modification time), for the least-recently-used eviction."""
+    try:
+        os.utime(path)
+    except OSError:
+        pass
+
+
+def evict_to_budget(keep: Path | None = None, budget_bytes: int | None = None) -> list[Path]:
+    """Delete the least recently used databases until the cache fits its budget (never `keep`)."""
+    budget = cache_budget_bytes() if budget_bytes is None else int(budget_bytes)
+    rows = cached_databases()
+    total = sum(r["bytes"] for r in rows)
+    removed = []
+    for r in sorted(rows, key=lambda d: d["used"]):
+        if total <= budget:
+            break
+        p = Path(r["path"])
+        if keep is not None and p == Path(keep):
+            continue
+        try:
+            p.unlink()
+        except OSError:
+            continue
+        total -= r["bytes"]
+        removed.append(p)
+    return removed
+
+
 def cached_databases() -> list[dict]:
     """The databases in the cache: path, method, bytes, last use (POSIX time), newest use first."""
     folder = cache_dir() / "databases"
@@ -201,7 +282,7 @@ def cached_databases() -> list[dict]:
         except OSError:
             continue
         out.append({"path": str(p), "method": p.stem.rsplit("-", 1)[0], "bytes": int(st.st_size),
-                    "used": max(st.st_atime, st.st_mtime)})
+                    "used": st.st_mtime})
     return sorted(out, key=lambda d: -d["used"])
 
 

@@ -354,6 +354,13 @@ class TriangleMethod(Identifier):
                                    MOMENT_SIGMA_REF_RAD, MOMENT_SIGMA_SEED],
                   "version": DATABASE_VERSION}
         self.database_key = database.make_key(self.name, params, catalog, camera)
+        if not database.database_path(self.database_key).exists():
+            # triangles with all sides <= 2r: about N k^2 / 6 for k neighbours within 2r; ~250 bytes each
+            # while built (indices, vertices, sides, caps, areas, moments and their sorted copies)
+            k = 2.0 * database.pairs_estimate(len(catalog), 2.0 * self.max_radius_rad) / max(len(catalog), 1)
+            database.check_memory(250.0 * len(catalog) * k * k / 6.0,
+                                  f"the triangle database of {len(catalog):,} stars within "
+                                  f"{np.degrees(self.max_radius_rad):.1f} deg caps")
         arrays, info = database.load_or_build(
             self.database_key,
             lambda: build_triangle_database(catalog, self.max_radius_rad, self.depth, kvector_fit,

@@ -25,14 +25,41 @@ from skyview.viewer.run import SceneConfig, Solvers, Source, check_fov
 from skyview.viewer.session import Session
 
 
+UNKNOWN_FOV_GUESS_DEG = 10.0  # an image given without its FOV: the camera is fitted blind; this is only the
+# starting value shown (and used if the blind search fails)
+
+
 def load_initial_image(path: str | Path, fov_deg: float | None) -> Source:
-    """The `--image` / `--fov-deg` pair of `skyview view`, checked (BadInput with one line)."""
-    if fov_deg is None:
-        raise BadInput("--image needs --fov-deg (the image's horizontal field of view in degrees)")
-    fov = check_fov(fov_deg)
+    """The `--image` / `--fov-deg` pair of `skyview view`, checked (BadInput with one line). The FOV
+    may be left out: the viewer fits the camera to the image's stars (blind)."""
+    fov = check_fov(UNKNOWN_FOV_GUESS_DEG if fov_deg is None else fov_deg)
     image = load_image(path)
     Camera.from_fov(fov, image.shape[1], image.shape[0])
     return Source(image=image, fov_deg=fov, name=Path(path).name)
+
+
+def check_host(host: str) -> None:
+    """A host the server can listen on: resolvable and bindable on this machine (one line otherwise)."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise BadInput(f"--host {host!r} cannot be resolved: {exc}") from None
+    err = None
+    for family, stype, proto, _, addr in infos:
+        try:
+            with socket.socket(family, stype, proto) as sock:
+                sock.bind(addr[:2] if family == socket.AF_INET else addr)
+            return
+        except OSError as exc:
+            err = exc
+    raise BadInput(f"cannot listen on --host {host}: {err.strerror if err else 'no address'} (it must be an "
+                   f"address of this machine, e.g. 127.0.0.1 or 0.0.0.0)")
+
+
+NO_AUTH_WARNING = ("warning: the viewer has no authentication: anyone who can reach {host} can use it. Put it "
+                   "behind a reverse proxy with authentication (nginx, Caddy) or an SSH tunnel to 127.0.0.1 instead")
 
 
 class ViewerApp:
@@ -45,6 +72,7 @@ class ViewerApp:
         self.config = (config or SceneConfig()).checked()
         self.sessions: dict[int, Session] = {}
         self._lock = threading.Lock()
+        check_host(host)
         self.solvers.base_catalog  # load once before the first tab arrives
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner
             self.server = viser.ViserServer(host=host, port=port, label="skyview", verbose=False)
@@ -103,6 +131,7 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
         say(f"skyview viewer: {app.url}  (Ctrl-C stops it)")
         if host not in ("127.0.0.1", "localhost", "::1"):
             say(f"listening on {host}: other machines can reach it")
+            say(NO_AUTH_WARNING.format(host=host))
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:

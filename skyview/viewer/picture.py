@@ -10,7 +10,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from skyview.centroid import to_gray
+from skyview.centroid import check_pixel_count, to_gray
 from skyview.errors import BadInput
 
 # RGB per centroid outcome (see steps.centroid_outcomes).
@@ -68,6 +68,7 @@ def decode_image_bytes(data: bytes, name: str = "upload") -> np.ndarray:
     if len(data) > MAX_UPLOAD_BYTES:
         raise BadInput(f"{name} is {len(data) / 1e6:.0f} MB: the viewer takes images up to "
                        f"{MAX_UPLOAD_BYTES // (1024 * 1024)} MB")
+    check_pixel_count(data, name)
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
