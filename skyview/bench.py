@@ -6,11 +6,17 @@ runs the same `Solver` that `skyview solve` uses, and scores the result against 
 - correct: solved, and every reported match is the star that was rendered there;
 - incorrect: solved, and at least one match is wrong (the outcome that must never happen);
 - inconclusive: not solved (too few stars, no unique hypothesis, or verification refused it).
+
+`run_blind_bench` does the same for the blind solver (`skyview.pipeline.BlindSolver`: no FOV, or an
+FOV known only to +-fov_error) on scenarios with real-world effects (faint field stars, vignetting,
+sky gradient, lens distortion, JPEG), and also scores the fitted camera's FOV. There a solve whose
+boresight is off by more than BLIND_MAX_ERROR_PX pixels also counts as incorrect.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing
 import platform
 import sys
@@ -26,12 +32,13 @@ import numpy as np
 from skyview.attitude import attitude_error_arcsec, random_attitudes
 from skyview.catalog import load_guide_catalog
 from skyview.errors import BadInput
-from skyview.pipeline import Solver
+from skyview.pipeline import BlindSolver, Solver, check_fov_error
 from skyview.scenarios import Scenario
 from skyview.simulate import SensorModel, simulate_image
 from skyview.truth import wrong_matches
 
 OUTCOMES = ("correct", "inconclusive", "incorrect")
+BLIND_MAX_ERROR_PX = 5.0  # blind bench: a boresight error beyond this many pixels is incorrect
 
 
 class Progress:
@@ -127,19 +134,7 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
                 on_trial(trial, frame, result, solver)
             bar.update(k + 1, counts)
     else:
-        global _CONTEXT
-        _CONTEXT = ctx  # inherited by the forked workers
-        chunks = [list(range(i, min(i + BENCH_CHUNK, n))) for i in range(0, n, BENCH_CHUNK)]
-        try:
-            with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("fork")) as pool:
-                for part in as_completed([pool.submit(_run_chunk, c) for c in chunks]):
-                    for trial in part.result():
-                        trials.append(trial)
-                        counts[trial["outcome"]] += 1
-                    bar.update(len(trials), counts)
-        finally:
-            _CONTEXT = None
-        trials.sort(key=lambda t: t["trial"])
+        trials = _trials_in_processes(ctx, _run_trial, n, jobs, bar, counts)
     summary = summarize(method, scenario, seed, trials, setup_ms, solver)
     summary["jobs"] = jobs
     return summary
@@ -159,11 +154,36 @@ class _TrialContext:
     seeds: np.ndarray
 
 
-_CONTEXT: _TrialContext | None = None
+_CONTEXT: tuple | None = None  # (context, trial function), inherited by the forked workers
 
 
 def _run_chunk(indices: list[int]) -> list[dict]:
-    return [_run_trial(_CONTEXT, k)[0] for k in indices]
+    ctx, run_one = _CONTEXT
+    return [run_one(ctx, k)[0] for k in indices]
+
+
+def _trials_in_processes(ctx, run_one: Callable, n: int, jobs: int, bar: Progress, counts: Counter) -> list[dict]:
+    """run_one(ctx, k)[0] for k < n in `jobs` forked processes (ctx is inherited, not pickled), sorted by k."""
+    global _CONTEXT
+    _CONTEXT = (ctx, run_one)
+    trials: list[dict] = []
+    chunks = [list(range(i, min(i + BENCH_CHUNK, n))) for i in range(0, n, BENCH_CHUNK)]
+    try:
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+            for part in as_completed([pool.submit(_run_chunk, c) for c in chunks]):
+                for trial in part.result():
+                    trials.append(trial)
+                    counts[trial["outcome"]] += 1
+                bar.update(len(trials), counts)
+    finally:
+        _CONTEXT = None
+    trials.sort(key=lambda t: t["trial"])
+    return trials
+
+
+def _n_catalog_stars(truth: dict) -> int:
+    """Rendered stars within the scenario's catalog limit (faint field stars not counted)."""
+    return sum(1 for st in truth["stars"] if not st.get("faint"))
 
 
 def _run_trial(ctx: _TrialContext, k: int):
@@ -171,9 +191,7 @@ def _run_trial(ctx: _TrialContext, k: int):
     scenario, solver = ctx.scenario, ctx.solver
     ts = time.perf_counter()
     frame = simulate_image(ctx.catalog, ctx.camera, ctx.attitudes[k], ctx.sensor, seed=int(ctx.seeds[k]),
-                           mag_limit=scenario.mag_limit, n_false_stars=scenario.n_false_stars,
-                           false_star_placement=scenario.false_star_placement,
-                           position_noise_rad=scenario.noise_rad)
+                           **scenario.render_kwargs())
     sim_ms = (time.perf_counter() - ts) * 1e3
     result = solver.solve_array(frame.image)
     outcome, wrong = score_trial(result, frame.truth)
@@ -185,7 +203,7 @@ def _run_trial(ctx: _TrialContext, k: int):
         "status": ident.status if ident else "failed", "reason": result.reason,
         "unverified_outcome": unverified,
         "cause": (ident.stats.get("cause") if ident and outcome != "correct" else None),
-        "stars_in_fov": len(frame.truth["stars"]), "centroids": len(result.centroids),
+        "stars_in_fov": _n_catalog_stars(frame.truth), "centroids": len(result.centroids),
         "matches": len(result.matches), "wrong_matches": wrong,
         "pivots": (ident.stats.get("pivots") if ident else None),
         "p_false": (ident.verification.get("p_false") if ident else None),
@@ -335,3 +353,214 @@ def save_results(summary: dict, out_dir: Path, stem: str, markdown: str | None =
     except OSError as exc:
         raise BadInput(f"cannot write results into {out_dir}: {exc.strerror}") from None
     return jpath, mpath
+
+
+# ============================================================================ blind bench
+
+@dataclass
+class _BlindContext:
+    solver: BlindSolver
+    catalog: object
+    camera: object
+    scenario: Scenario
+    sensor: SensorModel
+    attitudes: np.ndarray
+    seeds: np.ndarray
+    fov_factors: np.ndarray  # 1 + u per trial: the FOV handed to the solver is true FOV x this
+    fov_error: float | None  # None: pure blind (no FOV given)
+    max_error_px: float
+
+
+def run_blind_bench(scenario: Scenario, n: int, *, seed: int = 0, fov_error: float | None = None,
+                    sensor: SensorModel | None = None, progress: bool = True, jobs: int = 1,
+                    solver: BlindSolver | None = None, max_error_px: float = BLIND_MAX_ERROR_PX) -> dict:
+    """n blind solves of simulated images of `scenario` (with its real-world effects), scored against truth.
+
+    fov_error=None: no FOV is given (pure blind). fov_error=E (a fraction, 0 <= E < 1): the solver is
+    told fov_deg = true FOV x (1 + u), u uniform in [-E, E] per trial, good to +-E. One BlindSolver is
+    built (or `solver` is used) for the whole run; jobs > 1 forks after building it. Trial k gets the
+    same attitude and noise seed as trial k of run_bench with the same seed.
+
+    Outcomes as run_bench, and a solve whose boresight is more than max_error_px pixels (at the
+    scenario's plate scale) from the truth is incorrect too. Also scored: the fitted camera's FOV
+    error (% of the true horizontal FOV), its k1, and the times per stage (ms).
+    """
+    if n < 1:
+        raise BadInput("the number of trials (-n) must be at least 1")
+    jobs = int(jobs)
+    if jobs < 1:
+        raise BadInput("the number of jobs must be at least 1")
+    if fov_error is not None:
+        check_fov_error(fov_error)
+        fov_error = float(fov_error)
+    rng = np.random.default_rng(seed)
+    camera = scenario.camera()
+    attitudes = random_attitudes(n, rng)
+    seeds = rng.integers(0, 2**31 - 1, size=n)
+    factors = 1.0 + rng.uniform(-fov_error, fov_error, size=n) if fov_error else np.ones(n)
+    t0 = time.perf_counter()
+    if solver is None:
+        from skyview.identify.patterns import print_progress
+
+        solver = BlindSolver(catalog=load_guide_catalog(), progress=print_progress if progress else None)
+    setup_ms = (time.perf_counter() - t0) * 1e3
+    ctx = _BlindContext(solver=solver, catalog=solver.catalog, camera=camera, scenario=scenario,
+                        sensor=sensor or SensorModel(), attitudes=attitudes, seeds=seeds, fov_factors=factors,
+                        fov_error=fov_error, max_error_px=float(max_error_px))
+    counts: Counter = Counter()
+    given = "no FOV" if fov_error is None else f"FOV +-{100 * fov_error:g} %"
+    bar = Progress(n, f"blind/{scenario.name} ({given})", progress)
+    if jobs == 1:
+        trials = []
+        for k in range(n):
+            trials.append(_run_blind_trial(ctx, k)[0])
+            counts[trials[-1]["outcome"]] += 1
+            bar.update(k + 1, counts)
+    else:
+        trials = _trials_in_processes(ctx, _run_blind_trial, n, jobs, bar, counts)
+    summary = summarize_blind(scenario, seed, trials, fov_error, setup_ms, solver, max_error_px)
+    summary["jobs"] = jobs
+    return summary
+
+
+def _run_blind_trial(ctx: _BlindContext, k: int):
+    """Simulate, solve blind and score trial k: (trial record, frame, result)."""
+    ts = time.perf_counter()
+    frame = simulate_image(ctx.catalog, ctx.camera, ctx.attitudes[k], ctx.sensor, seed=int(ctx.seeds[k]),
+                           **ctx.scenario.render_kwargs())
+    sim_ms = (time.perf_counter() - ts) * 1e3
+    true_fov = ctx.camera.fov_deg
+    if ctx.fov_error is None:
+        fov_given = None
+        result = ctx.solver.solve_array(frame.image)
+    else:
+        fov_given = true_fov * float(ctx.fov_factors[k])
+        result = ctx.solver.solve_array(frame.image, fov_deg=fov_given, fov_error=ctx.fov_error)
+    outcome, wrong = score_trial(result, frame.truth)
+    err = attitude_error_arcsec(result.R, ctx.attitudes[k]) if result.solved else None
+    limit_arcsec = ctx.max_error_px * ctx.camera.pixel_scale_rad * 206264.80624709636
+    off = err is not None and err["boresight"] > limit_arcsec
+    if off:
+        outcome = "incorrect"
+    cam = result.camera if result.solved else None
+    cause = None
+    if wrong:
+        cause = "unresolved pair" if all(_named_star_is_there(m, frame.truth) for m in result.matches
+                                         if m["index"] in wrong) else "wrong match"
+    elif off:
+        cause = "attitude error"
+    trial = {
+        "trial": k, "seed": int(ctx.seeds[k]), "outcome": outcome,
+        "reason": result.reason,
+        "cause": cause,
+        "stars_in_fov": _n_catalog_stars(frame.truth),
+        "faint_in_fov": len(frame.truth["stars"]) - _n_catalog_stars(frame.truth),
+        "centroids": len(result.centroids), "matches": len(result.matches), "wrong_matches": wrong,
+        "fov_true_deg": true_fov, "fov_given_deg": fov_given,
+        "fov_fitted_deg": cam.fov_deg if cam is not None else None,
+        "fov_error_pct": 100.0 * (cam.fov_deg / true_fov - 1.0) if cam is not None else None,
+        "k1_true": ctx.camera.k1, "k1_fitted": cam.k1 if cam is not None else None,
+        "mag_limit_used": getattr(result, "mag_limit", None),
+        "err_boresight_arcsec": err["boresight"] if err else None,
+        "err_roll_arcsec": err["roll"] if err else None,
+        "time_ms": {"simulate": sim_ms, **result.time_ms},
+        "quaternion_true": [float(x) for x in np.asarray(frame.truth["quaternion"])],
+    }
+    return trial, frame, result
+
+
+PAIR_RADIUS_PX = 1.5  # two stars closer than this are one blob to the centroider (PSF sigma ~1.1 px)
+
+
+def _named_star_is_there(match: dict, truth: dict, radius_px: float = PAIR_RADIUS_PX) -> bool:
+    """Whether the star a wrong match names was rendered within radius_px of the centroid too: the match
+    picked the other component of an unresolved pair (still scored incorrect, as by wrong_matches)."""
+    return any(int(st["hip"]) == int(match["hip"]) and math.hypot(st.get("u_noisy", st["u"]) - match["u"],
+                                                                 st.get("v_noisy", st["v"]) - match["v"]) <= radius_px
+               for st in truth["stars"])
+
+
+def _short_reason(reason: str) -> str:
+    return (reason or "").split(";")[0].strip()[:80]
+
+
+def summarize_blind(scenario: Scenario, seed: int, trials: list[dict], fov_error: float | None, setup_ms: float,
+                    solver: BlindSolver, max_error_px: float) -> dict:
+    n = len(trials)
+    solved = [t for t in trials if t["outcome"] == "correct"]  # the camera and attitude figures: correct solves
+    fov_abs = [abs(t["fov_error_pct"]) for t in solved]
+    stages = ("simulate", "centroid", "identify", "total")
+    return {
+        "mode": "blind",
+        "scenario": scenario.to_dict(),
+        "n": n,
+        "seed": seed,
+        "fov_error": fov_error,
+        "fov_given": "none" if fov_error is None else f"true x (1 + U[-{fov_error:g}, {fov_error:g}])",
+        "max_error_px": max_error_px,
+        "rates": {o: sum(t["outcome"] == o for t in trials) / n for o in OUTCOMES},
+        "counts": {o: sum(t["outcome"] == o for t in trials) for o in OUTCOMES},
+        "incorrect_causes": dict(Counter(t["cause"] for t in trials if t["outcome"] == "incorrect")),
+        "inconclusive_reasons": dict(Counter(_short_reason(t["reason"]) for t in trials
+                                             if t["outcome"] == "inconclusive").most_common(5)),
+        "fov_error_abs_pct": _stats(fov_abs),
+        "fov_error_signed_median_pct": (float(np.median([t["fov_error_pct"] for t in solved])) if solved else None),
+        "k1_fitted": _stats([t["k1_fitted"] for t in solved]),
+        "boresight_error_arcsec": _stats([t["err_boresight_arcsec"] for t in solved]),
+        "stars_in_fov": _stats([t["stars_in_fov"] for t in trials]),
+        "faint_in_fov": _stats([t["faint_in_fov"] for t in trials]),
+        "centroids": _stats([t["centroids"] for t in trials]),
+        "time_ms": {s: _stats([t["time_ms"].get(s) for t in trials]) for s in stages},
+        "setup_ms": {"solver_total": setup_ms, **solver.setup_ms},
+        "database_key": solver.identifier.database_key,
+        "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine(),
+                    "cores": __import__("os").cpu_count()},
+        "trials": trials,
+    }
+
+
+def _fmt(st: dict, key: str = "median", f: str = ".1f") -> str:
+    return format(st[key], f) if st.get("n") else "-"
+
+
+def format_blind_markdown(s: dict) -> str:
+    """A compact report of run_blind_bench: one table row, then the details."""
+    sc = s["scenario"]
+    pct = {k: f"{100 * v:.1f} %" for k, v in s["rates"].items()}
+    fe, t = s["fov_error_abs_pct"], s["time_ms"]
+    given = "none (blind)" if s["fov_error"] is None else f"+-{100 * s['fov_error']:g} %"
+    lines = [
+        f"# blind on {sc['name']} ({s['n']} attitudes, seed {s['seed']})",
+        "",
+        f"{sc['description']}.",
+        "",
+        "| FOV given | correct | inconclusive | incorrect | FOV error median / p95 | boresight error median "
+        "| centroid / identify / total median |",
+        "|---|---|---|---|---|---|---|",
+        f"| {given} | {pct['correct']} ({s['counts']['correct']}) | {pct['inconclusive']} "
+        f"({s['counts']['inconclusive']}) | {pct['incorrect']} ({s['counts']['incorrect']}) "
+        f"| {_fmt(fe, 'median', '.2f')} / {_fmt(fe, 'p95', '.2f')} % | {_fmt(s['boresight_error_arcsec'])} arcsec "
+        f"| {_fmt(t['centroid'])} / {_fmt(t['identify'])} / {_fmt(t['total'])} ms |",
+        "",
+        f"Effects: faint field stars +{sc.get('faint_extra_mag', 0):g} mag, vignetting {sc.get('vignetting', 0):g}, "
+        f"sky gradient {sc.get('sky_gradient', 0):g}, k1 {sc.get('k1', 0):g}, k2 {sc.get('k2', 0):g}, "
+        f"JPEG quality {sc.get('jpeg_quality') or 'none'}. Stars per image (to Hp {sc['mag_limit']:g}): median "
+        f"{_fmt(s['stars_in_fov'], 'median', '.0f')}, fainter ones {_fmt(s['faint_in_fov'], 'median', '.0f')}, "
+        f"centroids {_fmt(s['centroids'], 'median', '.0f')}.",
+        f"Incorrect: a wrong match, or a boresight error over {s['max_error_px']:g} px.",
+    ]
+    if s["incorrect_causes"]:
+        lines.append("Incorrect causes: " + ", ".join(f"{k} {v}" for k, v in s["incorrect_causes"].items())
+                     + (" (unresolved pair: the named star is rendered within "
+                        f"{PAIR_RADIUS_PX:g} px of the centroid too, but truth's nearest star is the other one)"
+                        if "unresolved pair" in s["incorrect_causes"] else "") + ".")
+    if s["inconclusive_reasons"]:
+        lines.append("Inconclusive: " + "; ".join(f"{k} ({v})" for k, v in s["inconclusive_reasons"].items()) + ".")
+    if s["fov_error_signed_median_pct"] is not None:
+        lines.append(f"FOV error signed median {s['fov_error_signed_median_pct']:+.3f} %; fitted k1 median "
+                     f"{_fmt(s['k1_fitted'], 'median', '+.4f')}.")
+    lines += ["", "Setup (once): " + ", ".join(f"{k} {v:.1f} ms" for k, v in s["setup_ms"].items())]
+    m, jobs = s["machine"], s.get("jobs", 1)
+    lines += [f"Machine: Python {m['python']}, {m['cpu']}, {m['cores']} cores"
+              + (f"; {jobs} trials at a time (times per trial include the sharing)." if jobs > 1 else ".")]
+    return "\n".join(lines) + "\n"

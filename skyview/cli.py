@@ -60,23 +60,44 @@ def cmd_simulate(a) -> int:
     from skyview.catalog import load_guide_catalog
     from skyview.simulate import SensorModel, save_frame, save_sequence, simulate_image, simulate_sequence
 
+    from skyview.simulate import JPEG_DEFAULT_QUALITY, is_jpeg_path
+
     if not -90.0 <= a.dec <= 90.0:
         raise BadInput(f"declination {a.dec} deg is outside [-90, 90]")
+    if a.jpeg_quality is not None and not 1 <= a.jpeg_quality <= 100:
+        raise BadInput(f"--jpeg-quality {a.jpeg_quality} must be in 1..100")
+    if a.faint_extra_mag < 0:
+        raise BadInput(f"--faint-extra-mag {a.faint_extra_mag} must be >= 0")
+    if not 0.0 <= a.vignetting < 1.0:
+        raise BadInput(f"--vignetting {a.vignetting} must be a fraction in [0, 1)")
+    if not 0.0 <= a.sky_gradient <= 1.0:
+        raise BadInput(f"--sky-gradient {a.sky_gradient} must be a fraction in [0, 1]")
+    out = Path(a.out)
+    if a.jpeg_quality is not None and out.suffix.lower() == ".png":
+        out = out.with_suffix(".jpg")  # --jpeg-quality writes a JPEG
+    jpeg_quality = a.jpeg_quality if a.jpeg_quality is not None else (
+        JPEG_DEFAULT_QUALITY if is_jpeg_path(out) else None)
     camera = Camera.from_fov(a.fov_deg, a.width, a.height, k1=a.distortion[0], k2=a.distortion[1])
     sensor = SensorModel(bit_depth=a.bit_depth, **({"exposure_s": a.exposure_s} if a.exposure_s else {}))
     catalog = load_guide_catalog(epoch=a.epoch)
     R = R_from_radec_roll(np.radians(a.ra), np.radians(a.dec), np.radians(a.roll))
     kw = dict(seed=a.seed, mag_limit=a.mag_limit, n_false_stars=a.false_stars, n_dropped=a.dropped,
               position_noise_rad=a.noise_arcsec * ARCSEC)
+    effects = dict(faint_extra_mag=a.faint_extra_mag, vignetting=a.vignetting, sky_gradient=a.sky_gradient,
+                   sky_gradient_deg=a.sky_gradient_deg, jpeg_quality=jpeg_quality)
+    kw.update({k: v for k, v in effects.items() if v})  # effects left off are not passed
     if a.frames > 1:
         seq = simulate_sequence(catalog, camera, R, a.frames, _turn(a), sensor, **kw)
-        paths = save_sequence(seq, Path(a.out), force=a.force)
+        paths = save_sequence(seq, out, force=a.force)
         print(f"wrote {len(seq.frames)} frames and {paths[-1]}")
         return EXIT_SOLVED
     frame = simulate_image(catalog, camera, R, sensor, **kw)
-    png, js = save_frame(frame, Path(a.out), force=a.force)
-    print(f"wrote {png} ({camera.width}x{camera.height}, {len(frame.truth['stars'])} stars, "
-          f"{len(frame.truth['false_stars'])} false) and truth {js}")
+    img, js = save_frame(frame, out, force=a.force)
+    n_faint = sum(1 for st in frame.truth["stars"] if st.get("faint"))
+    print(f"wrote {img} ({camera.width}x{camera.height}, {len(frame.truth['stars'])} stars"
+          + (f" of which {n_faint} fainter than Hp {a.mag_limit:g}" if a.faint_extra_mag else "")
+          + f", {len(frame.truth['false_stars'])} false"
+          + (f", JPEG quality {jpeg_quality}" if jpeg_quality is not None else "") + f") and truth {js}")
     return EXIT_SOLVED
 
 
@@ -269,6 +290,14 @@ def cmd_bench(a) -> int:
     from skyview.bench import format_markdown, run_bench, save_results
     from skyview.scenarios import get_scenario
 
+    if a.jpeg_quality is not None and not 1 <= a.jpeg_quality <= 100:
+        raise BadInput(f"--jpeg-quality {a.jpeg_quality} must be in 1..100")
+    if a.blind:
+        return _bench_blind(a)
+    if a.fov_error is not None:
+        raise BadInput("--fov-error goes with --blind (the calibrated bench gives the exact FOV)")
+    a.method = a.method or "angle"
+    a.scenario = a.scenario or "cole8"
     if a.centroids:
         from skyview.centroid_bench import format_markdown as fmt_c, measure_centroid_accuracy
 
@@ -277,7 +306,7 @@ def cmd_bench(a) -> int:
         j, m = save_results(res, Path(a.out), f"centroids-n{a.n}-seed{a.seed}", markdown=fmt_c(res))
         print(f"saved {j} and {m}")
         return EXIT_SOLVED
-    scenario = get_scenario(a.scenario)
+    scenario = _bench_scenario(a)
     from skyview.identify import METHODS
 
     if a.method not in METHODS:
@@ -290,6 +319,8 @@ def cmd_bench(a) -> int:
         raise BadInput("--jobs must be at least 1")
     if a.jobs > 1 and a.record_failures:
         raise BadInput("--record-failures records in one process: leave out --jobs")
+    if a.record_failures and scenario.name != a.scenario:
+        raise BadInput("--record-failures replays the named scenario: leave out --k1/--jpeg-quality/... with it")
     on_trial = None
     if a.record_failures:  # the recorder is imported only when asked: unrecorded benches stay as fast
         from skyview.record import FailureRecorder
@@ -301,10 +332,61 @@ def cmd_bench(a) -> int:
     md = format_markdown(summary)
     print(md)
     tag = (f"-{a.variant}" if a.variant != "paper" else "") + (f"-{a.statistic}" if a.statistic else "")
-    j, m = save_results(summary, out_dir, f"{a.method}{tag}-{scenario.name}-n{a.n}-seed{a.seed}")
+    j, m = save_results(summary, out_dir, f"{a.method}{tag}-{_file_tag(scenario.name)}-n{a.n}-seed{a.seed}")
     print(f"saved {j} and {m}")
     if on_trial is not None:
         print(f"recorded {len(on_trial.written)} failed trials into {on_trial.folder}")
+    return EXIT_SOLVED
+
+
+def _file_tag(name: str) -> str:
+    """A scenario name with its changes ('blind8[k1=0.05]') as a file-name part ('blind8-k10.05')."""
+    return name.replace("[", "-").replace("]", "").replace(",", "-").replace("=", "")
+
+
+def _bench_scenario(a):
+    """The --scenario with the effect flags (--k1, --jpeg-quality, ...) applied; one-line errors."""
+    from skyview.scenarios import get_scenario
+    from skyview.simulate import check_jpeg_quality, sky_gradient_factor, vignetting_falloff
+
+    scenario = get_scenario(a.scenario)
+    changed = scenario.with_changes(k1=a.k1, k2=a.k2, jpeg_quality=a.jpeg_quality, vignetting=a.vignetting,
+                                    sky_gradient=a.sky_gradient, faint_extra_mag=a.faint_extra_mag)
+    if a.faint_extra_mag is not None and a.faint_extra_mag < 0:
+        raise BadInput(f"--faint-extra-mag {a.faint_extra_mag} must be >= 0")
+    if changed.jpeg_quality is not None:
+        check_jpeg_quality(changed.jpeg_quality)
+    camera = changed.camera()
+    vignetting_falloff(camera, changed.vignetting)
+    sky_gradient_factor(camera, 0.0, 0.0, changed.sky_gradient)
+    return changed
+
+
+def _bench_blind(a) -> int:
+    from skyview.bench import format_blind_markdown, run_blind_bench, save_results
+
+    for flag, given in (("--method", a.method), ("--centroids", a.centroids), ("--param", a.param),
+                        ("--record-failures", a.record_failures), ("--statistic", a.statistic),
+                        ("--variant", a.variant != "paper")):
+        if given:
+            raise BadInput(f"{flag} does not go with --blind (the blind bench runs the default blind pipeline)")
+    a.scenario = a.scenario or "blind8"
+    scenario = _bench_scenario(a)
+    if a.fov_error is not None:
+        from skyview.pipeline import check_fov_error
+
+        check_fov_error(a.fov_error)
+    if a.jobs < 1:
+        raise BadInput("--jobs must be at least 1")
+    out_dir = Path(a.out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise BadInput(f"{out_dir} is not a folder")
+    summary = run_blind_bench(scenario, a.n, seed=a.seed, fov_error=a.fov_error, progress=not a.quiet, jobs=a.jobs)
+    md = format_blind_markdown(summary)
+    print(md)
+    tag = "nofov" if a.fov_error is None else f"fov{a.fov_error:g}"
+    j, m = save_results(summary, out_dir, f"blind-{_file_tag(scenario.name)}-{tag}-n{a.n}-seed{a.seed}", markdown=md)
+    print(f"saved {j} and {m}")
     return EXIT_SOLVED
 
 
@@ -545,7 +627,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--frames", type=int, default=1, help="a slew sequence of this many frames")
     s.add_argument("--turn-deg", type=_float, default=1.0, help="turn between frames (with --frames)")
     s.add_argument("--turn-axis", choices=("x", "y", "z"), default="y", help="camera axis of the turn")
-    s.add_argument("--out", required=True, help="output PNG (truth next to it as .json)")
+    s.add_argument("--faint-extra-mag", type=_float, default=0.0,
+                   help="also render field stars this many magnitudes fainter than --mag-limit (to Hp 9 at most); "
+                        "truth marks them faint")
+    s.add_argument("--vignetting", type=_float, default=0.0,
+                   help="fraction of light lost at the image corners, 0-1 (cos^4-shaped falloff)")
+    s.add_argument("--sky-gradient", type=_float, default=0.0,
+                   help="fraction by which the sky background changes across the frame, 0-1")
+    s.add_argument("--sky-gradient-deg", type=_float, default=0.0,
+                   help="direction the sky brightens towards, deg (0 = image right, 90 = image down)")
+    s.add_argument("--jpeg-quality", type=int, default=None,
+                   help="write a JPEG at this quality, 1-100 (16-bit images scaled to 8 bit by the background "
+                        "noise first); an --out ending in .jpg alone means quality 95")
+    s.add_argument("--out", required=True, help="output PNG or JPEG (.jpg) (truth next to it as .json)")
     s.add_argument("--force", action="store_true", help="overwrite existing files")
     s.set_defaults(func=cmd_simulate)
 
@@ -593,10 +687,25 @@ def build_parser() -> argparse.ArgumentParser:
     v.set_defaults(func=cmd_solve)
 
     b = sub.add_parser("bench", help="Monte Carlo identification statistics for a method and scenario")
-    b.add_argument("--method", default="angle")
+    b.add_argument("--method", default=None, help="identification method (default angle)")
     b.add_argument("--variant", choices=("paper", "improved"), default="paper",
                    help="the paper's parameters, or the method's improvements (see docs/methods.md)")
-    b.add_argument("--scenario", default="cole8")
+    b.add_argument("--scenario", default=None, help="scenario (skyview.scenarios; default cole8, with --blind blind8)")
+    b.add_argument("--blind", action="store_true",
+                   help="solve with the blind pipeline (no FOV, or one off by up to --fov-error) and score the "
+                        "fitted FOV too")
+    b.add_argument("--fov-error", type=_float, default=None,
+                   help="with --blind: give the solver the true FOV x (1 + u), u uniform in +-this fraction "
+                        "(default: no FOV at all)")
+    b.add_argument("--jpeg-quality", type=int, default=None, help="images go through a JPEG at this quality (1-100)")
+    b.add_argument("--k1", type=_float, default=None, help="radial distortion k1 of the simulated camera")
+    b.add_argument("--k2", type=_float, default=None, help="radial distortion k2 of the simulated camera")
+    b.add_argument("--vignetting", type=_float, default=None,
+                   help="fraction of light lost at the image corners (overrides the scenario's)")
+    b.add_argument("--sky-gradient", type=_float, default=None,
+                   help="fraction by which the sky background changes across the frame (overrides the scenario's)")
+    b.add_argument("--faint-extra-mag", type=_float, default=None,
+                   help="also render stars this many magnitudes below the scenario's limit (overrides it)")
     b.add_argument("-n", type=int, default=100, help="number of random attitudes")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--statistic", choices=("calibrated", "tetra3"), default=None,

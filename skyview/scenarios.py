@@ -1,12 +1,15 @@
 """Named test conditions, after the papers that defined them.
 
 A scenario fixes the camera, the guide catalog's magnitude limit, the measurement noise and the
-disturbances (false stars), so that every method is compared under identical conditions.
+disturbances (false stars), so that every method is compared under identical conditions. The blind
+scenarios (blind8, blind20, narrow4) add what real photographs have: field stars fainter than the
+catalog, vignetting, a sky gradient, and optionally lens distortion and JPEG compression
+(`skyview bench --blind`, docs/benchmarks.md).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 from skyview.camera import Camera
 from skyview.errors import BadInput
@@ -25,9 +28,33 @@ class Scenario:
     false_star_placement: str = "disk"  # Cole & Crassidis: within half the FOV of the boresight
     centroid_sigma_px: float = 0.1  # what the centroider adds on top of noise_rad (measured)
     max_stars: int = 40  # brightest centroids handed to the identifier (20 deg fields hold ~40-100)
+    # real-world effects (skyview.simulate.simulate_image); all off by default
+    faint_extra_mag: float = 0.0  # also render stars down to mag_limit + this (Hp, at most 9.0)
+    vignetting: float = 0.0  # fraction of light lost at the image corners (cos^4-shaped profile)
+    sky_gradient: float = 0.0  # fraction by which the sky differs across the frame (left to right)
+    jpeg_quality: int | None = None  # the image goes through a JPEG at this quality (1..100)
+    k1: float = 0.0  # radial distortion of the camera (OpenCV k1, k2), rendered and known to Solver
+    k2: float = 0.0
 
     def camera(self) -> Camera:
-        return Camera.from_fov(self.fov_deg, self.width, self.height)
+        return Camera.from_fov(self.fov_deg, self.width, self.height, k1=self.k1, k2=self.k2)
+
+    def render_kwargs(self) -> dict:
+        """The keyword arguments of simulate_image this scenario fixes (besides camera, R, seed)."""
+        kw = dict(mag_limit=self.mag_limit, n_false_stars=self.n_false_stars,
+                  false_star_placement=self.false_star_placement, position_noise_rad=self.noise_rad)
+        effects = dict(faint_extra_mag=self.faint_extra_mag, vignetting=self.vignetting,
+                       sky_gradient=self.sky_gradient, jpeg_quality=self.jpeg_quality)
+        kw.update({k: v for k, v in effects.items() if v})  # off effects are not passed at all
+        return kw
+
+    def with_changes(self, **changes) -> "Scenario":
+        """A copy with some fields changed (None values are ignored); the name records the changes."""
+        changes = {k: v for k, v in changes.items() if v is not None}
+        if not changes:
+            return self
+        tag = ",".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in changes.items())
+        return replace(self, name=f"{self.name}[{tag}]", **changes)
 
     @property
     def sigma_rad(self) -> float:
@@ -55,6 +82,19 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("sun20", "Sun, Qi, Jin & Wang: 20x20 deg FOV, 1024x1024, Hp <= 6.0, 10 urad noise (the paper "
                  "states none; its eps threshold 0.001 holds the true pattern at ~10 urad)",
                  fov_deg=20.0, width=1024, height=1024, mag_limit=6.0, noise_rad=10e-6, max_stars=200),
+        Scenario("blind8", "blind solving, 8 deg FOV, 1024x768, every catalog star rendered (Hp 6.5 + 2.5 fainter "
+                 "field stars, to Hp 9.0, as the real sky has them), 30 % vignetting at the corners, 20 % sky "
+                 "gradient; positions from the image only",
+                 fov_deg=8.0, width=1024, height=768, mag_limit=6.5, noise_rad=0.0,
+                 faint_extra_mag=2.5, vignetting=0.3, sky_gradient=0.2),
+        Scenario("blind20", "blind solving, 20 deg FOV, 1024x768, every catalog star rendered (Hp 6.0 + 3.0 fainter "
+                 "field stars, to Hp 9.0), 30 % vignetting at the corners, 20 % sky gradient",
+                 fov_deg=20.0, width=1024, height=768, mag_limit=6.0, noise_rad=0.0,
+                 faint_extra_mag=3.0, vignetting=0.3, sky_gradient=0.2),
+        Scenario("narrow4", "blind solving, 4 deg FOV, 1024x768, stars rendered to Hp 7.5 + fainter field stars "
+                 "to Hp 9.0, 30 % vignetting at the corners, 20 % sky gradient",
+                 fov_deg=4.0, width=1024, height=768, mag_limit=7.5, noise_rad=0.0,
+                 faint_extra_mag=1.5, vignetting=0.3, sky_gradient=0.2),
     ]
 }
 

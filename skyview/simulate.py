@@ -16,6 +16,17 @@ Image chain, per frame:
    full well; electronic bias (pedestal) and Gaussian read noise; gain to ADU; rounding and clipping
    to the ADC range (8 or 16 bit).
 
+Real-world effects, each off by default (off, the image is the same bit for bit as without them):
+
+- faint_extra_mag: field stars below the catalog limit, rendered down to mag_limit + faint_extra_mag
+  (at most Hp 9.0, the guide catalog's depth); truth lists them with "faint": true;
+- vignetting: the optics' relative illumination falls off towards the corners (cos^4-shaped in the
+  off-axis angle), applied to the stars and the sky, not to dark current or hot pixels;
+- sky_gradient: the sky background varies linearly across the frame (light pollution, twilight);
+- jpeg_quality: the image leaves the camera as a JPEG (8 bit; 16-bit images are scaled first, see
+  to_uint8); the frame keeps the encoded bytes so a saved .jpg is exactly what was decoded;
+- radial distortion (k1, k2) comes with the Camera and is applied by Camera.project.
+
 Everything random comes from one numpy Generator seeded with `seed`: the same arguments give the
 same image, bit for bit.
 """
@@ -42,6 +53,8 @@ from skyview.errors import BadInput
 
 HIP_BETELGEUSE = 27989
 _SQRT2 = math.sqrt(2.0)
+FAINT_MAG_CAP = 9.0  # faint field stars are rendered at most to this Hp (the guide catalog's depth)
+JPEG_DEFAULT_QUALITY = 95  # a .jpg written for a frame that was not simulated as a JPEG
 
 
 # ============================================================================ sensor model
@@ -213,12 +226,136 @@ def render_stars(shape: tuple[int, int], uv: np.ndarray, electrons: np.ndarray, 
     return img
 
 
+# ============================================================================ optics and sky effects
+
+def vignetting_falloff(camera: Camera, vignetting: float | str) -> float:
+    """Fractional loss of illumination at the image corners (0 = none) for a vignetting setting.
+
+    "cos4": natural vignetting, 1 - cos^4(theta_corner) with theta the off-axis angle of the corner
+    pixel centre (pinhole geometry); a number f in [0, 1): that fraction itself.
+    """
+    if isinstance(vignetting, str):
+        if vignetting != "cos4":
+            raise BadInput(f"vignetting {vignetting!r} must be 'cos4' or a fraction in [0, 1)")
+        return float(1.0 - _cos4(camera, np.array([0.0, camera.width - 1.0]),
+                                 np.array([0.0, camera.height - 1.0])).min())
+    try:
+        f = float(vignetting)
+    except (TypeError, ValueError):
+        raise BadInput(f"vignetting {vignetting!r} must be 'cos4' or a fraction in [0, 1)") from None
+    if not (np.isfinite(f) and 0.0 <= f < 1.0):
+        raise BadInput(f"vignetting {vignetting} must be a fraction in [0, 1) (the loss at the corners) or 'cos4'")
+    return f
+
+
+def _cos4(camera: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """cos^4 of the pinhole off-axis angle at pixel (u, v) (broadcast over u and v)."""
+    x = (np.asarray(u, dtype=np.float64) - camera.cx) / camera.fx
+    y = (np.asarray(v, dtype=np.float64) - camera.cy) / camera.fy
+    return 1.0 / (1.0 + x * x + y * y) ** 2
+
+
+def vignetting_factor(camera: Camera, u: np.ndarray, v: np.ndarray, vignetting: float | str) -> np.ndarray:
+    """Relative illumination (1 at the principal point) at pixels (u, v), broadcast over u and v.
+
+    The profile is cos^4-shaped in the off-axis angle theta and scaled so that the corner pixel
+    centres receive 1 - vignetting_falloff: I = 1 - f * (1 - cos^4 theta) / (1 - cos^4 theta_corner).
+    With "cos4" that is cos^4 theta itself. The pinhole angle is used (distortion ignored).
+    """
+    f = vignetting_falloff(camera, vignetting)
+    c4 = _cos4(camera, u, v)
+    if f == 0.0:
+        return np.ones_like(c4)
+    g_corner = 1.0 - _cos4(camera, np.array([0.0, camera.width - 1.0]), np.array([0.0, camera.height - 1.0])).min()
+    return 1.0 - f * (1.0 - c4) / g_corner
+
+
+def sky_gradient_factor(camera: Camera, u: np.ndarray, v: np.ndarray, gradient: float,
+                        angle_deg: float = 0.0) -> np.ndarray:
+    """Multiplier of the sky background at pixels (u, v): 1 + gradient * s, linear across the frame.
+
+    s runs from -0.5 to +0.5 over the pixel centres along the direction angle_deg (0 = towards +u,
+    image right; 90 = towards +v, image down), so the sky differs by the fraction `gradient` of its
+    mean between the two far edges (corners) and keeps its mean at the centre.
+    """
+    g = float(gradient)
+    if not (np.isfinite(g) and 0.0 <= g <= 1.0):
+        raise BadInput(f"sky gradient {gradient} must be a fraction in [0, 1] of the background")
+    a = math.radians(float(angle_deg))
+    c, s = math.cos(a), math.sin(a)
+    extent = max((camera.width - 1) * abs(c) + (camera.height - 1) * abs(s), 1e-12)
+    t = ((np.asarray(u, dtype=np.float64) - camera.cx) * c + (np.asarray(v, dtype=np.float64) - camera.cy) * s) / extent
+    return 1.0 + g * t
+
+
+def check_jpeg_quality(quality: Any) -> int:
+    """The JPEG quality as an int in 1..100, or BadInput."""
+    if isinstance(quality, (bool, np.bool_)) or not isinstance(quality, (int, np.integer)) or not 1 <= quality <= 100:
+        raise BadInput(f"JPEG quality {quality!r} must be an integer in 1..100")
+    return int(quality)
+
+
+def to_uint8(image: np.ndarray, scale: float | None = None) -> tuple[np.ndarray, float]:
+    """An 8-bit copy of an image, and the scale used (input units per 8-bit step).
+
+    uint8 images are returned unchanged (scale 1). Anything else is divided by `scale`, rounded and
+    clipped to 0..255; scale=None takes the background noise, 1.4826 * MAD of the image (at least 1):
+    one 8-bit step per noise sigma, as SensorModel's 8-bit gain (1 ADU per read-noise sigma), so the
+    faint stars survive and stars saturate about where an 8-bit sensor's do. No offset is removed
+    (the bias pedestal stays above 0 and the noise is not clipped).
+    """
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        return img, 1.0
+    a = img.astype(np.float32)
+    if scale is None:
+        med = float(np.median(a))
+        scale = max(1.4826 * float(np.median(np.abs(a - med))), 1.0)
+    scale = float(scale)
+    if not (np.isfinite(scale) and scale > 0):
+        raise BadInput(f"8-bit scale {scale} must be a positive number")
+    out = np.clip(np.rint(a / np.float32(scale)), 0, 255).astype(np.uint8)
+    return out, scale
+
+
+def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
+    """JPEG bytes (OpenCV, baseline, grey) of an 8-bit image at `quality` (1..100)."""
+    q = check_jpeg_quality(quality)
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        raise BadInput(f"JPEG needs an 8-bit image, not {img.dtype} (see to_uint8)")
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img), [int(cv2.IMWRITE_JPEG_QUALITY), q])
+    if not ok:  # pragma: no cover
+        raise BadInput("OpenCV could not encode the image as JPEG")
+    return buf.tobytes()
+
+
+def decode_jpeg(data: bytes) -> np.ndarray:
+    """Decode JPEG bytes to a grey uint8 image."""
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+    if img is None:  # pragma: no cover
+        raise BadInput("OpenCV could not decode the JPEG")
+    return img
+
+
+def jpeg_roundtrip(image: np.ndarray, quality: int, scale: float | None = None) -> np.ndarray:
+    """The image as it comes back from a JPEG at `quality` (1..100): uint8, same shape.
+
+    16-bit (or float) images are first made 8-bit by to_uint8 (divided by `scale`, by default the
+    background noise sigma, see to_uint8).
+    """
+    q = check_jpeg_quality(quality)
+    img8, _ = to_uint8(image, scale)
+    return decode_jpeg(encode_jpeg(img8, q))
+
+
 # ============================================================================ frames
 
 @dataclass
 class SimulatedFrame:
     image: np.ndarray  # (H, W) uint8 or uint16
     truth: dict  # JSON-ready, see simulate_image
+    jpeg: bytes | None = None  # the encoded JPEG when simulated with jpeg_quality (image is its decoding)
 
     @property
     def R(self) -> np.ndarray:
@@ -274,7 +411,9 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
                    *, seed: int = 0, mag_limit: float = 6.0, n_false_stars: int = 0,
                    false_star_placement: str = "sensor", false_star_mag_range: tuple[float, float] = (2.0, 5.0),
                    n_dropped: int | float = 0, position_noise_rad: float = 0.0,
-                   noise: bool = True) -> SimulatedFrame:
+                   noise: bool = True, faint_extra_mag: float = 0.0, vignetting: float | str = 0.0,
+                   sky_gradient: float = 0.0, sky_gradient_deg: float = 0.0,
+                   jpeg_quality: int | None = None, jpeg_scale: float | None = None) -> SimulatedFrame:
     """Render the sky seen by `camera` at attitude R (v_cam = R @ v_icrs).
 
     - catalog stars with Hp <= mag_limit whose (jittered) PSF centre lands on the sensor are drawn;
@@ -290,6 +429,24 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
       normalised (then jittered like a star); redrawn if it misses the sensor;
     - noise=False switches off shot noise and read noise (hot pixels, bias, quantisation and
       saturation remain; set their SensorModel fields to 0 to remove them).
+
+    Real-world effects (all off by default; off, nothing changes, bit for bit):
+
+    - faint_extra_mag (mag, >= 0): also render the field stars with mag_limit < Hp <=
+      min(mag_limit + faint_extra_mag, 9.0); they are in truth["stars"] with "faint": true (so a
+      solver that names them correctly is scored correct), and are dropped/jittered like the others;
+    - vignetting: the fraction of light lost at the corner pixels, in [0, 1), with a cos^4-shaped
+      profile (vignetting_factor), or "cos4" for natural cos^4 vignetting; scales the stars and the
+      sky background (not dark current, not hot pixels); truth stars then carry "vignetting", and
+      "electrons" is what reached the sensor;
+    - sky_gradient: fraction in [0, 1] by which the sky background (not dark current) differs between
+      the two far sides of the frame, linear along sky_gradient_deg (0 = towards +u, 90 = towards +v),
+      mean unchanged (sky_gradient_factor);
+    - jpeg_quality (1..100): the image is encoded as a JPEG with OpenCV and decoded back (uint8); a
+      16-bit image is first divided by jpeg_scale ADU per 8-bit step (default: its background noise
+      sigma, see to_uint8); the encoded bytes are kept in frame.jpeg.
+
+    When any effect is on, truth["effects"] records the settings (and what they resolved to).
     """
     sensor = SensorModel() if sensor is None else sensor
     R = _check_R(R)
@@ -302,6 +459,14 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
     lo_mag, hi_mag = (float(x) for x in false_star_mag_range)
     if hi_mag < lo_mag:
         raise BadInput(f"false_star_mag_range {false_star_mag_range} must be (brightest, faintest)")
+    if not (np.isfinite(faint_extra_mag) and faint_extra_mag >= 0):
+        raise BadInput(f"faint_extra_mag={faint_extra_mag} must be a number of magnitudes >= 0")
+    falloff = vignetting_falloff(camera, vignetting)
+    sky_gradient_factor(camera, 0.0, 0.0, sky_gradient, sky_gradient_deg)  # one-line error for a bad value
+    if jpeg_quality is not None:
+        check_jpeg_quality(jpeg_quality)
+    render_limit = max(float(mag_limit), min(float(mag_limit) + float(faint_extra_mag), FAINT_MAG_CAP))
+    effects_on = bool(faint_extra_mag > 0 or falloff > 0 or sky_gradient > 0 or jpeg_quality is not None)
     rng = np.random.default_rng(seed)
     H, W = camera.height, camera.width
     sigma = sensor.psf_sigma_px
@@ -310,7 +475,7 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
     boresight = R[2]
     margin_rad = 6.0 * sigma / camera.fx + 10.0 * position_noise_rad
     cone = catalog.within(boresight, camera.half_diagonal_rad + margin_rad)
-    cone = cone[catalog.mag[cone] <= mag_limit]
+    cone = cone[catalog.mag[cone] <= (render_limit if faint_extra_mag > 0 else mag_limit)]
     cone = cone[np.argsort(catalog.mag[cone], kind="stable")]  # brightest first
     v_true = catalog.xyz[cone] @ R.T
     uv_true, front = camera.project(v_true)
@@ -329,6 +494,10 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
     rend = idx_on[keep]
     mags = catalog.mag[cone[rend]].astype(np.float64)
     star_e = np.asarray(sensor.electrons(mags), dtype=np.float64)
+    star_vig = None
+    if falloff > 0:
+        star_vig = vignetting_factor(camera, uv_noisy[rend, 0], uv_noisy[rend, 1], vignetting)
+        star_e = star_e * star_vig
 
     # ---------------------------------------------------------------- false stars
     nf = int(n_false_stars)
@@ -357,6 +526,8 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
         else:  # pragma: no cover - only with absurd distortion
             raise BadInput("could not place a false star on the sensor")
     f_e = np.asarray(sensor.electrons(f_mag), dtype=np.float64).reshape(-1)
+    if falloff > 0 and nf:
+        f_e = f_e * vignetting_factor(camera, f_uv[:, 0], f_uv[:, 1], vignetting)
 
     # ---------------------------------------------------------------- electrons -> ADU
     signal = np.zeros((H, W), dtype=np.float64)
@@ -366,9 +537,20 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
     if n_hot:
         signal.reshape(-1)[hot_flat] += sensor.hot_pixel_e
     bg = sensor.background_e_per_px
+    if falloff > 0 or sky_gradient > 0:  # a per-pixel background: sky x vignetting x gradient + dark
+        uu, vv = np.arange(W, dtype=np.float64)[None, :], np.arange(H, dtype=np.float64)[:, None]
+        sky = sensor.sky_background_e_per_px_s * sensor.exposure_s * np.ones((H, W))
+        if falloff > 0:
+            sky *= vignetting_factor(camera, uu, vv, vignetting)
+        if sky_gradient > 0:
+            sky *= sky_gradient_factor(camera, uu, vv, sky_gradient, sky_gradient_deg)
+        bg = sky + sensor.dark_current_e_per_px_s * sensor.exposure_s
     if noise:
         # shot noise: background (uniform) + signal pixels; sums of independent Poissons are Poisson
-        e = rng.poisson(bg, size=(H, W)).astype(np.float32) if bg > 0 else np.zeros((H, W), np.float32)
+        if np.ndim(bg):
+            e = rng.poisson(bg).astype(np.float32)
+        else:
+            e = rng.poisson(bg, size=(H, W)).astype(np.float32) if bg > 0 else np.zeros((H, W), np.float32)
         nz = np.flatnonzero(signal)
         e.reshape(-1)[nz] += rng.poisson(signal.reshape(-1)[nz]).astype(np.float32)
     else:
@@ -381,6 +563,11 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
     np.rint(adu, out=adu)
     np.clip(adu, 0, sensor.adc_max, out=adu)
     image = adu.astype(sensor.dtype)
+    jpeg = None
+    if jpeg_quality is not None:
+        img8, jpeg_scale = to_uint8(image, jpeg_scale)
+        jpeg = encode_jpeg(img8, jpeg_quality)
+        image = decode_jpeg(jpeg)
 
     # ---------------------------------------------------------------- truth
     ra, dec, roll = radec_roll_from_R(R)
@@ -395,6 +582,10 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
             "snr": float(sensor.snr(star_e[k])),
             "u_noisy": float(uv_noisy[i, 0]), "v_noisy": float(uv_noisy[i, 1]),
         })
+        if faint_extra_mag > 0:
+            stars[-1]["faint"] = bool(mags[k] > mag_limit)
+        if star_vig is not None:
+            stars[-1]["vignetting"] = float(star_vig[k])
     false_stars = [{"u": float(f_uv[k, 0]), "v": float(f_uv[k, 1]), "mag": float(f_mag[k]),
                     "electrons": float(f_e[k]), "snr": float(sensor.snr(f_e[k]))} for k in range(nf)]
     truth = {
@@ -420,7 +611,17 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
                   "position_noise_rad). Stars whose PSF centre is off the sensor are not rendered; "
                   "those within 5 PSF sigma of the edge are listed in off_sensor."),
     }
-    return SimulatedFrame(image=image, truth=truth)
+    if effects_on:
+        truth["effects"] = {
+            "faint_extra_mag": float(faint_extra_mag), "render_mag_limit": render_limit,
+            "n_faint": sum(1 for st in stars if st.get("faint")),
+            "vignetting": vignetting if isinstance(vignetting, str) else float(vignetting),
+            "vignetting_corner_falloff": falloff,
+            "sky_gradient": float(sky_gradient), "sky_gradient_deg": float(sky_gradient_deg),
+            "jpeg_quality": None if jpeg_quality is None else int(jpeg_quality),
+            "jpeg_scale_adu_per_step": None if jpeg_quality is None else float(jpeg_scale),
+        }
+    return SimulatedFrame(image=image, truth=truth, jpeg=jpeg)
 
 
 # ============================================================================ writing files
@@ -434,12 +635,39 @@ def _check_folder(folder: Path) -> None:
         raise BadInput(f"folder {folder} is not writable")
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
 def _check_png_path(png_path: str | os.PathLike) -> Path:
     p = Path(png_path)
-    if p.suffix.lower() != ".png":
-        raise BadInput(f"{p}: the image path must end in .png")
+    if p.suffix.lower() not in IMAGE_SUFFIXES:
+        raise BadInput(f"{p}: the image path must end in .png or .jpg")
     _check_folder(p.parent if str(p.parent) else Path("."))
     return p
+
+
+def is_jpeg_path(path: str | os.PathLike) -> bool:
+    return Path(path).suffix.lower() in (".jpg", ".jpeg")
+
+
+def _frame_files(frame: SimulatedFrame, path: Path) -> list[tuple[Path, bytes]]:
+    """(image path, bytes) and (truth path, bytes) for one frame.
+
+    A .jpg path gets the frame's own JPEG (simulated with jpeg_quality: the file decodes to exactly
+    frame.image); a frame simulated without it is encoded at JPEG_DEFAULT_QUALITY after to_uint8, and
+    its truth then says so ("saved_as_jpeg"). A .png path always gets the lossless frame.image.
+    """
+    truth = frame.truth
+    if is_jpeg_path(path):
+        if frame.jpeg is not None:
+            data = frame.jpeg
+        else:
+            img8, scale = to_uint8(frame.image)
+            data = encode_jpeg(img8, JPEG_DEFAULT_QUALITY)
+            truth = {**truth, "saved_as_jpeg": {"quality": JPEG_DEFAULT_QUALITY, "scale_adu_per_step": scale}}
+    else:
+        data = _encode_png(frame.image)
+    return [(path, data), (path.with_suffix(".json"), _json_bytes(truth))]
 
 
 def _encode_png(image: np.ndarray) -> bytes:
@@ -509,20 +737,21 @@ def _json_bytes(obj: Any) -> bytes:
 
 
 def save_frame(frame: SimulatedFrame, png_path: str | os.PathLike, *, force: bool = False) -> tuple[Path, Path]:
-    """Write the image (8 or 16 bit PNG) and its truth sidecar (same stem, .json).
+    """Write the image (8 or 16 bit PNG, or a JPEG for a .jpg/.jpeg path, see _frame_files) and its
+    truth sidecar (same stem, .json).
 
-    Refuses (BadInput) a path not ending in .png, a missing or unwritable folder, and existing files
-    unless force=True. Both files are written to temporary files and moved into place, so a
-    failure leaves neither half-written. Returns (png_path, json_path).
+    Refuses (BadInput) a path not ending in .png/.jpg/.jpeg, a missing or unwritable folder, and
+    existing files unless force=True. Both files are written to temporary files and moved into
+    place, so a failure leaves neither half-written. Returns (image_path, json_path).
     """
     p = _check_png_path(png_path)
-    j = p.with_suffix(".json")
-    _write_atomic([(p, _encode_png(frame.image)), (j, _json_bytes(frame.truth))], force)
-    return p, j
+    items = _frame_files(frame, p)
+    _write_atomic(items, force)
+    return p, items[1][0]
 
 
 def load_truth(path: str | os.PathLike) -> dict:
-    """Read a truth sidecar: give the .json itself or the .png next to it (a frame or sequence.json)."""
+    """Read a truth sidecar: give the .json itself or the image next to it (a frame or sequence.json)."""
     p = Path(path)
     if p.suffix.lower() != ".json":
         p = p.with_suffix(".json")
@@ -690,7 +919,8 @@ def betelgeuse_ra_sequence(catalog: GuideCatalog, camera: Camera, n_frames: int 
 
 def save_sequence(seq: SimulatedSequence, folder_or_stem: str | os.PathLike, *, force: bool = False) -> list[Path]:
     """Write a sequence: into an existing folder as frame_000.png/.json ... + sequence.json, or, for
-    any other path, as <stem>_000.png/.json ... + <stem>.json (its folder must exist).
+    any other path, as <stem>_000.png/.json ... + <stem>.json (its folder must exist). Frames
+    simulated with jpeg_quality are written as .jpg (their own JPEG bytes).
 
     Same rules as save_frame: nothing is overwritten without force, and if any file cannot be
     written none of the new files is left behind. Returns the paths written.
@@ -699,7 +929,7 @@ def save_sequence(seq: SimulatedSequence, folder_or_stem: str | os.PathLike, *, 
     if p.is_dir():
         folder, prefix, seq_json = p, "frame_", p / "sequence.json"
     else:
-        if p.suffix.lower() in (".png", ".json"):
+        if p.suffix.lower() in (*IMAGE_SUFFIXES, ".json"):
             p = p.with_suffix("")
         folder = p.parent if str(p.parent) else Path(".")
         _check_folder(folder)
@@ -708,10 +938,9 @@ def save_sequence(seq: SimulatedSequence, folder_or_stem: str | os.PathLike, *, 
     items: list[tuple[Path, bytes]] = []
     names = []
     for k, f in enumerate(seq.frames):
-        png = folder / f"{prefix}{k:03d}.png"
-        items.append((png, _encode_png(f.image)))
-        items.append((png.with_suffix(".json"), _json_bytes(f.truth)))
-        names.append(png.name)
+        img = folder / f"{prefix}{k:03d}{'.jpg' if f.jpeg is not None else '.png'}"
+        items += _frame_files(f, img)
+        names.append(img.name)
     truth = seq.truth
     truth["images"] = names
     items.append((seq_json, _json_bytes(truth)))

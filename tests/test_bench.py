@@ -1,5 +1,7 @@
 """The bench scores against truth: a correct solve counts as correct, a wrong match as incorrect."""
 
+import json
+
 import numpy as np
 
 from skyview.bench import format_markdown, run_bench, score_trial
@@ -61,3 +63,62 @@ def test_cli_jobs_refuses_recording_failures(tmp_path, capsys):
     assert main(["bench", "-n", "2", "--jobs", "2", "--record-failures", str(rec), "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--jobs" in err[0] and not rec.exists()
+
+
+# ---------------------------------------------------------------------------------- blind bench
+
+def _small_blind_solver(monkeypatch, tmp_path):
+    """A blind database for 18-36 deg fields only: builds in about a second (the full one takes ~10 s)."""
+    import functools
+
+    from skyview import bench
+    from skyview.identify.patterns import PatternParams
+
+    monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(bench, "BlindSolver",
+                        functools.partial(bench.BlindSolver, pattern_params=PatternParams(min_edge_deg=8.0)))
+
+
+def test_blind_bench_cli_end_to_end(tmp_path, monkeypatch, capsys):
+    from skyview.cli import main
+
+    _small_blind_solver(monkeypatch, tmp_path)
+    out = tmp_path / "results"
+    code = main(["bench", "--blind", "--scenario", "blind20", "-n", "3", "--fov-error", "0.1", "--quiet",
+                 "--out", str(out)])
+    text = capsys.readouterr().out
+    assert code == 0
+    assert "| FOV given | correct | inconclusive | incorrect |" in text and "+-10 %" in text
+    saved = list(out.glob("blind-blind20-fov0.1-n3-seed0.json"))
+    assert len(saved) == 1
+    s = json.loads(saved[0].read_text())
+    assert sum(s["counts"].values()) == 3 and s["counts"]["incorrect"] == 0
+    for t in s["trials"]:
+        assert abs(t["fov_given_deg"] / t["fov_true_deg"] - 1) <= 0.1
+        if t["outcome"] == "correct":
+            assert abs(t["fov_error_pct"]) < 1.0 and t["err_boresight_arcsec"] < 5 * 70.3
+    assert s["counts"]["correct"] >= 2
+
+
+def test_blind_bench_with_jpeg_and_distortion(tmp_path, monkeypatch):
+    from skyview.bench import format_blind_markdown, run_blind_bench
+
+    _small_blind_solver(monkeypatch, tmp_path)
+    sc = SCENARIOS["blind20"].with_changes(jpeg_quality=80, k1=0.05)
+    assert sc.name == "blind20[jpeg_quality=80,k1=0.05]" and sc.camera().k1 == 0.05
+    s = run_blind_bench(sc, 2, seed=1, progress=False)
+    assert s["fov_error"] is None and s["counts"]["incorrect"] == 0 and len(s["trials"]) == 2
+    assert all(t["fov_given_deg"] is None and t["faint_in_fov"] > 0 for t in s["trials"])
+    md = format_blind_markdown(s)
+    assert "none (blind)" in md and "JPEG quality 80" in md and "k1 0.05" in md
+
+
+def test_bench_flags_are_checked(tmp_path, capsys):
+    from skyview.cli import main
+
+    for flags in (["--blind", "--jpeg-quality", "0"], ["--blind", "--jpeg-quality", "101"],
+                  ["--blind", "--fov-error", "1.5"], ["--fov-error", "0.1"], ["--blind", "--method", "angle"],
+                  ["--blind", "--vignetting", "1.2"], ["--blind", "--scenario", "nope"]):
+        assert main(["bench", "-n", "1", "--quiet", "--out", str(tmp_path), *flags]) == 2, flags
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "skyview: error:" in err

@@ -16,9 +16,10 @@ from skyview.catalog import load_guide_catalog
 from skyview.centroid import detect_centroids
 from skyview.errors import BadInput
 from skyview.simulate import (
-    HIP_BETELGEUSE, SensorModel, R_pointing_at, betelgeuse_ra_sequence, load_truth, render_stars,
-    save_frame, save_sequence, simulate_image, simulate_sequence, turn_about_camera_axis, turn_along_ra,
+    HIP_BETELGEUSE, SensorModel, R_pointing_at, betelgeuse_ra_sequence, jpeg_roundtrip, load_truth, render_stars,
+    save_frame, save_sequence, simulate_image, simulate_sequence, to_uint8, turn_about_camera_axis, turn_along_ra,
 )
+from skyview.truth import wrong_matches
 
 # noiseless, linear sensor: 1 e- = 1 ADU, no offset, no background, nothing saturates
 CLEAN = SensorModel(gain_e_per_adu=1.0, bias_e=0.0, sky_background_e_per_px_s=0.0, dark_current_e_per_px_s=0.0,
@@ -316,7 +317,7 @@ def test_save_frame_bad_paths(tmp_path, betel_frame):
     with pytest.raises(BadInput, match="does not exist"):
         save_frame(betel_frame, tmp_path / "missing" / "x.png")
     with pytest.raises(BadInput, match=r"\.png"):
-        save_frame(betel_frame, tmp_path / "x.jpg")
+        save_frame(betel_frame, tmp_path / "x.tif")
     with pytest.raises(BadInput):
         load_truth(tmp_path / "nothing.png")
     (tmp_path / "bad.json").write_text("{not json")
@@ -427,3 +428,144 @@ def test_turn_along_ra_is_icrs_turn():
     ra1, dec1, _ = radec_roll_from_R(R1)
     assert math.degrees((ra1 - ra0) % (2 * math.pi)) == pytest.approx(10.0)
     assert dec1 == pytest.approx(dec0)
+
+
+# ------------------------------------------------------------------------------------ real-world effects
+
+# a flat, noiseless sky of 1000 e- per pixel, 1 e- = 1 ADU: the image is the illumination map
+FLAT = CLEAN.replace(sky_background_e_per_px_s=10000.0)  # x 0.1 s exposure
+
+
+@pytest.fixture(scope="module")
+def odd_cam():
+    return Camera.from_fov(8.0, 201, 151)  # odd sizes: the principal point is a pixel centre
+
+
+def _flat(cat, cam, **kw):
+    return simulate_image(cat, cam, np.eye(3), FLAT, noise=False, mag_limit=-5.0, **kw).image.astype(float)
+
+
+def test_effects_off_change_nothing(cat, cam):
+    R = R_pointing_at(cat, HIP_BETELGEUSE)
+    a = simulate_image(cat, cam, R, seed=4, n_false_stars=1, position_noise_rad=2e-5)
+    b = simulate_image(cat, cam, R, seed=4, n_false_stars=1, position_noise_rad=2e-5, faint_extra_mag=0.0,
+                       vignetting=0.0, sky_gradient=0.0, jpeg_quality=None)
+    assert np.array_equal(a.image, b.image) and a.image.dtype == b.image.dtype == np.uint16
+    assert a.truth == b.truth and "effects" not in a.truth and a.jpeg is None
+    assert all("faint" not in st and "vignetting" not in st for st in a.truth["stars"])
+
+
+def test_vignetting_darkens_the_corners_by_the_stated_fraction(cat, odd_cam):
+    flat = _flat(cat, odd_cam)
+    assert np.all(flat == 1000.0)
+    img = _flat(cat, odd_cam, vignetting=0.3)
+    centre = img[75, 100]
+    assert centre == 1000.0
+    for corner in (img[0, 0], img[0, -1], img[-1, 0], img[-1, -1]):
+        assert corner / centre == pytest.approx(0.7, abs=1e-3)
+    assert img[75, 0] > img[0, 0] and img[75, 50] > img[75, 0]  # falls off monotonically outwards
+    # natural vignetting: cos^4 of the corner's off-axis angle
+    cos4 = _flat(cat, odd_cam, vignetting="cos4")
+    theta = np.arccos(odd_cam.unproject([[0.0, 0.0]])[0, 2])
+    assert cos4[0, 0] / 1000.0 == pytest.approx(np.cos(theta) ** 4, abs=1e-3)
+    with pytest.raises(BadInput, match="vignetting"):
+        _flat(cat, odd_cam, vignetting=1.0)
+    with pytest.raises(BadInput, match="vignetting"):
+        _flat(cat, odd_cam, vignetting="cos3")
+
+
+def test_vignetting_dims_stars_and_truth_records_it(cat, cam):
+    R = R_pointing_at(cat, HIP_BETELGEUSE)
+    plain = simulate_image(cat, cam, R, CLEAN, noise=False)
+    vig = simulate_image(cat, cam, R, CLEAN, noise=False, vignetting=0.5)
+    assert [st["hip"] for st in plain.truth["stars"]] == [st["hip"] for st in vig.truth["stars"]]
+    for a, b in zip(plain.truth["stars"], vig.truth["stars"]):
+        assert 0.5 <= b["vignetting"] <= 1.0
+        assert b["electrons"] == pytest.approx(a["electrons"] * b["vignetting"])
+    assert vig.image.sum() < plain.image.sum()
+    assert vig.truth["effects"]["vignetting_corner_falloff"] == 0.5
+
+
+def test_sky_gradient_is_linear_across_the_frame(cat, odd_cam):
+    img = _flat(cat, odd_cam, sky_gradient=0.2)
+    assert img[:, 0].mean() == pytest.approx(900.0, abs=0.6) and img[:, -1].mean() == pytest.approx(1100.0, abs=0.6)
+    assert img[:, 100].mean() == pytest.approx(1000.0, abs=0.6) and np.all(np.diff(img[75]) >= 0)
+    down = _flat(cat, odd_cam, sky_gradient=0.2, sky_gradient_deg=90.0)
+    assert down[0].mean() == pytest.approx(900.0, abs=0.6) and down[-1].mean() == pytest.approx(1100.0, abs=0.6)
+    with pytest.raises(BadInput, match="gradient"):
+        _flat(cat, odd_cam, sky_gradient=1.5)
+
+
+def test_faint_field_stars_only_when_asked_and_scored_as_stars(cat, cam):
+    R = R_pointing_at(cat, HIP_BETELGEUSE)
+    off = simulate_image(cat, cam, R, CLEAN, noise=False, mag_limit=6.0)
+    on = simulate_image(cat, cam, R, CLEAN, noise=False, mag_limit=6.0, faint_extra_mag=1.5)
+    assert max(st["mag"] for st in off.truth["stars"]) <= 6.0
+    faint = [st for st in on.truth["stars"] if st["faint"]]
+    bright = [st for st in on.truth["stars"] if not st["faint"]]
+    assert len(faint) > 10 and all(6.0 < st["mag"] <= 7.5 for st in faint)
+    assert [(st["hip"], st["u"], st["v"]) for st in bright] == [(st["hip"], st["u"], st["v"]) for st in off.truth["stars"]]
+    assert on.truth["effects"]["n_faint"] == len(faint) and on.truth["effects"]["render_mag_limit"] == 7.5
+    # they are in the image ...
+    for st in faint[:5]:
+        assert on.image[int(round(st["v"])), int(round(st["u"]))] > 0
+        assert off.image[int(round(st["v"])), int(round(st["u"]))] == 0 or st["hip"] in off.hips
+    # ... and naming one correctly is not a wrong match, naming it as another star is
+    st = faint[0]
+    assert wrong_matches([(0, st["u"], st["v"], st["hip"])], on.truth) == []
+    assert wrong_matches([(0, st["u"], st["v"], bright[0]["hip"])], on.truth) == [0]
+    # capped at the guide catalog's depth
+    deep = simulate_image(cat, cam, R, CLEAN, noise=False, mag_limit=6.0, faint_extra_mag=5.0)
+    assert deep.truth["effects"]["render_mag_limit"] == 9.0 and max(st["mag"] for st in deep.truth["stars"]) <= 9.0
+    with pytest.raises(BadInput, match="faint_extra_mag"):
+        simulate_image(cat, cam, R, faint_extra_mag=-1.0)
+
+
+def test_jpeg_roundtrip_8_and_16_bit():
+    rng = np.random.default_rng(0)
+    img8 = rng.integers(0, 60, (120, 160)).astype(np.uint8)
+    back = jpeg_roundtrip(img8, 80)
+    assert back.dtype == np.uint8 and back.shape == img8.shape and not np.array_equal(back, img8)
+    assert np.abs(back.astype(int) - img8).mean() < 20
+    img16 = (rng.normal(130, 13, (120, 160))).astype(np.uint16)
+    as8, scale = to_uint8(img16)
+    assert as8.dtype == np.uint8 and scale == pytest.approx(13, rel=0.1)  # one step per noise sigma
+    assert jpeg_roundtrip(img16, 90).shape == img16.shape
+    for bad in (0, 101, 50.0, True, None):
+        with pytest.raises(BadInput, match="quality"):
+            jpeg_roundtrip(img8, bad)
+
+
+def test_jpeg_frame_keeps_its_bytes_and_saves_as_jpg(tmp_path, cat, cam):
+    R = R_pointing_at(cat, HIP_BETELGEUSE)
+    raw = simulate_image(cat, cam, R, SensorModel(bit_depth=8), seed=1)
+    f = simulate_image(cat, cam, R, SensorModel(bit_depth=8), seed=1, jpeg_quality=70)
+    assert f.image.dtype == np.uint8 and f.image.shape == raw.image.shape and not np.array_equal(f.image, raw.image)
+    assert f.truth["effects"]["jpeg_quality"] == 70 and f.truth["stars"] == raw.truth["stars"]
+    p, j = save_frame(f, tmp_path / "f.jpg")
+    assert p.read_bytes() == f.jpeg and j == tmp_path / "f.json"
+    assert np.array_equal(cv2.imread(str(p), cv2.IMREAD_UNCHANGED), f.image)
+    assert load_truth(p)["effects"]["jpeg_quality"] == 70
+    # a frame simulated without JPEG can still be saved as one (quality 95, said in its truth)
+    save_frame(raw, tmp_path / "raw.jpg")
+    assert load_truth(tmp_path / "raw.jpg")["saved_as_jpeg"]["quality"] == 95
+    f16 = simulate_image(cat, cam, R, seed=1, jpeg_quality=90)
+    assert f16.image.dtype == np.uint8 and f16.truth["effects"]["jpeg_scale_adu_per_step"] > 1
+
+
+def test_cli_simulate_effects_and_jpeg(tmp_path, capsys):
+    from skyview.cli import main
+
+    code = main(["simulate", "--ra", "83.8", "--dec", "-5.4", "--faint-extra-mag", "1.5", "--vignetting", "0.3",
+                 "--sky-gradient", "0.2", "--jpeg-quality", "80", "--out", str(tmp_path / "x.png")])
+    assert code == 0 and "JPEG quality 80" in capsys.readouterr().out
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["x.jpg", "x.json"]
+    t = load_truth(tmp_path / "x.jpg")
+    assert t["effects"]["vignetting"] == 0.3 and any(st.get("faint") for st in t["stars"])
+    assert main(["simulate", "--ra", "83.8", "--dec", "-5.4", "--out", str(tmp_path / "y.jpg")]) == 0
+    assert load_truth(tmp_path / "y.json")["effects"]["jpeg_quality"] == 95
+    for flags in (["--jpeg-quality", "0"], ["--jpeg-quality", "101"], ["--vignetting", "1"],
+                  ["--sky-gradient", "-0.1"], ["--faint-extra-mag", "-1"]):
+        assert main(["simulate", "--ra", "1", "--dec", "1", "--out", str(tmp_path / "z.png"), *flags]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "error" in err

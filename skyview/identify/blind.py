@@ -41,12 +41,12 @@ from scipy.stats import binom
 from skyview.attitude import RAD_TO_ARCSEC
 from skyview.camera import Camera
 from skyview.camera_fit import CameraFit, fit_camera
-from skyview.catalog import GuideCatalog
+from skyview.catalog import GuideCatalog, chord
 from skyview.errors import BadInput
 from skyview.identify import database
 from skyview.identify import patterns as pdb
 from skyview.identify.base import FAILED, INCONCLUSIVE, Identification, Step
-from skyview.identify.verify import verification_step, verify
+from skyview.identify.verify import BLEND_RADIUS_PX, verification_step, verify
 
 PERMUTATIONS = np.array(list(itertools.permutations(range(4))))
 # the pair index (in PAIRS_OF_FOUR order) of each ordered pair of the four stars
@@ -55,6 +55,7 @@ _PAIR_INDEX.update({(b, a): k for (a, b), k in list(_PAIR_INDEX.items())})
 # for each permutation p, the catalog edge that lands on each image edge
 PERM_EDGES = np.array([[_PAIR_INDEX[(int(p[a]), int(p[b]))] for a, b in pdb.PAIRS_OF_FOUR] for p in PERMUTATIONS])
 CAP = 200
+BLEND_DELTA_MAG = 2.5  # a companion this much fainter moves a blended centroid by < 10 % of the separation
 
 
 @dataclass(frozen=True)
@@ -373,10 +374,28 @@ class BlindIdentifier:
                                database_key=database.key_string(self.database_key))
         if ver.passed:
             ident.accept(ver)
-            ident.matches = dict(shown.matches)
+            ident.matches = self._resolved(dict(shown.matches), cam)
+            ident.stats["unresolved_pairs_left_out"] = len(shown.matches) - len(ident.matches)
         ident.stats["time_ms"] = (time.perf_counter() - t0) * 1e3
         return BlindResult(ident, camera=cam if ver.passed else None, fit=fit, mag_limit=mag_limit,
                            sigma_rad=sigma_rad, info={"checks": checks})
+
+    def _resolved(self, matches: dict[int, int], cam: Camera) -> dict[int, int]:
+        """Matches without the stars that have a companion in the FULL catalog close enough to blend
+        (within BLEND_RADIUS_PX pixels) and bright enough to move the centroid (at most BLEND_DELTA_MAG
+        fainter): the verification only sees its depth catalog, whose faint companions are left out."""
+        if not matches:
+            return matches
+        obs = np.array(sorted(matches))
+        rows = np.array([matches[o] for o in obs])
+        radius = BLEND_RADIUS_PX * cam.pixel_scale_rad
+        near = self.catalog.tree.query_ball_point(self.catalog.xyz[rows], float(chord(radius)))
+        keep = {}
+        for o, c, nb in zip(obs.tolist(), rows.tolist(), near):
+            rivals = [k for k in nb if k != c and self.catalog.mag[k] <= self.catalog.mag[c] + BLEND_DELTA_MAG]
+            if not rivals:
+                keep[o] = c
+        return keep if len(keep) >= 2 else matches
 
     def _fail(self, status, reason, steps, stats=None, t0=None) -> BlindResult:
         ident = Identification(method=self.name, status=status, matches={}, steps=steps, reason=reason,
