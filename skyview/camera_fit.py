@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from skyview.camera import Camera
@@ -136,6 +135,8 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
     if fit_focal:
         lo[3], hi[3] = -1.0, 1.0
     p0 = np.clip(p0, lo + 1e-12, hi - 1e-12)
+    from scipy.optimize import least_squares  # imported on first use: it costs ~70 ms at start-up
+
     if 2 * n <= len(p0):
         d = project(p0) - uv
         return CameraFit(camera, R0, np.hypot(d[:, 0], d[:, 1]), float("nan"), ())

@@ -7,28 +7,46 @@ method's database and returns an identifier with `name`, `database_key`, `databa
 
 from __future__ import annotations
 
+import importlib
 import inspect
+from collections.abc import Mapping
 
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog
 from skyview.errors import BadInput
-from skyview.identify.angle import AngleMethod
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
-from skyview.identify.ellipticity import EllipticityMethod
-from skyview.identify.genetic import GeneticMethod
-from skyview.identify.stochastic import StochasticMethod
-from skyview.identify.svd import SVDMethod
-from skyview.identify.triangle import TriangleMethod
 
-METHODS: dict[str, type[Identifier]] = {
-    "angle": AngleMethod,
-    "ellipticity": EllipticityMethod,
-    "genetic": GeneticMethod,
-    "stochastic": StochasticMethod,
-    "svd": SVDMethod,
-    "triangle": TriangleMethod,
-}
+class _Registry(Mapping):
+    """Method name -> identifier class, each module imported on first use (a `skyview solve` that
+    runs one method does not pay for importing the other five)."""
+
+    def __init__(self, paths: dict[str, str]):
+        self._paths = dict(paths)
+        self._classes: dict[str, type[Identifier]] = {}
+
+    def __getitem__(self, name: str) -> type[Identifier]:
+        cls = self._classes.get(name)
+        if cls is None:
+            module, _, attr = self._paths[name].rpartition(".")
+            cls = self._classes[name] = getattr(importlib.import_module(module), attr)
+        return cls
+
+    def __iter__(self):
+        return iter(self._paths)
+
+    def __len__(self) -> int:
+        return len(self._paths)
+
+
+METHODS: Mapping[str, type[Identifier]] = _Registry({
+    "angle": "skyview.identify.angle.AngleMethod",
+    "ellipticity": "skyview.identify.ellipticity.EllipticityMethod",
+    "genetic": "skyview.identify.genetic.GeneticMethod",
+    "stochastic": "skyview.identify.stochastic.StochasticMethod",
+    "svd": "skyview.identify.svd.SVDMethod",
+    "triangle": "skyview.identify.triangle.TriangleMethod",
+})
 
 
 VARIANTS = ("paper", "improved")

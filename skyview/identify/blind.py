@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import binom
+from scipy.special import bdtrc
 
 from skyview.attitude import RAD_TO_ARCSEC
 from skyview.camera import Camera
@@ -324,7 +324,7 @@ class BlindIdentifier:
         n_tested = n_obs - 4
         density = len(rows) / (cam.width * cam.height)  # catalog stars per pixel
         p1 = min(1.0, density * math.pi * p.quick_radius_px ** 2)
-        prob = float(min(1.0, checks * binom.sf(len(agree) - 1, n_tested, p1))) if agree else 1.0
+        prob = float(min(1.0, checks * bdtrc(len(agree) - 1, n_tested, p1))) if agree else 1.0
         passed = prob < p.quick_threshold
         note = f"{len(agree)} of {n_tested} other stars land on the {len(rows)} brightest catalog stars, " \
                f"chance {prob:.1e}"

@@ -64,7 +64,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import binom
+from scipy.special import bdtr, bdtrc
 
 from skyview.attitude import RAD_TO_ARCSEC, svd_attitude
 from skyview.camera import Camera
@@ -137,7 +137,7 @@ def p_false_calibrated(n_agree: int, n_tested: int, p, n_hypotheses: int = 1) ->
         return 1.0
     ps = np.broadcast_to(np.asarray(p, dtype=np.float64), (n_tested,))
     if np.all(ps == ps[0]):
-        tail = float(binom.sf(n_agree - 1, n_tested, ps[0]))
+        tail = float(bdtrc(n_agree - 1, n_tested, ps[0]))  # P[X >= n_agree]
     else:
         tail = poisson_binomial_sf(n_agree, ps)
     return float(min(1.0, max(1, n_hypotheses) * tail))
@@ -146,7 +146,7 @@ def p_false_calibrated(n_agree: int, n_tested: int, p, n_hypotheses: int = 1) ->
 def p_false_tetra3(n_matched: int, n_observed: int, n_nearby: int, radius_fraction: float) -> float:
     """tetra3's mismatch probability: BinomCDF(n_obs - (n_matched - 2), n_obs, 1 - N_nearby r^2)."""
     p1 = min(1.0, n_nearby * radius_fraction ** 2)
-    return float(binom.cdf(n_observed - (n_matched - 2), n_observed, 1.0 - p1))
+    return float(bdtr(n_observed - (n_matched - 2), n_observed, 1.0 - p1))  # P[X <= k]
 
 
 def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
