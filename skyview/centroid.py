@@ -53,6 +53,8 @@ from skyview.errors import BadInput
 ESTIMATORS = ("fit", "iwcog", "cog", "gauss3")
 DEFAULT_ESTIMATOR = "fit"
 _MAD_TO_SIGMA = 1.4826
+MIN_EXTENDED_PX = 400  # a blob is "extended" above max(this, EXTENDED_PSF_AREAS x the PSF's 3-sigma disk)
+EXTENDED_PSF_AREAS = 40.0
 _CLIP_K = 3.5
 # std of a unit normal truncated to +-3.5 sigma
 _CLIP_STD = math.sqrt(1.0 - 2 * _CLIP_K * math.exp(-_CLIP_K ** 2 / 2) / math.sqrt(2 * math.pi) / math.erf(_CLIP_K / math.sqrt(2)))
@@ -76,6 +78,7 @@ class Centroids:
     threshold: float = 0.0  # detection threshold above the background (k_sigma * noise_sigma)
     n_hot_pixels_rejected: int = 0
     n_small_rejected: int = 0  # other blobs smaller than min_pixels
+    n_extended_rejected: int = 0  # blobs far larger than a star (roof, tree, Moon, glare)
     psf_sigma_px: float = float("nan")  # PSF sigma used by iwcog (measured or given)
     estimator: str = DEFAULT_ESTIMATOR
     image_shape: tuple[int, int] = (0, 0)
@@ -104,7 +107,7 @@ class Centroids:
         return {
             "n": len(self), "background_level": self.background_level, "noise_sigma": self.noise_sigma,
             "threshold": self.threshold, "n_hot_pixels_rejected": self.n_hot_pixels_rejected,
-            "n_small_rejected": self.n_small_rejected,
+            "n_small_rejected": self.n_small_rejected, "n_extended_rejected": self.n_extended_rejected,
             "psf_sigma_px": self.psf_sigma_px if math.isfinite(self.psf_sigma_px) else None,
             "estimator": self.estimator, "image_shape": list(self.image_shape), "params": self.params,
             "centroids": self.to_list(),
@@ -496,6 +499,15 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
     psnr = peak_val / sigma
     ratio_limit = max_axis_ratio + 0.5 * np.clip((20.0 - psnr) / 10.0, 0.0, 1.0)
     elongated = (ratio > ratio_limit) & (psnr >= 10.0)
+    # extended objects (a lit roof or tree, the Moon, a galaxy's core, glare): blobs far larger than any
+    # star's footprint, even a saturated one, are not stars and would take the brightest places
+    extended = area > max(MIN_EXTENDED_PX, EXTENDED_PSF_AREAS * math.pi * (3.0 * s_eff) ** 2)
+    n_extended = int(extended.sum())
+    if n_extended:
+        keep_s = ~extended
+        uv, brightness, peak_raw, area = uv[keep_s], brightness[keep_s], peak_raw[keep_s], area[keep_s]
+        saturated, elongated, edge, blended, ratio = (saturated[keep_s], elongated[keep_s], edge[keep_s],
+                                                      blended[keep_s], ratio[keep_s])
     order = np.argsort(-brightness, kind="stable")
     return Centroids(
         uv=uv[order].astype(np.float64), brightness=brightness[order].astype(np.float64),
@@ -503,7 +515,7 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         elongated=elongated[order], edge=edge[order], blended=blended[order], axis_ratio=ratio[order],
         background_level=level, noise_sigma=sigma, threshold=thr, n_hot_pixels_rejected=n_hot,
         n_small_rejected=n_small, psf_sigma_px=psf_used, estimator=estimator, image_shape=(H, W),
-        params=params,
+        params=params, n_extended_rejected=n_extended,
     )
 
 

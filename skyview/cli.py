@@ -646,7 +646,7 @@ def build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("solve", help="image -> attitude (blind: no field of view needed)",
                        description="Solve a star-field image (PNG, TIFF, JPEG; grey or colour). With no options "
                                    "it runs the default pipeline: blind four-star patterns over a horizontal FOV "
-                                   "of about 5-36 deg, then the camera (FOV, k1, k2) fitted to the stars and the "
+                                   "of about 4-54 deg, then the camera (FOV, k1, k2) fitted to the stars and the "
                                    "shared verification.")
     v.add_argument("image", help="the image file")
     v.add_argument("--fov-deg", type=_float, default=None,

@@ -267,3 +267,41 @@ def test_database_with_a_missing_array_is_rebuilt_and_the_cache_stays_in_budget(
     os.utime(old, (_t.time() - 100, _t.time() - 100))
     database.load_or_build({"method": "new", "n": 1}, lambda: big)
     assert not old.exists() and database.database_path({"method": "new", "n": 1}).exists()
+
+
+def test_a_roof_a_tree_and_a_gradient_in_the_frame_do_not_stop_a_blind_solve(blind, catalog):
+    """Real photographs have foreground: a lit roof edge, a tree, sky glow. They are not stars."""
+    import cv2
+
+    from skyview.centroid import detect_centroids
+
+    R = R_from_radec_roll(math.radians(250.0), math.radians(35.0), math.radians(-70.0))
+    frame = simulate_image(catalog, Camera.from_fov(15.0, 1024, 768), R, SensorModel(), seed=3, mag_limit=9.0)
+    img = frame.image.astype(np.float32)
+    img[650:, :] += 3000 + 20 * np.arange(1024)[None, :]  # a roof edge, brighter to the right
+    cv2.circle(img, (150, 300), 60, 2500, -1)  # a tree lit from below
+    img += np.linspace(0, 800, 1024)[None, :]  # sky glow
+    img = np.clip(img, 0, 65535).astype(np.uint16)
+    cents = detect_centroids(img)
+    assert cents.n_extended_rejected >= 2 and cents.n_pixels[:16].max() < 400
+    res = blind.solve_array(img)
+    assert res.solved and attitude_error_arcsec(res.R, R)["boresight"] < 10.0
+    assert res.camera.fov_deg == pytest.approx(15.0, rel=0.002)
+    assert not wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in res.matches], frame.truth)
+
+
+def test_a_colour_jpeg_of_a_real_photograph_solves_blind(blind):
+    """The same photograph as an 8-bit colour JPEG (as a phone or a camera writes it)."""
+    import cv2
+
+    name = sorted(REFERENCE)[2]
+    img16 = load_image(REAL / name).astype(np.float32)
+    lo, hi = np.percentile(img16, [1, 99.99])
+    img8 = np.clip((img16 - lo) / (hi - lo) * 255, 0, 255).astype(np.uint8)
+    colour = cv2.merge([img8, img8, img8])
+    ok, buf = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, 85])
+    decoded = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    res = blind.solve_array(decoded)
+    assert res.solved, res.reason
+    assert attitude_error_arcsec(res.R, np.array(REFERENCE[name]["R"]))["boresight"] < 0.1 * 3600
+    assert res.camera.fov_deg == pytest.approx(REFERENCE[name]["fov_deg"], rel=0.005)

@@ -55,7 +55,7 @@ DEFAULT_BUDGET_MB = 1024
 class PatternParams:
     """What a pattern database depends on besides the catalog (all angles in degrees)."""
 
-    max_edge_deg: float = 30.0  # the largest pattern: fits a field of about 35-40 deg
+    max_edge_deg: float = 45.0  # the largest pattern: fits a field of about 50-55 deg
     min_edge_deg: float = 2.5  # the smallest: fits a field of about 4-5 deg
     step: float = 1.5  # ratio of consecutive levels' largest edges
     stars_per_circle: int = 7  # pattern stars: fewer than this many brighter within D_l / 2
