@@ -22,7 +22,6 @@ import platform
 import sys
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -31,7 +30,7 @@ import numpy as np
 
 from skyview.attitude import attitude_error_arcsec, random_attitudes
 from skyview.catalog import load_guide_catalog
-from skyview.errors import BadInput
+from skyview.errors import BadInput, SkyviewError
 from skyview.pipeline import BlindSolver, Solver, check_fov_error
 from skyview.scenarios import Scenario
 from skyview.simulate import SensorModel, simulate_image
@@ -125,19 +124,38 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
                         seeds=rng.integers(0, 2**31 - 1, size=n))
     trials, counts = [], Counter()
     bar = Progress(n, f"{method}({variant})/{scenario.name}", progress)
-    if jobs == 1:
-        for k in range(n):
-            trial, frame, result = _run_trial(ctx, k)
-            trials.append(trial)
-            counts[trial["outcome"]] += 1
-            if on_trial is not None:
-                on_trial(trial, frame, result, solver)
-            bar.update(k + 1, counts)
-    else:
-        trials = _trials_in_processes(ctx, _run_trial, n, jobs, bar, counts)
-    summary = summarize(method, scenario, seed, trials, setup_ms, solver)
+    interrupted = False
+    try:
+        if jobs == 1:
+            for k in range(n):
+                trial, frame, result = _run_trial(ctx, k)
+                trials.append(trial)
+                counts[trial["outcome"]] += 1
+                if on_trial is not None:
+                    on_trial(trial, frame, result, solver)
+                bar.update(k + 1, counts)
+        else:
+            trials = _trials_in_processes(ctx, _run_trial, n, jobs, bar, counts)
+    except (KeyboardInterrupt, Interrupted) as exc:
+        trials = getattr(exc, "trials", trials)
+        interrupted = True
+    if not any(t["outcome"] != "error" for t in trials):
+        if interrupted:
+            raise KeyboardInterrupt  # nothing finished: nothing to save
+        raise SkyviewError(f"no trial could run: {trials[0]['reason'] if trials else 'no trials'}")
+    summary = summarize(method, scenario, seed, [t for t in trials if t["outcome"] != "error"], setup_ms, solver)
     summary["jobs"] = jobs
+    _note_faults(summary, trials, n, interrupted)
     return summary
+
+
+def _note_faults(summary: dict, trials: list[dict], n: int, interrupted: bool) -> None:
+    """Record trials lost to faults and an interruption in the summary (what was finished is kept)."""
+    errors = [t for t in trials if t["outcome"] == "error"]
+    summary["trials_requested"] = n
+    summary["trials_finished"] = len(trials) - len(errors)
+    summary["trials_failed_to_run"] = [{"trial": t["trial"], "reason": t["reason"]} for t in errors]
+    summary["interrupted"] = bool(interrupted)
 
 
 BENCH_CHUNK = 5  # trials per task when jobs > 1
@@ -155,30 +173,162 @@ class _TrialContext:
 
 
 _CONTEXT: tuple | None = None  # (context, trial function), inherited by the forked workers
+MAX_CHUNK_TRIES = 2  # a chunk whose worker died is run once more, then its trials are reported as lost
 
 
-def _run_chunk(indices: list[int]) -> list[dict]:
+class Interrupted(Exception):
+    """Ctrl-C during a bench: the trials finished so far travel with it."""
+
+    def __init__(self, trials: list[dict]):
+        super().__init__(f"interrupted after {len(trials)} trials")
+        self.trials = trials
+
+
+def _worker(conn) -> None:
+    """A forked bench worker: receives chunks of trial indices on its own pipe and sends back the trials,
+    until it receives None. It dies with its parent (PR_SET_PDEATHSIG), ignores Ctrl-C (the parent stops
+    it) and reports a trial that raises. Each worker has its own pipe, so a worker killed in the middle
+    of a message cannot hold a lock the others need (a shared multiprocessing.Queue can)."""
+    import signal as _signal
+
+    _signal.signal(_signal.SIGINT, _signal.SIG_IGN)
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, _signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
     ctx, run_one = _CONTEXT
-    return [run_one(ctx, k)[0] for k in indices]
+    while True:
+        try:
+            item = conn.recv()
+        except EOFError:
+            return
+        if item is None:
+            return
+        cid, indices = item
+        out = []
+        for k in indices:
+            try:
+                out.append(run_one(ctx, k)[0])
+            except Exception as exc:  # one trial's bug is a reported trial, not a lost run
+                out.append({"trial": k, "outcome": "error", "reason": f"{type(exc).__name__}: {exc}"})
+        conn.send((cid, out))
 
 
 def _trials_in_processes(ctx, run_one: Callable, n: int, jobs: int, bar: Progress, counts: Counter) -> list[dict]:
-    """run_one(ctx, k)[0] for k < n in `jobs` forked processes (ctx is inherited, not pickled), sorted by k."""
+    """run_one(ctx, k)[0] for k < n in `jobs` forked processes (ctx is inherited, not pickled), sorted by k.
+
+    Survives faults: a worker that dies (killed, out of memory) has its chunk run again by a new worker
+    (MAX_CHUNK_TRIES in all), then its trials are reported with outcome "error"; every finished trial is
+    kept. Ctrl-C stops the workers at once and raises Interrupted with the trials finished so far; the
+    workers also die with this process if it is killed."""
+    from collections import deque
+    from multiprocessing.connection import wait
+
     global _CONTEXT
     _CONTEXT = (ctx, run_one)
+    mp = multiprocessing.get_context("fork")
+    chunks = {cid: list(range(i, min(i + BENCH_CHUNK, n))) for cid, i in enumerate(range(0, n, BENCH_CHUNK))}
+    todo = deque(chunks)
+    tries = Counter()
+    pending = set(chunks)
+    workers: dict[int, tuple] = {}  # worker id -> (process, parent's end of its pipe, chunk it runs or None)
     trials: list[dict] = []
-    chunks = [list(range(i, min(i + BENCH_CHUNK, n))) for i in range(0, n, BENCH_CHUNK)]
-    try:
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("fork")) as pool:
-            for part in as_completed([pool.submit(_run_chunk, c) for c in chunks]):
-                for trial in part.result():
-                    trials.append(trial)
-                    counts[trial["outcome"]] += 1
+    next_id = 0
+
+    def start_worker():
+        nonlocal next_id
+        parent, child = mp.Pipe()
+        w = mp.Process(target=_worker, args=(child,), daemon=True)
+        w.start()
+        child.close()
+        workers[next_id] = (w, parent, None)
+        next_id += 1
+
+    def feed():
+        for wid, (w, conn, cid) in list(workers.items()):
+            if cid is None and todo:
+                nxt = todo.popleft()
+                tries[nxt] += 1
+                try:
+                    conn.send((nxt, chunks[nxt]))
+                    workers[wid] = (w, conn, nxt)
+                except OSError:
+                    todo.appendleft(nxt)
+                    tries[nxt] -= 1
+
+    def lost(wid):
+        w, conn, cid = workers.pop(wid)
+        conn.close()
+        w.join(1.0)
+        if cid is not None and cid in pending:
+            if tries[cid] < MAX_CHUNK_TRIES:
+                todo.appendleft(cid)
+            else:
+                pending.discard(cid)
+                for k in chunks[cid]:
+                    trials.append({"trial": k, "outcome": "error",
+                                   "reason": f"its worker died twice (exit code {w.exitcode})"})
+                    counts["error"] += 1
                 bar.update(len(trials), counts)
+        if pending and len(workers) < min(jobs, len(pending)):
+            start_worker()
+
+    try:
+        for _ in range(min(jobs, len(chunks))):
+            start_worker()
+        while pending:
+            feed()
+            by_conn = {conn: wid for wid, (_, conn, _) in workers.items()}
+            for conn in wait(list(by_conn), timeout=0.5):
+                wid = by_conn[conn]
+                try:
+                    cid, out = conn.recv()
+                except (EOFError, OSError):
+                    lost(wid)
+                    continue
+                w, c, _ = workers[wid]
+                workers[wid] = (w, c, None)
+                if cid in pending:
+                    pending.discard(cid)
+                    for trial in out:
+                        trials.append(trial)
+                        counts[trial["outcome"]] += 1
+                    bar.update(len(trials), counts)
+            for wid, (w, _, _) in list(workers.items()):
+                if not w.is_alive() and wid in workers:
+                    lost(wid)
+        for w, conn, _ in workers.values():
+            try:
+                conn.send(None)
+            except OSError:
+                pass
+    except KeyboardInterrupt:
+        _stop_workers(workers)
+        trials.sort(key=lambda t: t["trial"])
+        raise Interrupted(trials) from None
     finally:
+        _stop_workers(workers, grace_s=2.0)
         _CONTEXT = None
     trials.sort(key=lambda t: t["trial"])
     return trials
+
+
+def _stop_workers(workers: dict, grace_s: float = 0.0) -> None:
+    """Stop the bench's worker processes: wait up to grace_s for them to finish, then terminate, kill."""
+    procs = [entry[0] for entry in workers.values()]
+    deadline = time.monotonic() + grace_s
+    for w in procs:
+        w.join(max(0.0, deadline - time.monotonic()))
+    for w in procs:
+        if w.is_alive():
+            w.terminate()
+    for w in procs:
+        w.join(1.0)
+        if w.is_alive():
+            w.kill()
+            w.join(1.0)
 
 
 def _n_catalog_stars(truth: dict) -> int:
@@ -410,16 +560,27 @@ def run_blind_bench(scenario: Scenario, n: int, *, seed: int = 0, fov_error: flo
     counts: Counter = Counter()
     given = "no FOV" if fov_error is None else f"FOV +-{100 * fov_error:g} %"
     bar = Progress(n, f"blind/{scenario.name} ({given})", progress)
-    if jobs == 1:
-        trials = []
-        for k in range(n):
-            trials.append(_run_blind_trial(ctx, k)[0])
-            counts[trials[-1]["outcome"]] += 1
-            bar.update(k + 1, counts)
-    else:
-        trials = _trials_in_processes(ctx, _run_blind_trial, n, jobs, bar, counts)
-    summary = summarize_blind(scenario, seed, trials, fov_error, setup_ms, solver, max_error_px)
+    trials = []
+    interrupted = False
+    try:
+        if jobs == 1:
+            for k in range(n):
+                trials.append(_run_blind_trial(ctx, k)[0])
+                counts[trials[-1]["outcome"]] += 1
+                bar.update(k + 1, counts)
+        else:
+            trials = _trials_in_processes(ctx, _run_blind_trial, n, jobs, bar, counts)
+    except (KeyboardInterrupt, Interrupted) as exc:
+        trials = getattr(exc, "trials", trials)
+        interrupted = True
+    if not any(t["outcome"] != "error" for t in trials):
+        if interrupted:
+            raise KeyboardInterrupt
+        raise SkyviewError(f"no trial could run: {trials[0]['reason'] if trials else 'no trials'}")
+    summary = summarize_blind(scenario, seed, [t for t in trials if t["outcome"] != "error"], fov_error, setup_ms,
+                              solver, max_error_px)
     summary["jobs"] = jobs
+    _note_faults(summary, trials, n, interrupted)
     return summary
 
 

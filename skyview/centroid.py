@@ -206,6 +206,21 @@ def check_pixel_count(data: bytes | np.ndarray, name: str) -> None:
                        f"{limit / 1e6:.0f} MP skyview decodes (set SKYVIEW_MAX_PIXELS to raise the limit)")
 
 
+def finite_image(img: np.ndarray, name: str = "the image") -> np.ndarray:
+    """A float image with its NaN / infinite pixels (masked, dead or overflowed) replaced by the median
+    of the finite ones; BadInput when no pixel is finite. Integer images are returned as they are."""
+    if img.dtype.kind != "f":
+        return img
+    ok = np.isfinite(img)
+    if ok.all():
+        return img
+    if not ok.any():
+        raise BadInput(f"{name} has no finite pixel value (all NaN or infinite)")
+    out = img.copy()
+    out[~ok] = np.median(img[ok])
+    return out
+
+
 def load_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image file (PNG, TIFF, JPEG, ... anything cv2 decodes) unchanged in depth, as grey.
 
@@ -237,7 +252,7 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     img = to_gray(img)
     if img.size == 0 or img.ndim != 2:
         raise BadInput(f"image {p} is empty (size {img.shape})")
-    return img
+    return finite_image(img, f"image {p}")
 
 
 # ============================================================================ background / noise

@@ -52,18 +52,61 @@ def _write_text_new(path: Path, text: str, force: bool) -> None:
         raise BadInput(f"cannot write {path}: {exc.strerror}") from None
 
 
+def _check_new_file(path: str | Path | None, force: bool, what: str = "") -> Path | None:
+    """Before any work: the file may be written (its folder exists and is writable; an existing file
+    only with --force). One-line BadInput otherwise."""
+    if path is None:
+        return None
+    p = Path(path)
+    if p.is_dir():
+        raise BadInput(f"{what or p} is a folder, not a file: {p}")
+    if p.exists() and not force:
+        raise BadInput(f"{p} exists; use --force to overwrite it")
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise BadInput(f"cannot write {p}: the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise BadInput(f"cannot write {p}: the folder {folder} is not writable")
+    return p
+
+
+def _check_out_folder(path: str | Path) -> Path:
+    """Before any work: the output folder exists (made now if need be) and a file can be written in it."""
+    import tempfile
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise BadInput(f"{p} is not a folder")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=p):
+            pass
+    except OSError as exc:
+        raise BadInput(f"cannot write results into {p}: {exc.strerror or exc}") from None
+    return p
+
+
 # ----------------------------------------------------------------------------- commands
 
 def cmd_simulate(a) -> int:
     from skyview.attitude import R_from_radec_roll
     from skyview.camera import Camera
     from skyview.catalog import load_guide_catalog
-    from skyview.simulate import SensorModel, save_frame, save_sequence, simulate_image, simulate_sequence
-
-    from skyview.simulate import JPEG_DEFAULT_QUALITY, is_jpeg_path
+    from skyview.centroid import max_image_pixels
+    from skyview.simulate import (JPEG_DEFAULT_QUALITY, SensorModel, is_jpeg_path, save_frame, save_sequence,
+                                  simulate_image, simulate_sequence)
 
     if not -90.0 <= a.dec <= 90.0:
         raise BadInput(f"declination {a.dec} deg is outside [-90, 90]")
+    if a.seed < 0:
+        raise BadInput(f"--seed {a.seed} must be a whole number >= 0")
+    if a.frames < 1:
+        raise BadInput(f"--frames {a.frames} must be at least 1")
+    if a.width < 16 or (a.height is not None and a.height < 16):
+        raise BadInput("--width and --height must be at least 16 pixels")
+    if a.width * (a.height or a.width) > max_image_pixels():
+        raise BadInput(f"a {a.width} x {a.height or a.width} image is more than the {max_image_pixels() / 1e6:.0f} MP "
+                       f"skyview handles (SKYVIEW_MAX_PIXELS raises it)")
     if a.jpeg_quality is not None and not 1 <= a.jpeg_quality <= 100:
         raise BadInput(f"--jpeg-quality {a.jpeg_quality} must be in 1..100")
     if a.faint_extra_mag < 0:
@@ -108,6 +151,18 @@ def _turn(a):
     return turn_about_camera_axis(axis, np.radians(a.turn_deg))
 
 
+def read_truth(truth_path: Path) -> dict | None:
+    """A skyview truth sidecar (as `skyview simulate` writes it), or None if the file is not one."""
+    try:
+        truth = json.loads(Path(truth_path).read_text())
+        R = np.asarray(truth["R"], dtype=float)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or not isinstance(truth.get("stars", []), list):
+            return None
+        return truth
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
+        return None
+
+
 def _result_with_truth(result, truth_path: Path | None) -> dict:
     from skyview.attitude import attitude_error_arcsec
     from skyview.truth import wrong_matches
@@ -115,11 +170,10 @@ def _result_with_truth(result, truth_path: Path | None) -> dict:
     out = result.to_dict()
     if truth_path is None:
         return out
-    try:
-        truth = json.loads(Path(truth_path).read_text())
-        R_true = np.asarray(truth["R"], dtype=float)
-    except (OSError, ValueError, KeyError, TypeError):
-        raise BadInput(f"{truth_path} is not a skyview truth sidecar") from None
+    truth = read_truth(truth_path)
+    if truth is None:
+        raise BadInput(f"{truth_path} is not a skyview truth sidecar")
+    R_true = np.asarray(truth["R"], dtype=float)
     entry = {"path": str(truth_path), "ra_deg": truth.get("ra_deg"), "dec_deg": truth.get("dec_deg"),
              "roll_deg": truth.get("roll_deg")}
     if result.R is not None:
@@ -168,19 +222,12 @@ def cmd_solve(a) -> int:
             raise BadInput("--sigma-arcsec must be positive")
         params["sigma_rad"] = a.sigma_arcsec * ARCSEC
     method_params = _method_params(a)
-    output = Path(a.output) if a.output else None
-    if output is not None and output.exists() and not a.force:
-        raise BadInput(f"{output} exists; use --force to overwrite it")
+    output = _check_new_file(a.output, a.force)
     if a.record:  # check the recording's path before solving (the recorder is imported only when asked)
         from skyview.record import check_output_path
 
         check_output_path(a.record, a.force)
-    if a.wcs:
-        wcs_path = Path(a.wcs)
-        if wcs_path.exists() and not a.force:
-            raise BadInput(f"{wcs_path} exists; use --force to overwrite it")
-        if not wcs_path.parent.is_dir():
-            raise BadInput(f"cannot write {wcs_path}: the folder {wcs_path.parent} does not exist")
+    _check_new_file(a.wcs, a.force)
     if a.method is None and method_params:
         raise BadInput("--param and --statistic go with --method (the default pipeline has no method parameters)")
     result = solve_image(image, a.fov_deg, a.method, fov_error=a.fov_error, mag_limit=a.mag_limit, epoch=a.epoch,
@@ -191,7 +238,9 @@ def cmd_solve(a) -> int:
     if a.truth:
         truth = Path(a.truth)
     elif not a.no_truth and path.with_suffix(".json").exists():
-        truth = path.with_suffix(".json")
+        # a JSON file beside the image is used only if it is a skyview sidecar (a camera's or another
+        # program's JSON is left alone)
+        truth = path.with_suffix(".json") if read_truth(path.with_suffix(".json")) is not None else None
     out = _result_with_truth(result, truth)
     out["image"] = str(path)
     if a.record:
@@ -222,7 +271,7 @@ def _record_solve(a, result, image, truth_path: Path | None, image_path: Path) -
     from skyview.catalog import load_guide_catalog
     from skyview.record import record_solve
 
-    truth = json.loads(Path(truth_path).read_text()) if truth_path is not None else None
+    truth = read_truth(truth_path) if truth_path is not None else None
     catalog = load_guide_catalog(epoch=a.epoch)  # the rows the solver used
     if result.method != "blind":
         catalog = catalog.brighter_than(result.mag_limit if result.mag_limit is not None else 6.0)
@@ -286,10 +335,30 @@ def _method_params(a) -> dict:
     return params
 
 
+def _interruptible() -> None:
+    """Ctrl-C (and SIGTERM) raise KeyboardInterrupt, even in a process started from a background job,
+    which inherits SIGINT ignored: a long bench must stop when asked and save what it finished."""
+    import signal
+
+    def _raise(_signum, _frame):
+        raise KeyboardInterrupt
+
+    if threading_main():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _raise)
+
+
+def threading_main() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
 def cmd_bench(a) -> int:
     from skyview.bench import format_markdown, run_bench, save_results
     from skyview.scenarios import get_scenario
 
+    _interruptible()
     if a.jpeg_quality is not None and not 1 <= a.jpeg_quality <= 100:
         raise BadInput(f"--jpeg-quality {a.jpeg_quality} must be in 1..100")
     if a.blind:
@@ -298,6 +367,7 @@ def cmd_bench(a) -> int:
         raise BadInput("--fov-error goes with --blind (the calibrated bench gives the exact FOV)")
     a.method = a.method or "angle"
     a.scenario = a.scenario or "cole8"
+    _check_out_folder(a.out)  # before the Monte Carlo, not after it
     if a.centroids:
         from skyview.centroid_bench import format_markdown as fmt_c, measure_centroid_accuracy
 
@@ -312,9 +382,7 @@ def cmd_bench(a) -> int:
     if a.method not in METHODS:
         raise BadInput(f"unknown method {a.method!r}: choose from {', '.join(METHODS)}")
     method_params = _method_params(a)
-    out_dir = Path(a.out)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise BadInput(f"{out_dir} is not a folder")
+    out_dir = _check_out_folder(a.out)
     if a.jobs < 1:
         raise BadInput("--jobs must be at least 1")
     if a.jobs > 1 and a.record_failures:
@@ -336,6 +404,7 @@ def cmd_bench(a) -> int:
     print(f"saved {j} and {m}")
     if on_trial is not None:
         print(f"recorded {len(on_trial.written)} failed trials into {on_trial.folder}")
+    return _bench_faults(summary)
     return EXIT_SOLVED
 
 
@@ -371,6 +440,7 @@ def _bench_blind(a) -> int:
         if given:
             raise BadInput(f"{flag} does not go with --blind (the blind bench runs the default blind pipeline)")
     a.scenario = a.scenario or "blind8"
+    _check_out_folder(a.out)
     scenario = _bench_scenario(a)
     if a.fov_error is not None:
         from skyview.pipeline import check_fov_error
@@ -378,15 +448,26 @@ def _bench_blind(a) -> int:
         check_fov_error(a.fov_error)
     if a.jobs < 1:
         raise BadInput("--jobs must be at least 1")
-    out_dir = Path(a.out)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise BadInput(f"{out_dir} is not a folder")
+    out_dir = _check_out_folder(a.out)
     summary = run_blind_bench(scenario, a.n, seed=a.seed, fov_error=a.fov_error, progress=not a.quiet, jobs=a.jobs)
     md = format_blind_markdown(summary)
     print(md)
     tag = "nofov" if a.fov_error is None else f"fov{a.fov_error:g}"
     j, m = save_results(summary, out_dir, f"blind-{_file_tag(scenario.name)}-{tag}-n{a.n}-seed{a.seed}", markdown=md)
     print(f"saved {j} and {m}")
+    return _bench_faults(summary)
+
+
+def _bench_faults(summary: dict) -> int:
+    """What a bench lost to faults, in one line each; 130 after a Ctrl-C (what was finished is saved)."""
+    lost = summary.get("trials_failed_to_run") or []
+    if lost:
+        print(f"skyview: {len(lost)} trial(s) could not run: {lost[0]['reason']} (listed in the JSON)",
+              file=sys.stderr)
+    if summary.get("interrupted"):
+        print(f"skyview: interrupted: {summary['trials_finished']} of {summary['trials_requested']} trials "
+              f"finished and saved", file=sys.stderr)
+        return 130
     return EXIT_SOLVED
 
 
@@ -446,9 +527,7 @@ def cmd_solve_sequence(a) -> int:
         raise BadInput("--sigma-arcsec must be positive")
     if a.p_identify is not None and not 0 < a.p_identify <= 1:
         raise BadInput("--p-identify must be in (0, 1]")
-    output = Path(a.output) if a.output else None
-    if output is not None and output.exists() and not a.force:
-        raise BadInput(f"{output} exists; use --force to overwrite it")
+    output = _check_new_file(a.output, a.force)
     if a.record:  # check the recording's path before solving (the recorder is imported only when asked)
         from skyview.record import check_output_path
 
@@ -512,9 +591,7 @@ def cmd_bench_sequence(a) -> int:
         raise BadInput("give --noise-deg or --noise-arcsec, not both")
     noise = (np.radians(a.noise_deg) if a.noise_deg is not None
              else a.noise_arcsec * ARCSEC if a.noise_arcsec is not None else None)
-    out_dir = Path(a.out)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise BadInput(f"{out_dir} is not a folder")
+    out_dir = _check_out_folder(a.out)
     summary = bench_sequence(scenario, a.n, n_frames=a.frames, start=a.start, turn=a.turn, step_deg=a.step_deg,
                              level=a.level, position_noise_rad=noise, sigma_mag=a.mag_noise,
                              designation=a.designation, variant=a.variant, seed=a.seed, progress=not a.quiet,
@@ -534,10 +611,10 @@ def cmd_catalog(a) -> int:
 
     if a.action == "build":
         out = Path(a.out) if a.out else ASSET_PATH
-        if not out.parent.is_dir():
-            raise BadInput(f"folder {out.parent} does not exist")
         if out.suffix != ".npz":
             raise BadInput(f"{out}: the guide catalog is written as a .npz file")
+        # the shipped catalog is rebuilt in place by design; another existing file only with --force
+        _check_new_file(out, a.force or a.out is None)
         t0 = time.perf_counter()
         cat = build_guide_catalog(epoch=a.epoch, mag_limit=a.mag_limit)
         t1 = time.perf_counter()
@@ -814,6 +891,7 @@ def build_parser() -> argparse.ArgumentParser:
     cb.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH)
     cb.add_argument("--mag-limit", type=_float, default=DEFAULT_BUILD_MAG_LIMIT)
     cb.add_argument("--out", default=None, help="default: the shipped assets/guide_catalog.npz")
+    cb.add_argument("--force", action="store_true", help="overwrite an existing --out file")
     ci = csub.add_parser("info", help="describe a guide catalog")
     ci.add_argument("path", nargs="?")
     c.set_defaults(func=cmd_catalog)
@@ -829,25 +907,44 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _error(message: str, code: int, want_json: bool) -> int:
+    """One line on stderr; with --json also one JSON object on stdout."""
+    print(f"skyview: {message}", file=sys.stderr)
+    if want_json:
+        try:
+            print(json.dumps({"status": "error", "exit_code": code, "error": message}))
+        except (BrokenPipeError, OSError):
+            pass
+    return code
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    want_json = "--json" in argv
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)
     except BadInput as exc:
-        print(f"skyview: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return _error(f"error: {exc}", EXIT_BAD_INPUT, want_json)
     except SkyviewError as exc:
-        print(f"skyview: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return _error(str(exc), EXIT_BAD_INPUT, want_json)
     except KeyboardInterrupt:
         print("skyview: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `skyview solve ... | head`: the reader left; not an error of ours
+        try:
+            sys.stdout = open(os.devnull, "w")
+        except OSError:
+            pass
+        return EXIT_SOLVED
+    except MemoryError:
+        return _error("error: not enough memory for this input (a smaller image, field or catalog depth, or "
+                      "more memory)", EXIT_BAD_INPUT, want_json)
     except Exception as exc:  # one line for the user; the traceback on request
         if os.environ.get("SKYVIEW_DEBUG"):
             raise
-        print(f"skyview: internal error: {type(exc).__name__}: {exc} (SKYVIEW_DEBUG=1 shows the traceback)",
-              file=sys.stderr)
-        return EXIT_INTERNAL
+        return _error(f"internal error: {type(exc).__name__}: {exc} (SKYVIEW_DEBUG=1 shows the traceback)",
+                      EXIT_INTERNAL, want_json)
 
 
 if __name__ == "__main__":

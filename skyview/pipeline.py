@@ -23,7 +23,7 @@ import numpy as np
 from skyview.attitude import ESTIMATORS, RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R
 from skyview.camera import Camera
 from skyview.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
-from skyview.centroid import Centroids, detect_centroids, load_image, to_gray
+from skyview.centroid import Centroids, detect_centroids, finite_image, load_image, to_gray
 from skyview.errors import BadInput
 from skyview.identify import make_identifier
 from skyview.identify.base import Identification, Observation
@@ -135,6 +135,10 @@ class Solver:
             raise BadInput("the measurement sigma must be a positive number")
         if max_stars < 2:
             raise BadInput("max_stars must be at least 2")
+        reserved = sorted({"catalog", "camera", "sigma_rad", "variant"} & set(method_params or {}))
+        if reserved:
+            raise BadInput(f"{', '.join(reserved)} cannot be a method parameter: use the solver's own options "
+                           f"(--sigma-arcsec, --variant, --fov-deg, --mag-limit)")
         t0 = time.perf_counter()
         base = catalog if catalog is not None else load_guide_catalog(epoch=epoch)
         self.catalog = base.brighter_than(mag_limit)
@@ -252,7 +256,7 @@ def as_image(image) -> np.ndarray:
         raise BadInput(f"expected a grey (H, W) or colour (H, W, 3|4) image, got shape {image.shape}")
     if min(img.shape) < 16:
         raise BadInput(f"image of shape {img.shape} is too small (at least 16 x 16 pixels)")
-    return np.ascontiguousarray(img)
+    return np.ascontiguousarray(finite_image(img))
 
 
 def auto_mag_limit(catalog: GuideCatalog, camera: Camera, n_stars: int, *, per_star: float = 1.2,

@@ -25,7 +25,7 @@ import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
-from skyview.errors import BadInput
+from skyview.errors import BadInput, SkyviewError
 
 RRD_MAGIC = b"RRF"  # first bytes of a Rerun recording file (RRF2 in rerun 0.41)
 START_TIMEOUT_S = 30.0
@@ -54,7 +54,30 @@ def check_recording(path: str | os.PathLike) -> Path:
         raise BadInput(f"cannot read {p}: {exc.strerror}") from None
     if not head.startswith(RRD_MAGIC):
         raise BadInput(f"{p} is not a Rerun recording (.rrd)")
+    # read every chunk once (~10 ms for a 1 MB recording): a truncated or damaged file is refused here,
+    # not served to a viewer that shows half of it or nothing
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            n = sum(1 for _ in RrdReader(str(p)).stream())
+    except Exception as exc:  # the reader raises RuntimeError / ValueError on damaged frames
+        raise BadInput(f"{p} is a damaged or truncated Rerun recording: {str(exc)[:200]}") from None
+    if n == 0:
+        raise BadInput(f"{p} is an empty Rerun recording (no data)")
     return p
+
+
+def web_renderer() -> str:
+    """The web viewer's renderer: WebGL, which renders everywhere, software rendering included (the
+    default WebGPU crashes in a browser without a GPU); SKYVIEW_RERUN_RENDERER=webgpu chooses WebGPU."""
+    r = os.environ.get("SKYVIEW_RERUN_RENDERER", "webgl").strip().lower()
+    if r not in ("webgl", "webgpu"):
+        raise BadInput(f"SKYVIEW_RERUN_RENDERER={r!r}: choose webgl or webgpu")
+    return r
 
 
 def has_desktop() -> bool:
@@ -137,7 +160,8 @@ def start_viewer(path: str | os.PathLike, *, web: bool | None = None, host: str 
                                 start_new_session=True)  # our Ctrl-C is handled here, not by the viewer
     grpc = f"rerun+http://{_url_host(host)}:{grpc_port}/proxy"
     if web:
-        url = f"http://{_url_host(host)}:{port}/?url={urllib.parse.quote(grpc, safe='')}"
+        url = (f"http://{_url_host(host)}:{port}/?url={urllib.parse.quote(grpc, safe='')}"
+               f"&renderer={web_renderer()}")
     else:
         url = grpc
     viewer = Viewer(proc, url, web, log_path)
@@ -186,21 +210,33 @@ def replay(path: str | os.PathLike, *, web: bool | None = None, host: str = "127
     def _on_signal(signum, frame):
         raise KeyboardInterrupt
 
+    interrupted = False
+    failure = ""
     try:
         for sig in previous:
             signal.signal(sig, _on_signal)
         if viewer.web:
             print(f"Rerun web viewer for {path}: {viewer.url}", file=out)
-            print("(open it in a browser; Ctrl-C stops the viewer)", file=out, flush=True)
+            print(f"(open it in a browser; renderer {web_renderer()}: it works without a GPU, "
+                  f"SKYVIEW_RERUN_RENDERER=webgpu for the faster one; Ctrl-C stops the viewer)", file=out, flush=True)
         else:
             print(f"Rerun viewer opened on {path} (pid {viewer.pid}); close its window or press Ctrl-C to stop",
                   file=out, flush=True)
+        if host not in ("127.0.0.1", "localhost", "::1"):
+            print(f"warning: listening on {host}: the recording server and the web viewer are reachable from "
+                  f"other machines, without authentication", file=sys.stderr, flush=True)
         viewer.proc.wait()
+        if viewer.proc.returncode not in (0, None):  # the viewer ended by itself, with an error
+            tail = [ln.strip() for ln in viewer.log_path.read_text(errors="replace").splitlines() if ln.strip()]
+            failure = (f"the Rerun viewer failed on {path} (exit code {viewer.proc.returncode})"
+                       + (f": {tail[-1][-200:]}" if tail else ""))
     except KeyboardInterrupt:
-        pass
+        interrupted = True
     finally:
         code = viewer.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if failure and not interrupted:
+        raise SkyviewError(failure)
     print(f"viewer stopped (exit code {code})", file=out, flush=True)
     return 0

@@ -182,7 +182,15 @@ def load_sequence(path: str | Path, fov_deg: float | None = None) -> SequenceInp
         if not isinstance(r, dict) or "dR_cam" not in r:
             raise BadInput(f"{p}: relative[{k}] has no dR_cam")
         turns.append(_rotation(r["dR_cam"], f"{p}: relative[{k}].dR_cam"))
-    paths = [p.parent / str(n) for n in names]
+    folder = p.parent.resolve()
+    paths = []
+    for n in names:
+        q = (p.parent / str(n))
+        # image names are files in the sequence's own folder: "../x" or an absolute path would let a
+        # sequence.json read any file of the machine
+        if not isinstance(n, str) or Path(n).is_absolute() or folder not in q.resolve().parents:
+            raise BadInput(f"{p}: image {n!r} is not a file in the sequence's folder")
+        paths.append(q)
     images = [load_image(q) for q in paths]
     shapes = {im.shape for im in images}
     if len(shapes) != 1:

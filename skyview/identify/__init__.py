@@ -52,7 +52,7 @@ METHODS: Mapping[str, type[Identifier]] = _Registry({
 VARIANTS = ("paper", "improved")
 
 
-def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *,
+def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_rad: float, /, *,
                     variant: str = "paper", **params) -> Identifier:
     """An identifier for `method`; params are the method's keyword parameters (paper names).
 
@@ -64,6 +64,10 @@ def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_ra
         raise BadInput(f"unknown method {method!r}: choose from {', '.join(METHODS)}")
     if variant not in VARIANTS:
         raise BadInput(f"unknown variant {variant!r}: choose from {', '.join(VARIANTS)}")
+    reserved = sorted({"catalog", "camera", "sigma_rad", "variant"} & set(params))
+    if reserved:
+        raise BadInput(f"{', '.join(reserved)} cannot be set with --param: use the command's own options "
+                       f"(--sigma-arcsec, --variant, --fov-deg, --mag-limit)")
     if variant == "improved":
         params = {**cls.improved_params, **params}
     sig = inspect.signature(cls.__init__)

@@ -103,14 +103,19 @@ def database_path(key: dict) -> Path:
     return cache_dir() / "databases" / f"{key_string(key)}.npz"
 
 
-def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap: bool = False
-                  ) -> tuple[dict[str, np.ndarray], dict]:
+ANNOUNCE_AFTER_S = 2.0  # a build expected to take longer says what it builds and for how long
+
+
+def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap: bool = False,
+                  what: str | None = None, estimate_s: float = 0.0) -> tuple[dict[str, np.ndarray], dict]:
     """The arrays of the database for `key`: loaded from the cache, or built once and saved.
 
     Returns (arrays, info); info holds the key, its string form, the path, whether it was built or
     loaded, the build or load time, the file size and the in-memory size in bytes. mmap=True maps
     the arrays of the (uncompressed) file read-only instead of reading them: a large database then
-    loads in milliseconds and its pages are shared between processes.
+    loads in milliseconds and its pages are shared between processes. what / estimate_s: a build
+    expected to take more than ANNOUNCE_AFTER_S seconds prints one line on stderr before it starts
+    (what it builds, about how long) and one when it is done.
     """
     path = database_path(key)
     info = {"key": key, "key_string": key_string(key), "path": str(path)}
@@ -124,9 +129,15 @@ def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap
             return arrays, info
         print(f"skyview: the cached database {path.name} is damaged or from another version; rebuilding it",
               file=sys.stderr, flush=True)
+    announce = what is not None and estimate_s > ANNOUNCE_AFTER_S
+    if announce:
+        print(f"skyview: building {what} once (about {estimate_s:.0f} s; cached for later runs)",
+              file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     arrays = build()
     info.update(source="built", build_s=time.perf_counter() - t0, load_s=None, nbytes=_nbytes(arrays))
+    if announce:
+        print(f"skyview: built {what} in {info['build_s']:.1f} s", file=sys.stderr, flush=True)
     try:
         _write(path, key, arrays)
         info["file_bytes"] = path.stat().st_size

@@ -354,17 +354,19 @@ class TriangleMethod(Identifier):
                                    MOMENT_SIGMA_REF_RAD, MOMENT_SIGMA_SEED],
                   "version": DATABASE_VERSION}
         self.database_key = database.make_key(self.name, params, catalog, camera)
+        # triangles with all sides <= 2r: about N k^2 / 6 for k neighbours within 2r; ~250 bytes each while
+        # built (indices, vertices, sides, caps, areas, moments and their sorted copies), ~13 us each
+        k = 2.0 * database.pairs_estimate(len(catalog), 2.0 * self.max_radius_rad) / max(len(catalog), 1)
+        n_tri = len(catalog) * k * k / 6.0
+        what = (f"the triangle database ({len(catalog):,} stars, caps up to "
+                f"{np.degrees(self.max_radius_rad):.1f} deg, ~{n_tri / 1e6:.1f} M triangles)")
         if not database.database_path(self.database_key).exists():
-            # triangles with all sides <= 2r: about N k^2 / 6 for k neighbours within 2r; ~250 bytes each
-            # while built (indices, vertices, sides, caps, areas, moments and their sorted copies)
-            k = 2.0 * database.pairs_estimate(len(catalog), 2.0 * self.max_radius_rad) / max(len(catalog), 1)
-            database.check_memory(250.0 * len(catalog) * k * k / 6.0,
-                                  f"the triangle database of {len(catalog):,} stars within "
-                                  f"{np.degrees(self.max_radius_rad):.1f} deg caps")
+            database.check_memory(250.0 * n_tri, what)
         arrays, info = database.load_or_build(
             self.database_key,
             lambda: build_triangle_database(catalog, self.max_radius_rad, self.depth, kvector_fit,
-                                            np.radians(camera.fov_deg)))
+                                            np.radians(camera.fov_deg)),
+            what=what, estimate_s=13e-6 * n_tri)
         t0 = time.perf_counter()
         self.tri = arrays["tri"]
         self.area = arrays["area"]

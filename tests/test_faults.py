@@ -1,0 +1,256 @@
+"""Faults and fuzz: every kind of file skyview reads, damaged; odd arrays; killed and interrupted benches.
+
+Each case asserts the exit code, one line on stderr (one JSON object on stdout with --json), and
+that nothing on disk was lost or overwritten.
+"""
+
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+import zlib
+from collections import Counter
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from skyview import bench
+from skyview.cli import main
+
+REAL = Path(__file__).parent / "data" / "real-images"
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_line(err: str) -> bool:
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    return len(lines) == 1 and lines[0].startswith("skyview:") and "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def sky(tmp_path_factory):
+    """A simulated field and its truth sidecar."""
+    d = tmp_path_factory.mktemp("sky")
+    png = d / "sky.png"
+    assert main(["simulate", "--ra", "83.8", "--dec", "-5.4", "--roll", "30", "--fov-deg", "12", "--mag-limit",
+                 "7", "--seed", "2", "--out", str(png)]) == 0
+    return png
+
+
+def _png_bomb(w: int, h: int) -> bytes:
+    def chunk(t, d):
+        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
+
+    comp = zlib.compressobj(9)
+    row = b"\x00" * (w + 1)
+    data = b"".join(comp.compress(row) for _ in range(h)) + comp.flush()
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", data) + chunk(b"IEND", b""))
+
+
+# ------------------------------------------------------------------------------------------ images
+
+def test_damaged_images_are_one_line_errors_with_json(capsys, tmp_path, sky):
+    rng = np.random.default_rng(0)
+    good_png = sky.read_bytes()
+    ok, jpg = cv2.imencode(".jpg", cv2.imread(str(sky), cv2.IMREAD_UNCHANGED).astype(np.uint8))
+    tiff = cv2.imencode(".tiff", np.zeros((40, 40), np.uint16))[1].tobytes()
+    cases = {
+        "truncated.png": good_png[:200],
+        "random.png": rng.integers(0, 256, 5000, dtype=np.uint8).tobytes(),
+        "truncated.jpg": jpg.tobytes()[:100],
+        "truncated.tiff": tiff[:60],
+        "empty.png": b"",
+        "bomb.png": _png_bomb(20000, 20000),  # 400 MP announced in a ~400 kB file
+    }
+    for name, data in cases.items():
+        f = tmp_path / name
+        f.write_bytes(data)
+        code, out, err = run(capsys, "solve", f, "--json")
+        assert code == 2 and one_line(err), (name, err)
+        obj = json.loads(out)
+        assert obj["status"] == "error" and obj["exit_code"] == 2
+        assert f.read_bytes() == data  # never touched
+
+
+def test_float_tiff_with_nan_and_inf(capsys, tmp_path):
+    a = np.random.default_rng(1).normal(100, 5, (64, 64)).astype(np.float32)
+    a[5, 5], a[10, 10] = np.nan, np.inf
+    some = tmp_path / "some.tiff"
+    cv2.imwrite(str(some), a)
+    code, out, err = run(capsys, "solve", some)
+    assert code == 1 and "no stars" in err  # a noise frame: read, searched, not solved
+    allnan = tmp_path / "allnan.tiff"
+    cv2.imwrite(str(allnan), np.full((64, 64), np.nan, np.float32))
+    code, out, err = run(capsys, "solve", allnan)
+    assert code == 2 and one_line(err) and "finite" in err
+
+
+def test_odd_arrays_to_the_api():
+    import skyview
+    from skyview.errors import BadInput
+
+    img = cv2.imread(str(REAL / sorted(os.listdir(REAL))[0]), cv2.IMREAD_UNCHANGED)
+    assert skyview.solve_image(np.asfortranarray(img)).solved
+    assert skyview.solve_image(np.ascontiguousarray(img.T).T).solved  # a transposed view
+    assert skyview.solve_image(img.astype(np.float64)).solved
+    for bad in (img.tolist(), None, b"\x89PNG", (1, 2), np.zeros((5, 5)), np.zeros((20, 20, 7))):
+        with pytest.raises(BadInput):
+            skyview.solve_image(bad)
+
+
+# ------------------------------------------------------------------------------------------ sidecars
+
+def test_a_json_beside_the_image_that_is_not_a_sidecar_is_left_alone(capsys, tmp_path, sky):
+    img = tmp_path / "photo.png"
+    img.write_bytes(sky.read_bytes())
+    for content in ('{"exposure": 30, "iso": 1600}', "{not json", '{"R": "x"}', "[]"):
+        (tmp_path / "photo.json").write_text(content)
+        code, out, err = run(capsys, "solve", img, "--json")
+        assert code == 0, err
+        assert "truth" not in json.loads(out)
+        assert (tmp_path / "photo.json").read_text() == content
+    code, out, err = run(capsys, "solve", img, "--truth", tmp_path / "photo.json")
+    assert code == 2 and one_line(err)  # asked for explicitly: an error
+
+
+def test_a_sequence_may_not_name_files_outside_its_folder(capsys, tmp_path, sky):
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    (seq / "a.png").write_bytes(sky.read_bytes())
+    eye = np.eye(3).tolist()
+    for names in (["a.png", "../outside.png"], ["a.png", "/etc/passwd"]):
+        (seq / "sequence.json").write_text(json.dumps({"images": names, "relative": [{"dR_cam": eye}],
+                                                       "camera": {}}))
+        code, out, err = run(capsys, "solve-sequence", seq, "--fov-deg", "12")
+        assert code == 2 and one_line(err) and "not a file in the sequence's folder" in err
+
+
+# ------------------------------------------------------------------------------------------ outputs
+
+def test_outputs_are_checked_before_the_work_and_never_overwritten(capsys, tmp_path, sky):
+    keep = tmp_path / "keep.json"
+    keep.write_text("user data")
+    for args in (["--output", keep], ["--wcs", keep], ["--output", tmp_path / "no" / "x.json"]):
+        code, out, err = run(capsys, "solve", sky, *args)
+        assert code == 2 and one_line(err)
+    assert keep.read_text() == "user data"
+    cat = tmp_path / "cat.npz"
+    cat.write_bytes(b"precious")
+    code, out, err = run(capsys, "catalog", "build", "--out", cat)
+    assert code == 2 and one_line(err) and cat.read_bytes() == b"precious"
+    t0 = time.perf_counter()
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code, out, err = run(capsys, "bench", "-n", "50", "--out", blocker / "sub")
+    assert code == 2 and one_line(err) and time.perf_counter() - t0 < 10  # refused before the Monte Carlo
+
+
+@pytest.mark.parametrize("argv", [["simulate", "--ra", "1", "--dec", "1", "--seed", "-1"],
+                                  ["simulate", "--ra", "1", "--dec", "1", "--width", "100000"],
+                                  ["simulate", "--ra", "1", "--dec", "1", "--frames", "0"],
+                                  ["solve", "{sky}", "--method", "angle", "--fov-deg", "12", "--param", "sigma_rad=1"],
+                                  ["solve", "{sky}", "--method", "angle", "--fov-deg", "12", "--param", "variant=x"],
+                                  ["solve", "{sky}", "--method", "astrology"],
+                                  ["solve", "{sky}", "--fov-error", "1.5"]])
+def test_bad_options_are_exit_2(capsys, tmp_path, sky, argv):
+    argv = [str(sky) if a == "{sky}" else a for a in argv]
+    if argv[0] == "simulate":
+        argv += ["--out", str(tmp_path / "x.png")]
+    code, out, err = run(capsys, *argv, "--json")
+    assert code == 2 and one_line(err)
+    assert json.loads(out)["status"] == "error"
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_broken_pipe_is_not_an_error(sky):
+    p = subprocess.run(f"{sys.executable} -m skyview solve {sky} --json | head -c 10 > /dev/null",
+                       shell=True, capture_output=True, text=True, timeout=120)
+    assert "Traceback" not in p.stderr and "internal error" not in p.stderr
+
+
+# ------------------------------------------------------------------------------------------ recordings
+
+def test_damaged_recordings_are_refused(capsys, tmp_path):
+    src = Path(__file__).parent.parent / "recordings" / "angle-cole8.rrd"
+    data = src.read_bytes()
+    for name, content in (("half.rrd", data[: len(data) // 2]), ("junk.rrd", b"RRF2" + b"\x00" * 100),
+                          ("text.rrd", b"hello")):
+        f = tmp_path / name
+        f.write_bytes(content)
+        code, out, err = run(capsys, "replay", f, "--web", "--port", "0")
+        assert code == 2 and one_line(err), (name, err)
+        assert f.read_bytes() == content
+
+
+# ------------------------------------------------------------------------------------------ cache
+
+def test_a_truncated_cached_database_heals_itself(capsys, tmp_path, monkeypatch, sky):
+    monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
+    args = ["solve", sky, "--method", "angle", "--fov-deg", "12", "--fov-error", "0", "--json"]
+    code, out, err = run(capsys, *args)
+    assert code == 0, err
+    dbs = list((tmp_path / "databases").glob("angle-*.npz"))
+    assert len(dbs) == 1
+    dbs[0].write_bytes(dbs[0].read_bytes()[:1000])
+    import skyview.pipeline
+
+    messages = ""
+    for _ in range(2):  # healed once, then fine (each run as a new process would: no solver kept)
+        skyview.pipeline._SOLVERS.clear()
+        code, out, err = run(capsys, *args)
+        assert code == 0 and json.loads(out)["status"] == "solved"
+        messages += err
+    assert messages.count("damaged") == 1 and dbs[0].stat().st_size > 1000
+
+
+# ------------------------------------------------------------------------------------------ benches
+
+_MARK = {}
+
+
+def _dies_once(ctx, k):
+    """A trial function whose worker is killed the first time it reaches trial 7, and always at 13."""
+    if k == 13 or (k == 7 and not os.path.exists(ctx)):
+        if k == 7:
+            Path(ctx).write_text("died once")
+        os.kill(os.getpid(), signal.SIGKILL)
+    return ({"trial": k, "outcome": "correct"}, None, None)
+
+
+def test_a_killed_worker_loses_no_trial(tmp_path):
+    counts = Counter()
+    bar = bench.Progress(20, "test", False)
+    trials = bench._trials_in_processes(str(tmp_path / "mark"), _dies_once, 20, 2, bar, counts)
+    assert [t["trial"] for t in trials] == list(range(20))
+    lost = [t for t in trials if t["outcome"] == "error"]
+    # trial 13's chunk (10-14) died twice: reported, not dropped; trial 7's was retried and finished
+    assert {t["trial"] for t in lost} == set(range(10, 15)) and all("died" in t["reason"] for t in lost)
+    assert trials[7]["outcome"] == "correct"
+
+
+def test_ctrl_c_stops_a_bench_at_once_and_saves_what_finished(tmp_path):
+    out = tmp_path / "res"
+    p = subprocess.Popen([sys.executable, "-m", "skyview", "bench", "-n", "2000", "--jobs", "2", "--quiet",
+                          "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))  # as a background job
+    time.sleep(8)
+    t0 = time.perf_counter()
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=30)
+    assert p.returncode == 130, stderr
+    assert time.perf_counter() - t0 < 5.0
+    saved = json.loads(next(out.glob("*.json")).read_text())
+    assert saved["interrupted"] and 0 < saved["trials_finished"] < 2000
+    time.sleep(0.5)
+    left = subprocess.run(["pgrep", "-f", f"--out {out}"], capture_output=True, text=True)
+    assert left.stdout.strip() == ""  # no orphaned workers
