@@ -1078,3 +1078,37 @@ def test_a_host_that_cannot_be_bound_is_one_line_and_exit_2(capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.strip().startswith("skyview: error:") and len(err.strip().splitlines()) == 1
     assert time.perf_counter() - t0 < 10.0
+
+
+def test_an_oversized_upload_is_refused_when_it_starts_not_after_it_arrived():
+    """The browser announces the size first: over the limit, the server drops the transfer at once and
+    buffers none of its parts; a small one is buffered as usual."""
+    import asyncio
+
+    from viser import _messages
+
+    from skyview.viewer.app import ViewerApp
+    from skyview.viewer.picture import MAX_UPLOAD_BYTES
+
+    app = ViewerApp(port=0)
+    try:
+        gui = app.server.gui
+        button = gui.add_upload_button("test upload")
+        uuid = button._impl.uuid
+        ws = gui._websock_interface
+        big = _messages.FileTransferStartUpload(source_component_uuid=uuid, transfer_uuid="big", filename="big.png",
+                                                mime_type="image/png", part_count=5000,
+                                                size_bytes=MAX_UPLOAD_BYTES + 1)
+        small = _messages.FileTransferStartUpload(source_component_uuid=uuid, transfer_uuid="small",
+                                                  filename="small.png", mime_type="image/png", part_count=2,
+                                                  size_bytes=1000)
+        asyncio.run(ws._handle_incoming_message(0, big))
+        asyncio.run(ws._handle_incoming_message(0, small))
+        assert "big" not in gui._current_file_upload_states
+        assert "small" in gui._current_file_upload_states
+        part = _messages.FileTransferPart(source_component_uuid=uuid, transfer_uuid="big", part_index=0,
+                                          content=b"x" * 1000)
+        asyncio.run(ws._handle_incoming_message(0, part))
+        assert "big" not in gui._current_file_upload_states  # its parts are not buffered
+    finally:
+        app.stop()

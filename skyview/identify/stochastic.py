@@ -357,9 +357,16 @@ class StochasticMethod(Identifier):
         params = {"n_roll": int(n_roll), "neighbour_radius_rad": self.neighbour_radius_rad,
                   "version": DATABASE_VERSION}
         self.database_key = database.make_key(self.name, params, catalog, camera)
+        n_pairs = database.pairs_estimate(len(catalog), self.neighbour_radius_rad)
+        what = (f"the stochastic method's database ({len(catalog):,} stars, neighbours within "
+                f"{np.degrees(self.neighbour_radius_rad):.1f} deg, {int(n_roll)} rolls)")
+        if not database.database_path(self.database_key).exists():
+            # neighbour lists (index, distance, angle: ~48 bytes a neighbour, both ways) and the statistics
+            # vector of every star at every roll
+            database.check_memory(96 * n_pairs + 64 * len(catalog) * int(n_roll), what)
         arrays, info = database.load_or_build(
             self.database_key, lambda: build_stochastic_database(catalog, camera, int(n_roll),
-                                                                 self.neighbour_radius_rad))
+                                                                 self.neighbour_radius_rad), what=what)
         self.xi = arrays["xi"]
         self.nb_offsets = arrays["nb_offsets"].astype(np.int64)
         self.nb_index = arrays["nb_index"].astype(np.int64)

@@ -21,6 +21,7 @@ import viser
 from skyview.camera import Camera
 from skyview.centroid import load_image
 from skyview.errors import BadInput
+from skyview.viewer.picture import MAX_UPLOAD_BYTES
 from skyview.viewer.run import SceneConfig, Solvers, Source, check_fov
 from skyview.viewer.session import Session
 
@@ -77,6 +78,7 @@ class ViewerApp:
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner
             self.server = viser.ViserServer(host=host, port=port, label="skyview", verbose=False)
         self.host = host
+        self._refuse_oversized_uploads()
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
 
@@ -88,6 +90,26 @@ class ViewerApp:
     def url(self) -> str:
         host = "127.0.0.1" if self.host in ("0.0.0.0", "::", "") else self.host
         return f"http://{host}:{self.port}"
+
+    def _refuse_oversized_uploads(self) -> None:
+        """Refuse an upload larger than MAX_UPLOAD_BYTES when it starts (the browser announces its size),
+        so the server never buffers it: viser's own handler has just created the transfer's state; it is
+        dropped here, and the parts that follow are ignored. (viser internals, pinned to viser 1.1.1.)"""
+        from viser import _messages
+
+        gui = self.server.gui
+
+        def check(client_id, message) -> None:
+            if message.size_bytes <= MAX_UPLOAD_BYTES:
+                return
+            gui._current_file_upload_states.pop(message.transfer_uuid, None)
+            with self._lock:
+                session = self.sessions.get(client_id)
+            if session is not None:
+                session.show_error(f"{message.filename} is {message.size_bytes / 1e6:.0f} MB: the viewer takes "
+                                   f"images up to {MAX_UPLOAD_BYTES // 2 ** 20} MB")
+
+        gui._websock_interface.register_handler(_messages.FileTransferStartUpload, check)
 
     def _connect(self, client: viser.ClientHandle) -> None:
         session = Session(client, self.solvers, initial=self.initial, config=self.config)
