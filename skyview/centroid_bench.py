@@ -252,3 +252,36 @@ def format_markdown(result: dict) -> str:
                          f"{100 * c['completeness']:.1f} % |")
         lines.append("")
     return "\n".join(lines)
+
+
+def time_centroiding(n_frames: int = 50, *, reference: bool = False, real_images: Sequence[str] = (),
+                     seed: int = 0) -> dict:
+    """Median wall time (ms) of one detect_centroids call per frame kind, over n_frames calls each:
+    simulated 1024x1024 frames in 8 and 16 bit (default SensorModel, 8 deg, stars to Hp 8.5, ten
+    attitudes cycled) and the given real photographs (cycled). reference=True times the former
+    implementation (skyview.centroid._detect_centroids_reference) instead. Run it on one core
+    (taskset -c 0, OMP_NUM_THREADS=1); OpenCV is set to one thread here."""
+    import cv2
+
+    from skyview.centroid import _detect_centroids_reference, load_image
+    cv2.setNumThreads(1)
+    fn = _detect_centroids_reference if reference else detect_centroids
+    catalog = load_guide_catalog()
+    cam = Camera.from_fov(8.0, 1024)
+    Rs = random_attitudes(10, np.random.default_rng(seed))
+    kinds = {f"sim {b}-bit 1024x1024": [simulate_image(catalog, cam, R, SensorModel(bit_depth=b), seed=k,
+                                                         mag_limit=8.5).image for k, R in enumerate(Rs)]
+             for b in (8, 16)}
+    if real_images:
+        kinds["real 16-bit 1024x768"] = [load_image(p) for p in real_images]
+    out = {}
+    for name, frames in kinds.items():
+        fn(frames[0])  # warm-up
+        ts, ns = [], []
+        for k in range(n_frames):
+            t0 = time.perf_counter()
+            c = fn(frames[k % len(frames)])
+            ts.append(time.perf_counter() - t0)
+            ns.append(len(c))
+        out[name] = {"median_ms": 1e3 * float(np.median(ts)), "median_stars": float(np.median(ns))}
+    return out

@@ -1,5 +1,6 @@
 """The command line as a user meets it: end to end on a simulated sky, and every bad input."""
 
+import argparse
 import json
 import subprocess
 import sys
@@ -195,3 +196,54 @@ def test_cache_list_and_clear(capsys, tmp_path, monkeypatch):
     code, out, err = run(capsys, "cache", "clear")
     assert code == 0 and "removed 1" in out
     assert not any((tmp_path / "databases").iterdir())
+
+
+def _subcommands(parser, prefix=()):
+    """(argv prefix, parser) for every subcommand, nested ones (cache clear, catalog build) included."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield (*prefix, name), sub
+                yield from _subcommands(sub, (*prefix, name))
+
+
+def test_every_subcommand_help_lists_the_choices(capsys):
+    from skyview.cli import build_parser
+    from skyview.identify import METHODS
+    from skyview.scenarios import SCENARIOS
+
+    subs = list(_subcommands(build_parser()))
+    assert {" ".join(argv) for argv, _ in subs} >= {"demo", "simulate", "solve", "bench", "solve-sequence",
+                                                    "bench-sequence", "record", "replay", "cache", "cache clear",
+                                                    "catalog", "catalog build", "view"}
+    for argv, sub in subs:
+        with pytest.raises(SystemExit) as exc:
+            main([*argv, "--help"])
+        assert exc.value.code == 0, argv
+        out = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+        options = {s for a in sub._actions for s in a.option_strings}
+        if "--method" in options:
+            assert all(m in out for m in METHODS), (argv, out)
+        if "--scenario" in options:
+            assert all(s in out for s in SCENARIOS), (argv, out)
+        for action in sub._actions:  # every argument says what it is (and its unit, in the text)
+            if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+                continue
+            assert action.help, (argv, action.dest)
+
+
+def test_replay_finds_the_example_recordings_from_any_folder(tmp_path, monkeypatch, capsys):
+    from skyview.cli import resolve_recording
+
+    monkeypatch.chdir(tmp_path)
+    p = resolve_recording("recordings/angle-cole8.rrd", None)
+    assert p.is_absolute() and p.exists() and p.name == "angle-cole8.rrd"
+    assert resolve_recording(None, "angle").name.startswith("angle-")
+    code, out, err = run(capsys, "replay", "--example", "astrology")
+    assert code == 2 and one_line_error(err) and "angle" in err and "triangle" in err
+
+
+def test_a_calibrated_failure_says_what_to_try(orion, capsys):
+    code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "9.5", "--fov-error", "0", "--method", "angle")
+    assert code == 1 and one_line_error(err)
+    assert "leave out --fov-error 0" in err and "--variant improved" in err

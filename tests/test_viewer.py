@@ -324,6 +324,10 @@ def session():
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     s = Session(server, Solvers())
     assert s.wait_idle(60)
+    # the viewer opens on the default pipeline (blind); these tests follow the angle method's steps
+    assert s.panel.method.value == "blind" and s.run.result.method == "blind" and s.run.result.solved
+    s.panel.method.value = "angle"
+    assert s.wait_idle(60) and s.run.result.method == "angle"
     yield server, s
     s.close()
     with contextlib.redirect_stdout(io.StringIO()):
@@ -643,8 +647,10 @@ def test_compare_covers_every_method_by_default():
         rows = compare(SimpleNamespace(name="img"), 6.0, Fake())
     finally:
         run_mod.solve = orig
-    assert [c[0] for c in calls][::2] == list(METHODS)
-    assert all(r["status"] == "error" for r in rows) and "RuntimeError: boom" in rows[0]["reason"]
+    # the default pipeline (one variant) first, then every method in both variants
+    assert calls[0] == ("blind", "improved") and [c[0] for c in calls[1:]][::2] == list(METHODS)
+    assert all(r["status"] == "error" for r in rows)
+    assert "RuntimeError: boom" in next(r for r in rows if r["method"] == "angle")["reason"]
 
 
 def test_result_and_step_text_for_a_failure():
@@ -1112,3 +1118,18 @@ def test_an_oversized_upload_is_refused_when_it_starts_not_after_it_arrived():
         assert "big" not in gui._current_file_upload_states  # its parts are not buffered
     finally:
         app.stop()
+
+
+def test_the_blind_pipeline_is_a_method_of_the_viewer():
+    """The default pipeline (no FOV, the camera fitted) in the Method menu: its steps are the look-up of
+    patterns (drawn across the sky), the hypotheses, the camera fit and the verification."""
+    solvers = Solvers()
+    src = simulate(SceneConfig(ra_deg=83.8, dec_deg=-5.4, roll_deg=30.0, fov_deg=12.0, mag_limit=6.5),
+                   solvers.base_catalog)
+    run = solve(src, "blind", "improved", 6.5, solvers)
+    assert run.result.solved and run.result.method == "blind" and run.result.camera_fitted
+    assert run.result.camera.fov_deg == pytest.approx(12.0, rel=0.005) and run.wrong_matches == 0
+    kinds = [st.kind for st in run.result.identification.steps]
+    assert kinds[0] == "lookup" and "hypothesis" in kinds and kinds[-2:] == ["fit", "verify"]
+    assert run.result.identification.steps[0].groups  # the candidate patterns, drawn on the sphere
+    assert "fitted to the stars" in result_markdown(run)

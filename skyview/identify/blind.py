@@ -185,9 +185,12 @@ class BlindIdentifier:
                 continue
             cands = self._lookup(uv[:n_pat], quads, batch, width, height, lo, hi)
             n_cands += len(cands["pattern"])
+            shown = self.rows[cands["pattern"][:CAP]]
             steps.append(Step("lookup", f"patterns of four among the {upto} brightest stars ({len(batch)} new), "
                                         f"FOV {lo:.2f}-{hi:.2f} deg: {len(cands['pattern'])} catalog patterns agree",
                               observed=list(range(upto)),
+                              catalog=sorted({int(r) for r in shown.ravel()}),
+                              groups=[tuple(int(r) for r in g) for g in shown],
                               numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
                                        "fov_min_deg": lo, "fov_max_deg": hi}))
             res = self._check(uv, quads, cands, state, steps, t0)

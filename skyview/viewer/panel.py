@@ -220,18 +220,20 @@ def status_markdown(run: Run) -> str:
     return f"<span style='color:rgb(255,150,40)'>● not solved</span> by {head}: {r.reason}{note}"
 
 
-def _fov_text(source) -> str:
-    """The FOV as given, or as fitted to the stars (with the distortion) for a user's image."""
-    if not getattr(source, "fitted", False):
-        return f"{source.fov_deg:g}°"
-    return f"{source.fov_deg:.3f}° (fitted to the stars; k1 {source.k1:+.3f})"
+def _fov_text(run) -> str:
+    """The FOV as given, or as fitted to the stars (with the distortion): a user's image, or the blind
+    pipeline's result."""
+    r = run.result
+    if getattr(r, "camera_fitted", False) or getattr(run.source, "fitted", False):
+        return f"{r.camera.fov_deg:.3f}° (fitted to the stars; k1 {r.camera.k1:+.3f})"
+    return f"{run.source.fov_deg:g}°"
 
 
 def result_markdown(run: Run, viewer_ms: dict | None = None) -> str:
     """Status, attitude, sigma, error against truth and time per stage."""
     r = run.result
     lines = [f"**{'Solved' if r.solved else 'Not solved'}** by **{r.method}** ({r.variant})  ",
-             f"image: {run.source.name}, FOV {_fov_text(run.source)} ({r.camera.width}×{r.camera.height})  "]
+             f"image: {run.source.name}, FOV {_fov_text(run)} ({r.camera.width}×{r.camera.height})  "]
     if not r.solved:
         lines.append(f"reason: {r.reason}  ")
     rows = [("centroids", f"{len(r.centroids)} (brightest {run.n_used} used)"),

@@ -64,9 +64,13 @@ def check_fov(fov_deg) -> float:
     return _num("FOV (deg)", fov_deg, *FOV_RANGE_DEG)
 
 
+BLIND = "blind"  # the default pipeline: blind four-star patterns, the camera fitted (skyview.identify.blind)
+VIEWER_METHODS = (BLIND, *METHODS)  # the viewer opens on the default pipeline
+
+
 def check_method(method, variant) -> tuple[str, str]:
-    if method not in METHODS:
-        raise BadInput(f"unknown method {method!r}: choose from {', '.join(METHODS)}")
+    if method not in VIEWER_METHODS:
+        raise BadInput(f"unknown method {method!r}: choose from {', '.join(VIEWER_METHODS)}")
     if variant not in VARIANTS:
         raise BadInput(f"unknown variant {variant!r}: choose from {', '.join(VARIANTS)}")
     return str(method), str(variant)
@@ -243,6 +247,12 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
     """Centroid and identify `source` with `method`; derive the drawables."""
     method, variant = check_method(method, variant)
     mag_limit = _num("magnitude limit", mag_limit, *MAG_RANGE)
+    if method == BLIND:  # the default pipeline: no FOV, depth from the image, the camera fitted
+        blind, lock = blind_solver_for(solvers)
+        with lock:
+            result = blind.solve_array(source.image)
+        time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
+        return make_run(source, result, blind.catalog, blind.max_stars, time_ms)
     source = fit_camera_blind(source, solvers)
     if source.depth_mag is not None:  # a user's image: the depth it shows, not the panel's limit
         mag_limit = source.depth_mag
@@ -254,6 +264,11 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
     return make_run(source, result, solver.catalog, solver.max_stars, time_ms)
 
 
+def blind_solver_for(solvers: Solvers) -> tuple[BlindSolver, threading.Lock]:
+    """The viewer's one blind solver (its pattern database memory-mapped once, shared by the tabs)."""
+    return solvers.get_or_build((BLIND,), lambda catalog: BlindSolver(catalog=catalog))
+
+
 AUTO_DEPTH_MAX = 7.5  # deeper catalogs make the pair and triangle databases large
 
 
@@ -263,7 +278,7 @@ def fit_camera_blind(source: Source, solvers: Solvers) -> Source:
     search fails. Simulated scenes keep their exact camera (the papers' calibrated mode)."""
     if source.truth is not None or source.fitted:
         return source
-    blind, lock = solvers.get_or_build(("blind",), lambda catalog: BlindSolver(catalog=catalog))
+    blind, lock = blind_solver_for(solvers)
     with lock:
         res = blind.solve_array(source.image)
     if not res.solved:
@@ -305,7 +320,9 @@ SEQUENCE_NOTE = ("one frame only: this method identifies over a sequence of fram
 def compare(source: Source, mag_limit: float, solvers: Solvers, progress=None, methods=None) -> list[dict]:
     """Every method in METHODS (or `methods`), both variants, on the same image: one row each."""
     rows = []
-    jobs = [(m, v) for m in (METHODS if methods is None else methods) for v in VARIANTS]
+    jobs = [(m, v) for m in (METHODS if methods is None else methods) for v in VARIANTS if m != BLIND]
+    if methods is None or BLIND in methods:
+        jobs.insert(0, (BLIND, "improved"))  # the default pipeline has one variant
     for k, (m, v) in enumerate(jobs):
         if progress is not None:
             progress(k, len(jobs), f"{m} ({v})")

@@ -23,11 +23,11 @@ from viser import uplot
 
 from skyview.camera import Camera
 from skyview.errors import BadInput
-from skyview.identify import METHODS, VARIANTS
+from skyview.identify import VARIANTS
 from skyview.viewer import panel as P
 from skyview.viewer.picture import annotate, decode_image_bytes, panel_base, stretch, texture
-from skyview.viewer.run import (Run, SceneConfig, Solvers, Source, check_fov, check_method, compare, needs_sequence,
-                                random_pointing, sigma_for, simulate, solve)
+from skyview.viewer.run import (VIEWER_METHODS, Run, SceneConfig, Solvers, Source, check_fov, check_method, compare,
+                                needs_sequence, random_pointing, sigma_for, simulate, solve)
 from skyview.viewer.scene import STAR_NAMES, SkyScene, nearest_star, ray_to_sphere
 from skyview.viewer.sequence_run import SequenceConfig, SequenceRun, solve_sequence_run
 from skyview.viewer.steps import default_plot_key, numeric_keys, series
@@ -79,7 +79,7 @@ class Session:
         owner.gui.main_panel.dock_right()
         owner.gui.main_panel.set_width(400)
         self.sky = SkyScene(owner.scene)
-        self.panel = P.build_panel(owner.gui, list(METHODS), list(VARIANTS), config or SceneConfig())
+        self.panel = P.build_panel(owner.gui, list(VIEWER_METHODS), list(VARIANTS), config or SceneConfig())
         with self.atomic():
             self.sky.setup()
             # the sky before the first solve: the guide catalog at the scenario's limit
