@@ -32,7 +32,7 @@ from skyview.attitude import attitude_error_arcsec, random_attitudes
 from skyview.catalog import load_guide_catalog
 from skyview.errors import BadInput, SkyviewError
 from skyview.pipeline import BlindSolver, Solver, check_fov_error
-from skyview.scenarios import Scenario
+from skyview.scenarios import SLEW, SLEW_AXIS, SLEW_FRAMES, SLEW_STEP_DEG, Scenario
 from skyview.simulate import SensorModel, simulate_image
 from skyview.truth import wrong_matches
 
@@ -107,6 +107,12 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     same as with jobs=1; only the timings differ (the processes share the machine)."""
     if n < 1:
         raise BadInput("the number of trials (-n) must be at least 1")
+    if scenario.name.split("[")[0] == SLEW:
+        if int(jobs) != 1 or on_trial is not None:
+            raise BadInput("the slew bench runs in one process and records nothing: leave out --jobs and "
+                           "--record-failures")
+        return run_slew_bench(method, scenario, n, seed=seed, method_params=method_params, variant=variant,
+                              sensor=sensor, progress=progress)
     jobs = int(jobs)
     if jobs < 1:
         raise BadInput("the number of jobs must be at least 1")
@@ -122,20 +128,34 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     ctx = _TrialContext(solver=solver, catalog=catalog, camera=camera, scenario=scenario,
                         sensor=sensor or SensorModel(), attitudes=random_attitudes(n, rng),
                         seeds=rng.integers(0, 2**31 - 1, size=n))
-    trials, counts = [], Counter()
+    counts = Counter()
     bar = Progress(n, f"{method}({variant})/{scenario.name}", progress)
+    each = None if on_trial is None else (lambda trial, frame, result: on_trial(trial, frame, result, solver))
+    trials, interrupted = _collect_trials(ctx, _run_trial, n, jobs, bar, counts, each)
+    summary = summarize(method, scenario, seed, [t for t in trials if t["outcome"] != "error"], setup_ms, solver)
+    summary["jobs"] = jobs
+    _note_faults(summary, trials, n, interrupted)
+    return summary
+
+
+def _collect_trials(ctx, run_one: Callable, n: int, jobs: int, bar: Progress, counts: Counter,
+                    each: Callable | None = None) -> tuple[list[dict], bool]:
+    """run_one(ctx, k) for k < n, in this process (each(trial, frame, result) after every trial) or in
+    `jobs` forked ones; (the trials, whether Ctrl-C cut the run short). Raises KeyboardInterrupt when
+    nothing finished, SkyviewError when no trial could run."""
+    trials: list[dict] = []
     interrupted = False
     try:
         if jobs == 1:
             for k in range(n):
-                trial, frame, result = _run_trial(ctx, k)
+                trial, frame, result = run_one(ctx, k)
                 trials.append(trial)
                 counts[trial["outcome"]] += 1
-                if on_trial is not None:
-                    on_trial(trial, frame, result, solver)
+                if each is not None:
+                    each(trial, frame, result)
                 bar.update(k + 1, counts)
         else:
-            trials = _trials_in_processes(ctx, _run_trial, n, jobs, bar, counts)
+            trials = _trials_in_processes(ctx, run_one, n, jobs, bar, counts)
     except (KeyboardInterrupt, Interrupted) as exc:
         trials = getattr(exc, "trials", trials)
         interrupted = True
@@ -143,10 +163,7 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
         if interrupted:
             raise KeyboardInterrupt  # nothing finished: nothing to save
         raise SkyviewError(f"no trial could run: {trials[0]['reason'] if trials else 'no trials'}")
-    summary = summarize(method, scenario, seed, [t for t in trials if t["outcome"] != "error"], setup_ms, solver)
-    summary["jobs"] = jobs
-    _note_faults(summary, trials, n, interrupted)
-    return summary
+    return trials, interrupted
 
 
 def _note_faults(summary: dict, trials: list[dict], n: int, interrupted: bool) -> None:
@@ -423,6 +440,8 @@ def summarize(method: str, scenario: Scenario, seed: int, trials: list[dict], se
 
 
 def format_markdown(s: dict) -> str:
+    if s.get("kind") == SLEW:
+        return format_slew_markdown(s)
     sc = s["scenario"]
     pct = {k: f"{100 * v:.1f} %" for k, v in s["rates"].items()}
     lines = [
@@ -560,23 +579,7 @@ def run_blind_bench(scenario: Scenario, n: int, *, seed: int = 0, fov_error: flo
     counts: Counter = Counter()
     given = "no FOV" if fov_error is None else f"FOV +-{100 * fov_error:g} %"
     bar = Progress(n, f"blind/{scenario.name} ({given})", progress)
-    trials = []
-    interrupted = False
-    try:
-        if jobs == 1:
-            for k in range(n):
-                trials.append(_run_blind_trial(ctx, k)[0])
-                counts[trials[-1]["outcome"]] += 1
-                bar.update(k + 1, counts)
-        else:
-            trials = _trials_in_processes(ctx, _run_blind_trial, n, jobs, bar, counts)
-    except (KeyboardInterrupt, Interrupted) as exc:
-        trials = getattr(exc, "trials", trials)
-        interrupted = True
-    if not any(t["outcome"] != "error" for t in trials):
-        if interrupted:
-            raise KeyboardInterrupt
-        raise SkyviewError(f"no trial could run: {trials[0]['reason'] if trials else 'no trials'}")
+    trials, interrupted = _collect_trials(ctx, _run_blind_trial, n, jobs, bar, counts)
     summary = summarize_blind(scenario, seed, [t for t in trials if t["outcome"] != "error"], fov_error, setup_ms,
                               solver, max_error_px)
     summary["jobs"] = jobs
@@ -724,4 +727,193 @@ def format_blind_markdown(s: dict) -> str:
     m, jobs = s["machine"], s.get("jobs", 1)
     lines += [f"Machine: Python {m['python']}, {m['cpu']}, {m['cores']} cores"
               + (f"; {jobs} trials at a time (times per trial include the sharing)." if jobs > 1 else ".")]
+    return "\n".join(lines) + "\n"
+
+
+# ============================================================================ slew (tracking) bench
+
+def run_slew_bench(method: str | None, scenario: Scenario, n: int, *, seed: int = 0, method_params: dict | None = None,
+                   variant: str = "paper", sensor: SensorModel | None = None, progress: bool = True,
+                   n_frames: int = SLEW_FRAMES, step_deg: float = SLEW_STEP_DEG, axis: str = SLEW_AXIS) -> dict:
+    """n slews (random start attitude, n_frames frames, step_deg per frame about a camera axis), each
+    tracked (`skyview.track.Tracker`) twice: with the sequence's turns (gyros) and with the rate from
+    the last two attitudes only; and every frame also solved lost-in-space (the time and the outcome a
+    tracker saves). Scored against the truth: frames solved, tracked vs lost-in-space, wrong matches,
+    attitude and relative-rotation errors (arcsec), time per frame (the centroiding, common to both,
+    apart)."""
+    from skyview.centroid import detect_centroids
+    from skyview.simulate import simulate_sequence, turn_about_camera_axis
+    from skyview.track import LOST_IN_SPACE, TRACKING, Tracker, body_turn_rotvec
+
+    rng = np.random.default_rng(seed)
+    catalog = load_guide_catalog()
+    camera = scenario.camera()
+    t0 = time.perf_counter()
+    tracker = Tracker(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad, variant=variant,
+                      catalog=catalog, max_stars=scenario.max_stars, method_params=method_params)
+    lis = tracker._solver  # the same Solver the tracker falls back to (None: the default pipeline)
+    setup_ms = (time.perf_counter() - t0) * 1e3
+    attitudes = random_attitudes(n, rng)
+    seeds = rng.integers(0, 2**31 - 1, size=n)
+    turn = turn_about_camera_axis(axis, math.radians(step_deg))
+    modes = ("turns", "rate")
+    runs = []
+    bar = Progress(n, f"slew {method or 'blind'}({variant})/{scenario.name}", progress)
+    counts: Counter = Counter()
+    for i in range(n):
+        sim = simulate_sequence(catalog, camera, attitudes[i], n_frames, turn, sensor or SensorModel(),
+                                seed=int(seeds[i]), **scenario.render_kwargs())
+        Rs = [f.R for f in sim.frames]
+        turns = [sim.dR_cam(k) for k in range(n_frames - 1)]
+        cents, cent_ms = [], []
+        for f in sim.frames:
+            tc = time.perf_counter()
+            cents.append(detect_centroids(f.image, k_sigma=tracker.k_sigma))
+            cent_ms.append((time.perf_counter() - tc) * 1e3)
+        run: dict = {"run": i, "seed": int(seeds[i]), "centroid_ms": cent_ms}
+        for mode in modes:
+            tracker.reset()
+            if method is None:
+                tracker.camera = camera
+            frames = []
+            for k in range(n_frames):
+                fr = tracker.process_centroids(cents[k], camera.width, camera.height,
+                                               turns[k - 1] if (k and mode == "turns") else None)
+                rec = {"frame": k, "mode": fr.mode, "solved": fr.solved, "matches": len(fr.matches),
+                       "time_ms": dict(fr.time_ms), "lost_lock": fr.lost_lock or None}
+                if fr.solved:
+                    wrong = wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in fr.matches],
+                                          sim.frames[k].truth)
+                    rec["wrong_matches"] = len(wrong)
+                    rec["err_total_arcsec"] = attitude_error_arcsec(fr.R, Rs[k])["total"]
+                    rec["err_boresight_arcsec"] = attitude_error_arcsec(fr.R, Rs[k])["boresight"]
+                    if fr.relative_to is not None:
+                        tru = body_turn_rotvec(Rs[fr.relative_to], Rs[k])
+                        rec["relative_error_arcsec"] = float(np.linalg.norm(fr.relative_rotvec_rad - tru) * 206264.80624709636)
+                frames.append(rec)
+            run[mode] = frames
+        lis_frames = []  # every frame lost-in-space: what a solver without tracking spends
+        for k in range(n_frames):
+            if lis is not None:
+                tl = time.perf_counter()
+                r = lis.solve_centroids(cents[k])
+            else:
+                tracker.reset()
+                tracker.camera = camera
+                tl = time.perf_counter()
+                fr = tracker.process_centroids(cents[k], camera.width, camera.height)
+                r = fr.lis_result if fr.lis_result is not None else fr
+            ms = (time.perf_counter() - tl) * 1e3
+            ok = bool(r.solved)
+            wrong = (wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in r.matches], sim.frames[k].truth)
+                     if ok else [])
+            lis_frames.append({"frame": k, "solved": ok, "wrong_matches": len(wrong), "time_ms": ms,
+                               "err_total_arcsec": attitude_error_arcsec(r.R, Rs[k])["total"] if ok else None})
+        run["lost_in_space_every_frame"] = lis_frames
+        runs.append(run)
+        counts["correct" if all(f["solved"] and not f.get("wrong_matches") for f in run["turns"]) else
+               "incorrect" if any(f.get("wrong_matches") for f in run["turns"]) else "inconclusive"] += 1
+        bar.update(i + 1, counts)
+    return summarize_slew(method, variant, scenario, seed, runs, setup_ms, n_frames, step_deg, axis,
+                          LOST_IN_SPACE, TRACKING)
+
+
+def summarize_slew(method, variant, scenario, seed, runs, setup_ms, n_frames, step_deg, axis, LIS, TRK) -> dict:
+    def per_mode(mode: str) -> dict:
+        fs = [f for r in runs for f in r[mode]]
+        solved = [f for f in fs if f["solved"]]
+        trk = [f for f in solved if f["mode"] == TRK]
+        lis = [f for f in fs if f["mode"] == LIS]
+        return {
+            "frames": len(fs), "solved": len(solved), "tracked": len(trk),
+            "lost_in_space": len(lis), "lost_in_space_solved": sum(f["solved"] for f in lis),
+            "lost_lock": sum(1 for f in fs if f["lost_lock"]),
+            "frames_with_wrong_match": sum(1 for f in solved if f.get("wrong_matches")),
+            "attitude_error_total_arcsec": _stats([f["err_total_arcsec"] for f in solved]),
+            "boresight_error_arcsec": _stats([f["err_boresight_arcsec"] for f in solved]),
+            "relative_rotation_error_arcsec": _stats([f.get("relative_error_arcsec") for f in solved]),
+            "time_ms": {"tracking": _stats([f["time_ms"].get("track") for f in trk]),
+                        "lost_in_space": _stats([f["time_ms"].get("lost_in_space") for f in lis])},
+        }
+
+    every = [f for r in runs for f in r["lost_in_space_every_frame"]]
+    cent = [c for r in runs for c in r["centroid_ms"]]
+    out = {
+        "kind": SLEW, "method": method or "blind", "variant": variant, "scenario": scenario.to_dict(), "n": len(runs),
+        "seed": seed, "slew": {"frames": n_frames, "step_deg": step_deg, "axis": axis},
+        "sigma_assumed_urad": scenario.sigma_rad * 1e6,
+        "tracking_with_turns": per_mode("turns"), "tracking_with_rate": per_mode("rate"),
+        "lost_in_space_every_frame": {
+            "frames": len(every), "solved": sum(f["solved"] for f in every),
+            "frames_with_wrong_match": sum(1 for f in every if f["wrong_matches"]),
+            "attitude_error_total_arcsec": _stats([f["err_total_arcsec"] for f in every if f["solved"]]),
+            "time_ms": _stats([f["time_ms"] for f in every])},
+        "centroid_ms": _stats(cent),
+        "setup_ms": setup_ms,
+        "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine(),
+                    "cores": __import__("os").cpu_count()},
+        "runs": runs,
+    }
+    t_trk = out["tracking_with_turns"]["time_ms"]["tracking"].get("median")
+    t_lis = out["lost_in_space_every_frame"]["time_ms"].get("median")
+    c = out["centroid_ms"].get("median")
+    out["ratio_tracking_to_lost_in_space"] = {
+        "solve": (t_trk / t_lis) if t_trk and t_lis else None,
+        "with_centroiding": ((t_trk + c) / (t_lis + c)) if t_trk and t_lis and c else None}
+    # the keys the bench's CLI reads
+    out["counts"] = {"correct": 0, "inconclusive": 0, "incorrect": 0}
+    for r in runs:
+        fs = r["turns"]
+        if any(f.get("wrong_matches") for f in fs):
+            out["counts"]["incorrect"] += 1
+        elif all(f["solved"] for f in fs):
+            out["counts"]["correct"] += 1
+        else:
+            out["counts"]["inconclusive"] += 1
+    return out
+
+
+def format_slew_markdown(s: dict) -> str:
+    sc, sl = s["scenario"], s["slew"]
+
+    def f(st: dict, key: str = "median", fmt: str = ".2f") -> str:
+        return format(st[key], fmt) if st.get("n") else "-"
+
+    lines = [
+        f"# Tracking with {s['method']} ({s['variant']}) on {sc['name']}: {s['n']} slews of {sl['frames']} frames, "
+        f"seed {s['seed']}",
+        "",
+        f"{sc['description']}. Each slew starts at a random attitude and turns {sl['step_deg']:g} deg per frame "
+        f"about the camera {sl['axis']} axis. Identifier sigma {s['sigma_assumed_urad']:.1f} urad.",
+        "",
+        "| prediction | frames | solved | tracked | lost-in-space (solved) | lost lock | frames with a wrong match "
+        "| attitude error median / p95 (\") | relative rotation error median / p95 (\") |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, key in (("turns given (gyros)", "tracking_with_turns"), ("rate of the last two attitudes",
+                                                                       "tracking_with_rate")):
+        m = s[key]
+        lines.append(f"| {name} | {m['frames']} | {m['solved']} | {m['tracked']} | {m['lost_in_space']} "
+                     f"({m['lost_in_space_solved']}) | {m['lost_lock']} | {m['frames_with_wrong_match']} | "
+                     f"{f(m['attitude_error_total_arcsec'])} / {f(m['attitude_error_total_arcsec'], 'p95')} | "
+                     f"{f(m['relative_rotation_error_arcsec'])} / {f(m['relative_rotation_error_arcsec'], 'p95')} |")
+    e = s["lost_in_space_every_frame"]
+    lines += ["", f"Lost-in-space on every frame instead: {e['solved']} of {e['frames']} frames solved, "
+                  f"{e['frames_with_wrong_match']} with a wrong match, attitude error median "
+                  f"{f(e['attitude_error_total_arcsec'])}\"."]
+    t = s["tracking_with_turns"]["time_ms"]
+    r = s["ratio_tracking_to_lost_in_space"]
+    lines += ["", "## Time per frame (ms, this machine)", "", "| step | median | p95 | mean |", "|---|---|---|---|",
+              f"| centroiding (both) | {f(s['centroid_ms'])} | {f(s['centroid_ms'], 'p95')} | "
+              f"{f(s['centroid_ms'], 'mean')} |",
+              f"| tracking (predict, match, verify) | {f(t['tracking'])} | {f(t['tracking'], 'p95')} | "
+              f"{f(t['tracking'], 'mean')} |",
+              f"| lost-in-space ({s['method']}), every frame | {f(e['time_ms'])} | {f(e['time_ms'], 'p95')} | "
+              f"{f(e['time_ms'], 'mean')} |",
+              "",
+              "Tracked / lost-in-space (medians): " + (f"{r['solve']:.2f} of the solve, " if r["solve"] else "- , ")
+              + (f"{r['with_centroiding']:.2f} with the centroiding." if r["with_centroiding"] else "-")
+              + " The issue's target is 0.20 or less."]
+    m = s["machine"]
+    lines += ["", f"Machine: Python {m['python']}, {m['cpu']}, {m['cores']} cores (shared)."]
     return "\n".join(lines) + "\n"

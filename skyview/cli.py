@@ -388,7 +388,6 @@ def threading_main() -> bool:
 
 def cmd_bench(a) -> int:
     from skyview.bench import format_markdown, run_bench, save_results
-    from skyview.scenarios import get_scenario
 
     _interruptible()
     if a.jpeg_quality is not None and not 1 <= a.jpeg_quality <= 100:
@@ -412,8 +411,11 @@ def cmd_bench(a) -> int:
     scenario = _bench_scenario(a)
     from skyview.identify import METHODS
 
-    if a.method not in METHODS:
-        raise BadInput(f"unknown method {a.method!r}: choose from {', '.join(METHODS)}")
+    if a.method == "blind" and scenario.name == "slew":
+        a.method, a.variant = None, "improved"  # tracking with the default blind pipeline for lost-in-space
+    elif a.method not in METHODS:
+        raise BadInput(f"unknown method {a.method!r}: choose from {', '.join(METHODS)}"
+                       + (" (or blind, with --scenario slew)" if scenario.name == "slew" else ""))
     method_params = _method_params(a)
     out_dir = _check_out_folder(a.out)
     if a.jobs < 1:
@@ -603,13 +605,29 @@ def cmd_solve_sequence(a) -> int:
         raise BadInput("--sigma-arcsec must be positive")
     if a.p_identify is not None and not 0 < a.p_identify <= 1:
         raise BadInput("--p-identify must be in (0, 1]")
+    paths = list(a.path)
+    one = len(paths) == 1 and (Path(paths[0]).is_dir() or Path(paths[0]).suffix.lower() == ".json")
+    # no --method on a sequence (folder or sequence.json): the stochastic method, as always; image
+    # paths, or any other method: tracking (skyview.track)
+    if a.method == "stochastic" or (a.method is None and one):
+        if not one:
+            raise BadInput("the stochastic method reads one sequence (a folder or a sequence.json with the turns), "
+                           "not image paths: give --method for tracking")
+        if a.no_turns:
+            raise BadInput("--no-turns goes with tracking: the stochastic method needs the turns")
+        a.path = paths[0]
+        return _solve_sequence_stochastic(a, solve_sequence)
+    return _solve_sequence_track(a, paths, one)
+
+
+def _solve_sequence_stochastic(a, solve_sequence) -> int:
     output = _check_new_file(a.output, a.force)
     if a.record:  # check the recording's path before solving (the recorder is imported only when asked)
         from skyview.record import check_output_path
 
         check_output_path(a.record, a.force)
     method_params = {} if a.p_identify is None else {"p_identify": a.p_identify}
-    res = solve_sequence(a.path, fov_deg=a.fov_deg, mag_limit=a.mag_limit,
+    res = solve_sequence(a.path, fov_deg=a.fov_deg, mag_limit=4.5 if a.mag_limit is None else a.mag_limit,
                          sigma_rad=None if a.sigma_arcsec is None else a.sigma_arcsec * ARCSEC,
                          mag_zero_point=a.mag_zero_point, mag_cut=a.mag_cut, variant=a.variant,
                          method_params=method_params, use_truth=not a.no_truth, epoch=a.epoch,
@@ -638,6 +656,85 @@ def cmd_solve_sequence(a) -> int:
                   f"roll {out['roll_deg']:+.4f} deg")
     if not res.solved:
         print(f"skyview: not solved: {out.get('reason', '')}", file=sys.stderr)
+        return EXIT_NOT_SOLVED
+    return EXIT_SOLVED
+
+
+def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
+    """Tracking (skyview.track): one JSON line per frame with --json, else a line per frame."""
+    from skyview.attitude import attitude_error_arcsec
+    from skyview.camera import Camera
+    from skyview.centroid import load_image
+    from skyview.sequence import load_sequence
+    from skyview.track import Tracker, body_turn_rotvec
+    from skyview.truth import wrong_matches
+
+    stochastic_only = [o for o, v in (("--p-identify", a.p_identify), ("--mag-zero-point", a.mag_zero_point),
+                                      ("--mag-cut", a.mag_cut), ("--record", a.record)) if v is not None]
+    if stochastic_only:
+        raise BadInput(f"{', '.join(stochastic_only)} go{'es' if len(stochastic_only) == 1 else ''} with the "
+                       f"stochastic method, not with tracking")
+    output = _check_new_file(a.output, a.force)
+    truths = None
+    if one:
+        seq = load_sequence(paths[0], a.fov_deg)
+        images, turns, camera, names = seq.images, seq.turns, seq.camera, [str(p) for p in seq.paths]
+        truths = None if a.no_truth else seq.truths
+    else:
+        for p in paths:
+            if Path(p).is_dir() or Path(p).suffix.lower() == ".json":
+                raise BadInput(f"{p}: give one sequence (a folder or sequence.json) or image paths, not both")
+        images = [load_image(p) for p in paths]
+        shapes = {im.shape for im in images}
+        if len(shapes) != 1:
+            raise BadInput(f"the images differ in size: {sorted(shapes)}")
+        H, W = images[0].shape
+        camera = Camera.from_fov(a.fov_deg, W, H) if a.fov_deg is not None else None
+        turns, names = None, list(paths)
+    if a.no_turns:
+        turns = None
+    method = None if a.method in (None, "blind") else a.method
+    tracker = Tracker(camera, method, mag_limit=a.mag_limit, variant=a.variant, epoch=a.epoch,
+                      sigma_rad=None if a.sigma_arcsec is None else a.sigma_arcsec * ARCSEC,
+                      max_stars=a.max_stars, k_sigma=a.k_sigma, progress=_progress_line)
+    lines, failed = [], []
+    for k, img in enumerate(images):
+        fr = tracker.process(img, None if (k == 0 or turns is None) else turns[k - 1])
+        d = fr.to_dict()
+        d = {"frame": k, "image": names[k], **{key: v for key, v in d.items() if key not in ("frame", "R")}}
+        d["method"] = a.method or "blind"
+        if truths is not None and fr.solved:
+            R_true = np.asarray(truths[k]["R"], dtype=np.float64)
+            d["error_arcsec"] = attitude_error_arcsec(fr.R, R_true)
+            d["wrong_matches"] = len(wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in fr.matches],
+                                                   truths[k]))
+            if fr.relative_to is not None:
+                tru = body_turn_rotvec(np.asarray(truths[fr.relative_to]["R"], dtype=np.float64), R_true)
+                d["relative_error_arcsec"] = float(np.degrees(np.linalg.norm(fr.relative_rotvec_rad - tru)) * 3600)
+        if not fr.solved:
+            failed.append(k)
+        text = json.dumps(d, allow_nan=False)
+        lines.append(text)
+        if a.json:
+            print(text, flush=True)
+        else:
+            t = d["time_ms"]
+            if fr.solved:
+                rel = (f", turned {d['relative_angle_deg']:.4f} deg since frame {d['relative_to']}"
+                       if "relative_to" in d else "")
+                line = (f"frame {k}: {d['mode']:<13} RA {d['ra_deg']:.5f}  Dec {d['dec_deg']:+.5f}  roll "
+                        f"{d['roll_deg']:+.4f} deg{rel}, {d['n_matches']} matches, {t['total']:.1f} ms")
+                if "error_arcsec" in d:
+                    line += (f" (against truth: {d['error_arcsec']['total']:.1f} arcsec, {d['wrong_matches']} wrong "
+                             f"matches)")
+            else:
+                line = f"frame {k}: not solved ({d['mode']}): {d.get('reason', '')}, {t['total']:.1f} ms"
+            print(line, flush=True)
+    if output is not None:
+        _write_text_new(output, "\n".join(lines) + "\n", a.force)
+    if failed:
+        print(f"skyview: {len(failed)} of {len(images)} frames not solved: frame{'s' if len(failed) > 1 else ''} "
+              f"{', '.join(map(str, failed))}", file=sys.stderr)
         return EXIT_NOT_SOLVED
     return EXIT_SOLVED
 
@@ -923,8 +1020,9 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="Monte Carlo identification statistics for a method and scenario",
                        description="Random attitudes (uniform on SO(3)): simulate, centroid, solve, score against "
                                    "the truth. Results go to --out as JSON and Markdown.")
-    b.add_argument("--method", choices=methods, default=None, metavar="METHOD",
-                   help=f"identification method: {method_list} (default angle)")
+    b.add_argument("--method", choices=(*methods, "blind"), default=None, metavar="METHOD",
+                   help=f"identification method: {method_list} (default angle); blind (the default pipeline) "
+                        f"with --scenario slew")
     _variant_arg(b)
     b.add_argument("--scenario", choices=scenarios, default=None, metavar="SCENARIO",
                    help=f"scenario (skyview.scenarios): {scenario_list} (default cole8, with --blind blind8)")
@@ -964,13 +1062,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="save a Rerun recording of every trial that is not correct into DIR (created if missing)")
     b.set_defaults(func=cmd_bench)
 
-    q = sub.add_parser("solve-sequence", help="frames with known relative rotations -> attitude (stochastic method)",
-                       description="Identify a frame sequence with the stochastic method (Udomkesmalee et al.), "
-                                   "as `skyview simulate --frames` writes it.")
-    q.add_argument("path", help="sequence.json (as `skyview simulate --frames` writes it) or its folder")
+    q = sub.add_parser("solve-sequence", help="a sequence of frames -> attitude per frame (tracking; stochastic "
+                                              "on a sequence without --method)",
+                       description="Solve frames in time order. --method stochastic (the default for a folder or "
+                                   "sequence.json, as `skyview simulate --frames` writes it) identifies over the "
+                                   "whole sequence (Udomkesmalee et al.). Any other method, or image paths, tracks "
+                                   "(docs/tracking.md): the first frame lost-in-space, then each frame from the "
+                                   "prediction of the last, lost-in-space again when lock is lost. Exit code 0 every "
+                                   "frame solved, 1 some not, 2 bad input.")
+    q.add_argument("path", nargs="+", metavar="FRAMES",
+                   help="sequence.json or its folder (with the turns between frames), or image paths in time order")
+    q.add_argument("--method", choices=(*methods, "blind"), default=None, metavar="METHOD",
+                   help=f"lost-in-space method for tracking: {method_list}, or blind (the default pipeline; the "
+                        f"default for image paths); stochastic: the multi-frame method (the default for a sequence)")
+    q.add_argument("--no-turns", action="store_true",
+                   help="tracking: ignore the sequence's turns and predict from the rate of the last two attitudes")
     q.add_argument("--fov-deg", type=_float, default=None, help="horizontal full FOV, deg (default: the sidecar's camera)")
     _variant_arg(q)
-    q.add_argument("--mag-limit", type=_float, default=4.5, help="guide catalog limit, Hp (the paper: 4.5)")
+    q.add_argument("--mag-limit", type=_float, default=None,
+                   help="guide catalog limit, Hp (default: stochastic 4.5, the paper's; tracking 6)")
     q.add_argument("--sigma-arcsec", type=_float, default=None,
                    help="1-sigma direction error of a star, arcsec (default: half a pixel)")
     q.add_argument("--mag-zero-point", type=_float, default=None,
@@ -985,8 +1095,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--k-sigma", type=_float, default=5.0,
                    help="detection threshold, in sigmas of the measured background noise (default 5)")
     q.add_argument("--no-truth", action="store_true", help="ignore the simulator's truth in the sidecar")
-    q.add_argument("--json", action="store_true", help="print one JSON object")
-    q.add_argument("--output", default=None, help="also write the JSON result to this file")
+    q.add_argument("--json", action="store_true",
+                   help="print JSON: one object (stochastic), one line per frame (tracking)")
+    q.add_argument("--output", default=None, help="also write the JSON result (tracking: the JSON lines) to this file")
     q.add_argument("--force", action="store_true", help="overwrite existing --output and --record files")
     q.add_argument("--record", default=None, metavar="PATH.rrd",
                    help="also save the sequence as a Rerun recording, frame by frame (open it with 'skyview replay')")

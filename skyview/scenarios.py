@@ -95,8 +95,17 @@ SCENARIOS: dict[str, Scenario] = {
                  "to Hp 9.0, 30 % vignetting at the corners, 20 % sky gradient",
                  fov_deg=4.0, width=1024, height=768, mag_limit=7.5, noise_rad=0.0,
                  faint_extra_mag=1.5, vignetting=0.3, sky_gradient=0.2),
+        Scenario("slew", "tracking: a slew of 10 frames turning 2 deg per frame about the camera "
+                 "y axis (a pan), 12 deg FOV, 1024x1024, Hp <= 6.0, no noise beyond the centroider's "
+                 "(skyview.track; `skyview bench --scenario slew`)",
+                 fov_deg=12.0, width=1024, height=1024, mag_limit=6.0, noise_rad=0.0),
     ]
 }
+# the slew scenario's motion (skyview.bench.run_slew_bench)
+SLEW = "slew"
+SLEW_FRAMES = 10
+SLEW_STEP_DEG = 2.0
+SLEW_AXIS = "y"
 
 
 def get_scenario(name: str) -> Scenario:

@@ -290,8 +290,8 @@ def test_bench_small_run(cat):
 # and axis ratio within 1e-6 relative. The looser criterion (brightest 40 matched one to one
 # within 0.05 px) is implied and checked too.
 
-from skyview.centroid import _background_stats, _detect_centroids_reference, _estimate_background_reference, \
-    _label_sparse  # noqa: E402
+from skyview.centroid import _background_stats, _label_sparse  # noqa: E402
+from skyview.centroid_reference import _detect_centroids_reference, _estimate_background_reference  # noqa: E402
 
 _REAL = sorted((__import__("pathlib").Path(__file__).parent / "data" / "real-images").glob("*.png"))
 

@@ -829,7 +829,12 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
     proc, url = _start_view()
     try:
         with pw.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+            # the browser's own files (dconf, caches) go to the test's folder, not the user's home
+            home = tmp_path / "browser-home"
+            home.mkdir()
+            env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
+                   "XDG_CONFIG_HOME": str(home / ".config")}
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS, env=env)
             try:
                 frames: list[int] = []
                 pg = _open(browser, url, frames)

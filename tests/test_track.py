@@ -1,0 +1,165 @@
+"""Tracking mode (skyview.track): lost-in-space once, then tracked frames; loss of lock; the CLI; the bench."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from skyview.attitude import R_from_radec_roll, attitude_error_arcsec
+from skyview.camera import Camera
+from skyview.catalog import load_guide_catalog
+from skyview.cli import main
+from skyview.simulate import SensorModel, save_sequence, simulate_image, simulate_sequence, turn_about_camera_axis
+from skyview.track import LOST_IN_SPACE, TRACKING, Tracker, body_turn_rotvec
+from skyview.truth import wrong_matches
+
+CAM = Camera.from_fov(12.0, 1024)
+STEP = math.radians(2.0)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    import os
+
+    old = os.environ.get("SKYVIEW_CACHE")
+    os.environ["SKYVIEW_CACHE"] = str(tmp_path_factory.mktemp("track-cache"))
+    yield
+    if old is not None:
+        os.environ["SKYVIEW_CACHE"] = old
+
+
+@pytest.fixture(scope="module")
+def catalog(cache):
+    return load_guide_catalog()
+
+
+@pytest.fixture(scope="module")
+def slew(catalog):
+    R0 = R_from_radec_roll(math.radians(83.8), math.radians(-5.4), math.radians(20.0))
+    return simulate_sequence(catalog, CAM, R0, 10, turn_about_camera_axis("y", STEP), SensorModel(), seed=3,
+                             mag_limit=6.0)
+
+
+@pytest.fixture(scope="module")
+def tracker(catalog):
+    return Tracker(CAM, "angle", variant="improved", catalog=catalog)
+
+
+def _wrong(fr, frame) -> list[int]:
+    return wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in fr.matches], frame.truth)
+
+
+def _check_slew(frames, sim):
+    assert [f.mode for f in frames] == [LOST_IN_SPACE] + [TRACKING] * 9
+    for fr, sf in zip(frames, sim.frames):
+        assert fr.solved, fr.reason
+        err = attitude_error_arcsec(fr.R, sf.R)
+        assert err["boresight"] < 3.0 and err["total"] < 15.0, err  # roll is the weak axis of a 12 deg field
+        assert _wrong(fr, sf) == [] and len(fr.matches) >= 10
+    for fr in frames[1:]:
+        assert fr.relative_to == fr.frame - 1
+        true = body_turn_rotvec(sim.frames[fr.frame - 1].R, sim.frames[fr.frame].R)
+        assert np.degrees(np.linalg.norm(true)) == pytest.approx(2.0, abs=1e-9)
+        assert np.linalg.norm(fr.relative_rotvec_rad - true) * 206265 < 15.0
+
+
+def test_a_slew_is_tracked_after_one_lost_in_space_frame(tracker, slew):
+    tracker.reset()
+    turns = [slew.dR_cam(k) for k in range(9)]
+    frames = tracker.run([f.image for f in slew.frames], turns)
+    _check_slew(frames, slew)
+    assert all(f.predicted_by == "turn" for f in frames[1:])
+    assert all("track" in f.time_ms and "lost_in_space" not in f.time_ms for f in frames[1:])
+
+
+def test_the_rate_predicts_once_two_attitudes_are_known(tracker, slew):
+    """Without the turns: frame 1 has no rate (the camera moved 2 deg: lock is lost, LIS solves it),
+    from frame 2 on the rate of the last two attitudes predicts."""
+    tracker.reset()
+    frames = tracker.run([f.image for f in slew.frames])
+    assert frames[1].mode == LOST_IN_SPACE and frames[1].lost_lock and frames[1].solved
+    assert [f.mode for f in frames[2:]] == [TRACKING] * 8
+    assert all(f.predicted_by == "rate" for f in frames[2:])
+    for fr, sf in zip(frames, slew.frames):
+        assert fr.solved and _wrong(fr, sf) == []
+
+
+def test_a_sudden_jump_loses_lock_and_lost_in_space_recovers(tracker, catalog):
+    """The gyros report 2 deg per frame, but before frame 5 the camera jumped 10 deg more."""
+    turn = turn_about_camera_axis("y", STEP)
+    jump = turn_about_camera_axis("x", math.radians(10.0))
+    Rs = [R_from_radec_roll(math.radians(150.0), math.radians(30.0), 0.4)]
+    for k in range(1, 8):
+        Rs.append(turn.apply(Rs[-1]) if k != 5 else jump.apply(turn.apply(Rs[-1])))
+    images = [simulate_image(catalog, CAM, R, SensorModel(), seed=10 + k, mag_limit=6.0) for k, R in enumerate(Rs)]
+    tracker.reset()
+    frames = tracker.run([f.image for f in images], [turn.matrix] * 7)
+    assert [f.mode for f in frames] == [LOST_IN_SPACE] + [TRACKING] * 4 + [LOST_IN_SPACE] + [TRACKING] * 2
+    assert frames[5].lost_lock and frames[5].solved
+    for fr, sf in zip(frames, images):
+        assert fr.solved and _wrong(fr, sf) == []
+        assert attitude_error_arcsec(fr.R, sf.R)["boresight"] < 3.0
+    true = body_turn_rotvec(Rs[4], Rs[5])
+    assert np.linalg.norm(frames[5].relative_rotvec_rad - true) * 206265 < 15.0  # the jump, measured
+
+
+def test_a_blank_frame_is_not_solved_and_tracking_resumes(tracker, slew):
+    images = [f.image for f in slew.frames]
+    images[4] = np.full_like(images[4], 10)
+    tracker.reset()
+    frames = tracker.run(images, [slew.dR_cam(k) for k in range(9)])
+    assert not frames[4].solved and "no stars" in frames[4].reason and frames[4].R is None
+    assert [f.mode for k, f in enumerate(frames) if k != 4] == [LOST_IN_SPACE] + [TRACKING] * 8
+    assert frames[5].relative_to == 3  # predicted over the gap, from the last solved frame
+    true = body_turn_rotvec(slew.frames[3].R, slew.frames[5].R)
+    assert np.linalg.norm(frames[5].relative_rotvec_rad - true) * 206265 < 15.0
+    for k, (fr, sf) in enumerate(zip(frames, slew.frames)):
+        if k != 4:
+            assert fr.solved and _wrong(fr, sf) == []
+
+
+def test_cli_json_lines(slew, tmp_path, capsys, cache):
+    save_sequence(slew, tmp_path)
+    out = tmp_path / "track.jsonl"
+    rc = main(["solve-sequence", str(tmp_path), "--method", "angle", "--variant", "improved", "--json",
+               "--output", str(out)])
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert rc == 0 and len(lines) == 10 and out.read_text().strip().splitlines() == lines
+    rows = [json.loads(x) for x in lines]
+    assert [r["mode"] for r in rows] == ["lost_in_space"] + ["tracking"] * 9
+    for r in rows:
+        assert {"ra_deg", "dec_deg", "roll_deg", "quaternion", "n_matches", "time_ms"} <= set(r)
+        assert r["wrong_matches"] == 0 and r["error_arcsec"]["boresight"] < 3.0
+    assert all(abs(r["relative_angle_deg"] - 2.0) < 0.005 for r in rows[1:])
+    # image paths in time order (no turns: the rate predicts), a readable line per frame
+    paths = [str(tmp_path / f"frame_{k:03d}.png") for k in range(10)]
+    rc = main(["solve-sequence", *paths, "--method", "angle", "--variant", "improved", "--fov-deg", "12"])
+    text = capsys.readouterr().out.strip().splitlines()
+    assert rc == 0 and len(text) == 10 and "tracking" in text[-1]
+
+
+def test_cli_bad_inputs_are_one_line(tmp_path, capsys, slew, cache):
+    save_sequence(slew, tmp_path)
+    png = str(tmp_path / "frame_000.png")
+    for argv in (["solve-sequence", png, "--method", "angle"],  # a method needs the FOV
+                 ["solve-sequence", png, str(tmp_path / "missing.png"), "--fov-deg", "12", "--method", "angle"],
+                 ["solve-sequence", str(tmp_path), "--method", "angle", "--p-identify", "0.9"],
+                 ["solve-sequence", png, "--method", "stochastic"],
+                 ["solve-sequence", str(tmp_path), png, "--method", "angle"]):
+        rc = main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1, (argv, err)
+
+
+def test_slew_bench(cache):
+    from skyview.bench import format_markdown, run_bench
+    from skyview.scenarios import get_scenario
+
+    s = run_bench("angle", get_scenario("slew"), 1, variant="improved", progress=False)
+    t = s["tracking_with_turns"]
+    assert t["frames"] == 10 and t["solved"] == 10 and t["tracked"] == 9 and t["frames_with_wrong_match"] == 0
+    assert s["tracking_with_rate"]["frames_with_wrong_match"] == 0
+    assert t["relative_rotation_error_arcsec"]["max"] < 30.0
+    md = format_markdown(s)
+    assert "Tracking with angle" in md and "Time per frame" in md
