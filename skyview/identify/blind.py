@@ -339,16 +339,19 @@ class BlindIdentifier:
         obs_tree = cKDTree(uv[:n_obs])
         matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **quick["agree"]}
         cam, R = quick["camera"], quick["R"]
-        fit = None
-        for radius in (p.quick_radius_px, max(1.5, 0.5 * p.quick_radius_px)):
+        fit, fitted_on = None, None
+        # the attitude and the scale first, then the distortion too, each followed by matching again
+        for radius, distortion in ((p.quick_radius_px, False), (max(1.5, 0.5 * p.quick_radius_px), None)):
             idx = np.array(sorted(matches))
-            fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R)
-            cam, R = fit.camera, fit.R
+            fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R,
+                             fit_k1=distortion, fit_k2=distortion)
+            cam, R, fitted_on = fit.camera, fit.R, dict(matches)
             pairs, _ = self._match(uv, n_obs, obs_tree, cam, R, max(radius, 3.0 * fit.rms_px))
             matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **pairs}
         idx = np.array(sorted(matches))
-        fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R)
-        cam, R = fit.camera, fit.R
+        if matches != fitted_on:  # the last matching changed the stars: fit once more
+            fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R)
+            cam, R = fit.camera, fit.R
         steps.append(Step("fit", f"camera fitted to {len(idx)} stars: FOV {cam.fov_deg:.3f} deg, "
                                  f"k1 {cam.k1:+.4f}, k2 {cam.k2:+.4f}, residual {fit.rms_px:.2f} px per axis",
                           observed=[int(i) for i in idx], catalog=[int(matches[i]) for i in idx][:CAP],
