@@ -12,8 +12,8 @@ Conventions (docs/conventions.md):
 - ``fov_deg``: the *horizontal* full field of view (across the image width), degrees.
 - Pixel coordinates ``(u, v)`` are OpenCV's: the centre of the top-left pixel is ``(0, 0)``.
 
-Everything here is a thin, typed layer over :func:`skyview.pipeline.solve_image`; the underlying
-:class:`skyview.pipeline.SolveResult` (with the identification's recorded steps) stays available as
+Everything here is a thin, typed layer over `skyview.pipeline.solve_image`; the underlying
+`skyview.pipeline.SolveResult` (with the identification's recorded steps) stays available as
 ``Solution.result``.
 """
 
@@ -56,7 +56,7 @@ _ARCSEC_PER_RAD = 180.0 / math.pi * 3600.0
 
 
 class NotSolvedError(SkyviewError, ValueError):
-    """Asked a not-solved :class:`Solution` for something only an attitude has (a SkyCoord, a WCS, ...)."""
+    """Asked a not-solved `Solution` for something only an attitude has (a SkyCoord, a WCS, ...)."""
 
 
 @dataclass(frozen=True)
@@ -95,8 +95,9 @@ def _readonly(a: np.ndarray | None) -> np.ndarray | None:
 @dataclass(frozen=True, eq=False, repr=False)
 class Solution:
     """The outcome of solving one image. Immutable; every angle in degrees, every sigma in arcsec.
+    The attributes that need an attitude are ``None`` where the image was not solved.
 
-    Attributes (``None`` where the image was not solved):
+    Attributes:
         status: ``"solved"`` or ``"failed"``; ``solved`` is the same as a bool.
         reason: why it failed, with the likely cause and what to try ("" when solved).
         method: ``"blind"`` (the default pipeline's pattern search) or the identification method.
@@ -108,16 +109,16 @@ class Solution:
         fov_deg: horizontal full field of view of the camera the solution used (fitted or given).
         plate_scale_arcsec_per_px: at the image centre.
         k1, k2: OpenCV radial distortion of that camera.
-        camera: the :class:`skyview.camera.Camera` itself.
+        camera: the `skyview.camera.Camera` itself.
         camera_fitted: True when FOV and distortion were fitted to the stars, False when given.
         mag_limit: the catalog depth (Hp) used.
         sigma_boresight_arcsec, sigma_roll_arcsec: 1-sigma of the attitude.
         p_false: probability that the verified match is a chance alignment.
-        matches: the identified stars (:class:`Match`).
+        matches: the identified stars (`Match`).
         n_centroids: stars (centroids) detected in the image.
         time_ms: milliseconds per stage ("centroid", "identify", "attitude", "total", ...).
         epoch: Julian year of the catalog positions.
-        result: the underlying :class:`skyview.pipeline.SolveResult` (identification steps, ...).
+        result: the underlying `skyview.pipeline.SolveResult` (identification steps, ...).
     """
 
     status: Status
@@ -148,7 +149,7 @@ class Solution:
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_result(cls, result: SolveResult) -> Solution:
-        """Wrap a :class:`skyview.pipeline.SolveResult`."""
+        """Wrap a `skyview.pipeline.SolveResult`."""
         from skyview.attitude import quat_from_R, radec_roll_from_R
 
         solved = result.solved and result.R is not None
@@ -321,12 +322,12 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
         progress: called with a line of text while a database is built (the first run only).
 
     Returns:
-        A :class:`Solution`; ``solution.solved`` is False (with ``solution.reason``) when no
+        A `Solution`; ``solution.solved`` is False (with ``solution.reason``) when no
         verified attitude was found. Bad input (a missing file, an impossible FOV, an unknown
-        method) raises :class:`skyview.BadInput`.
+        method) raises `skyview.BadInput`.
 
     Solvers are cached per configuration, so a second call reuses the loaded databases; for many
-    images with the same settings :class:`Solver` keeps the settings in one place.
+    images with the same settings `Solver` keeps the settings in one place.
     """
     from skyview.pipeline import solve_image
 
@@ -339,14 +340,15 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
 
 
 class Solver:
-    """Many images, one set of settings (the arguments of :func:`solve`, checked once here).
-
-    >>> solver = skyview.Solver(fov_deg=11.4)
-    >>> for path in paths:
-    ...     sol = solver.solve(path)
+    """Many images, one set of settings (the arguments of `solve`, checked once here).
 
     The catalog and the databases are loaded on the first image and kept (the pipeline's cache of
     configured solvers); later images only centroid and identify.
+
+    Examples:
+        >>> solver = skyview.Solver(fov_deg=11.4)
+        >>> for path in paths:
+        ...     sol = solver.solve(path)
     """
 
     def __init__(self, *, fov_deg: float | None = None, fov_error: float = 0.1, method: MethodName | None = None,
@@ -370,7 +372,7 @@ class Solver:
         return MappingProxyType(dict(self._kwargs))
 
     def solve(self, image: ImageInput, /) -> Solution:
-        """Solve one image with this solver's settings (see :func:`solve`)."""
+        """Solve one image with this solver's settings (see `solve`)."""
         from skyview.pipeline import solve_image
 
         kw = dict(self._kwargs)

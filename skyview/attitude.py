@@ -166,9 +166,11 @@ def attitude_error_arcsec(R_est: np.ndarray, R_true: np.ndarray) -> dict:
     """
     dR = np.asarray(R_est) @ np.asarray(R_true).T
     phi = Rotation.from_matrix(dR).as_rotvec()
-    b_cos = np.clip(np.asarray(R_est)[2] @ np.asarray(R_true)[2], -1.0, 1.0)
+    # atan2 of the cross and dot products: exact for small angles, and insensitive to rows that are
+    # unit only to a few digits (a reference attitude printed to 8 digits: arccos would add ~20")
+    a, b = np.asarray(R_est, dtype=np.float64)[2], np.asarray(R_true, dtype=np.float64)[2]
     return {
-        "boresight": float(np.arccos(b_cos) * RAD_TO_ARCSEC),
+        "boresight": float(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b) * RAD_TO_ARCSEC),
         "cross_x": float(phi[0] * RAD_TO_ARCSEC),
         "cross_y": float(phi[1] * RAD_TO_ARCSEC),
         "roll": float(phi[2] * RAD_TO_ARCSEC),

@@ -203,9 +203,10 @@ def _print_human(out: dict, file=sys.stdout) -> None:
     t = out["time_ms"]
     print("  time: " + ", ".join(f"{k} {v:.1f} ms" for k, v in t.items()), file=file)
     if "truth" in out and "error_arcsec" in out["truth"]:
-        e = out["truth"]["error_arcsec"]
-        print(f"  against truth: boresight {e['boresight']:.2f} arcsec, roll {e['roll']:.1f} arcsec, "
-              f"{out['truth']['wrong_matches']} wrong matches", file=file)
+        e, wrong = out["truth"]["error_arcsec"], out["truth"].get("wrong_matches")
+        print(f"  against the {'truth' if wrong is not None else 'reference'}: boresight {e['boresight']:.2f} "
+              f"arcsec, roll {e['roll']:.1f} arcsec" + (f", {wrong} wrong matches" if wrong is not None else ""),
+              file=file)
 
 
 def cmd_solve(a) -> int:
@@ -314,36 +315,54 @@ def _record_solve(a, result, image, truth_path: Path | None, image_path: Path) -
 
 
 def cmd_demo(a) -> int:
-    from skyview.attitude import R_from_radec_roll
+    from skyview.attitude import R_from_radec_roll, attitude_error_arcsec
     from skyview.camera import Camera
-    from skyview.catalog import load_guide_catalog
-    from skyview.pipeline import Solver
+    from skyview.catalog import REPO_ROOT, load_guide_catalog
+    from skyview.pipeline import Solver, blind_solver
     from skyview.simulate import SensorModel, simulate_image
+    from skyview.truth import wrong_matches
 
     t0 = time.perf_counter()
     catalog = load_guide_catalog()
     camera = Camera.from_fov(a.fov_deg, 1024)
     R = R_from_radec_roll(np.radians(a.ra), np.radians(a.dec), np.radians(a.roll))
     frame = simulate_image(catalog, camera, R, SensorModel(), seed=a.seed, mag_limit=6.0)
-    print(f"simulated a {camera.width}x{camera.height} image, FOV {a.fov_deg:g} deg, pointing RA {a.ra:g} "
+    print(f"1. simulated a {camera.width}x{camera.height} image, FOV {a.fov_deg:g} deg, pointing RA {a.ra:g} "
           f"Dec {a.dec:+g} roll {a.roll:g} deg: {len(frame.truth['stars'])} stars of Hp <= 6.0")
+
+    def with_truth(result, R_true, truth=None) -> dict:
+        out = result.to_dict()
+        if result.R is not None:
+            wrong = (len(wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in result.matches], truth))
+                     if truth is not None else None)
+            out["truth"] = {"error_arcsec": attitude_error_arcsec(result.R, R_true), "wrong_matches": wrong}
+        return out
+
     solver = Solver(camera, a.method, catalog=catalog, variant=a.variant)
-    print(f"loaded the catalog and the {a.method} database in "
-          f"{solver.setup_ms['catalog_load'] + solver.setup_ms['database_load']:.0f} ms "
-          f"(first run builds and caches it; total {1e3 * (time.perf_counter() - t0):.0f} ms so far)")
+    print(f"\n2. {a.method} ({a.variant}), told the exact FOV (database loaded in "
+          f"{solver.setup_ms['database_load']:.0f} ms; a first run builds and caches it):")
     result = solver.solve_array(frame.image)
-    from skyview.attitude import attitude_error_arcsec
-
-    out = result.to_dict()
-    if result.R is not None:
-        from skyview.truth import wrong_matches
-
-        wrong = len(wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in result.matches], frame.truth))
-        out["truth"] = {"error_arcsec": attitude_error_arcsec(result.R, R), "wrong_matches": wrong}
+    out = with_truth(result, R, frame.truth)
     _print_human(out)
+    blind = blind_solver(catalog=catalog, progress=_progress_line)
+    print(f"\n3. the default pipeline, blind: no FOV given (the pattern database of the whole sky loaded in "
+          f"{blind.setup_ms['database_load']:.0f} ms; a first run builds it once, ~10 s):")
+    bres = blind.solve_array(frame.image)
+    _print_human(with_truth(bres, R, frame.truth))
+    photos = REPO_ROOT / "tests" / "data" / "real-images"
+    if (photos / "reference.json").exists():
+        from skyview.centroid import load_image
+
+        ref = json.loads((photos / "reference.json").read_text())
+        name = sorted(ref)[0]
+        print(f"\n4. a real photograph, blind ({name}, {photos.relative_to(REPO_ROOT)}; its reference attitude "
+              f"is cedar-solve's):")
+        pres = blind.solve_array(load_image(photos / name))
+        _print_human(with_truth(pres, np.asarray(ref[name]["R"])))
+    print(f"\ntotal {1e3 * (time.perf_counter() - t0):.0f} ms. Next: skyview solve YOUR_PHOTO.jpg, skyview view")
     if a.json:
         print(json.dumps(out))
-    return EXIT_SOLVED if result.solved else EXIT_NOT_SOLVED
+    return EXIT_SOLVED if result.solved and bres.solved else EXIT_NOT_SOLVED
 
 
 def _param_value(text: str):
@@ -910,7 +929,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="simulate a default sky (Orion) and solve it",
                        description="Simulate a 1024 x 1024 image (Hp <= 6), solve it with one method at the "
-                                   "exact FOV and compare with the truth.")
+                                   "exact FOV and with the default blind pipeline (no FOV), and solve one of the "
+                                   "real photographs in tests/data/ blind; each compared with its truth.")
     d.add_argument("--ra", type=_float, default=83.8, help="boresight right ascension, deg (default 83.8)")
     d.add_argument("--dec", type=_float, default=-5.4, help="boresight declination, deg (default -5.4)")
     d.add_argument("--roll", type=_float, default=30.0,

@@ -141,6 +141,7 @@ class Solver:
                            f"(--sigma-arcsec, --variant, --fov-deg, --mag-limit)")
         t0 = time.perf_counter()
         base = catalog if catalog is not None else load_guide_catalog(epoch=epoch)
+        self.mag_limit = float(mag_limit)
         self.catalog = base.brighter_than(mag_limit)
         if len(self.catalog) < 10:
             raise BadInput(f"only {len(self.catalog)} catalog stars are brighter than mag {mag_limit}")
@@ -183,10 +184,12 @@ class Solver:
         t0 = time.perf_counter()
         obs = self.observation(centroids)
         ident = self.identifier.identify(obs) if len(centroids) else None
-        return result_from_identification(
+        result = result_from_identification(
             centroids, obs, ident, camera=self.camera, catalog=self.catalog, method=self.method,
             variant=self.variant, sigma_rad=self.sigma_rad, estimator=self.estimator,
             database_key=self.identifier.database_key, identify_ms=(time.perf_counter() - t0) * 1e3)
+        result.mag_limit = self.mag_limit
+        return result
 
     def solve_path(self, path: str | Path) -> SolveResult:
         return self.solve_array(load_image(path))
