@@ -527,14 +527,9 @@ def save_results(summary: dict, out_dir: Path, stem: str, markdown: str | None =
 # ============================================================================ blind bench
 
 @dataclass
-class _BlindContext:
-    solver: BlindSolver
-    catalog: object
-    camera: object
-    scenario: Scenario
-    sensor: SensorModel
-    attitudes: np.ndarray
-    seeds: np.ndarray
+class _BlindContext(_TrialContext):
+    """A calibrated trial's context (its solver a BlindSolver), plus the FOV handed to the solver."""
+
     fov_factors: np.ndarray  # 1 + u per trial: the FOV handed to the solver is true FOV x this
     fov_error: float | None  # None: pure blind (no FOV given)
     max_error_px: float
