@@ -300,7 +300,7 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
         image: a file path (PNG, TIFF, JPEG, ...; 8/16-bit or float, grey or colour) or a numpy array,
             2-D grey or 3-D BGR/BGRA (OpenCV's channel order), any real dtype and memory layout.
         fov_deg: the camera's *horizontal* full field of view in degrees, if known. None: searched
-            blind (about 4-54 deg).
+            blind (about 2.5-54 deg).
         fov_error: how far ``fov_deg`` may be off, a fraction in [0, 1) (0.1 = +-10 %). 0 means exact:
             the papers' calibrated mode (no camera fitting).
         method: None runs the default pipeline (blind four-star patterns, the camera's FOV and

@@ -990,7 +990,7 @@ def build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("solve", help="image -> attitude (blind: no field of view needed)",
                        description="Solve a star-field image (PNG, TIFF, JPEG; grey or colour). With no options "
                                    "it runs the default pipeline: blind four-star patterns over a horizontal FOV "
-                                   "of about 4-54 deg, then the camera (FOV, k1, k2) fitted to the stars and the "
+                                   "of about 2.5-54 deg, then the camera (FOV, k1, k2) fitted to the stars and the "
                                    "shared verification. Exit code 0 solved, 1 not solved (the reason and what to "
                                    "try on stderr), 2 bad input.")
     v.add_argument("image", help="the image file (PNG, TIFF, JPEG, BMP, WebP, ...; 8/16-bit or float, grey or colour)")

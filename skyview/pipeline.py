@@ -278,7 +278,7 @@ class BlindSolver:
     """Solves images of any camera with no FOV given (`skyview.identify.blind`): one pattern
     database for the whole sky, the camera fitted to every image.
 
-    The database is built once (~10 s, ~200 MB on disk, a progress line on stderr) and memory-mapped
+    The database is built once (~15 s, ~330 MB on disk, a progress line on stderr) and memory-mapped
     from the cache afterwards (milliseconds)."""
 
     def __init__(self, *, epoch: float = DEFAULT_EPOCH, catalog: GuideCatalog | None = None,
