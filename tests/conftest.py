@@ -1,7 +1,10 @@
-"""Session-wide test setup: every database goes to a temporary cache, never the user's ~/.cache.
+"""Session-wide test setup: nothing the tests run writes into the user's home.
 
-Set before any test module is imported, so the subprocesses the tests start inherit it too. Modules
-that want a cache of their own still point SKYVIEW_CACHE elsewhere with monkeypatch.
+Every database goes to a temporary cache (SKYVIEW_CACHE), and the programs the tests start (the Rerun
+viewer, Chromium) find their XDG config, data, cache and state folders there too instead of
+~/.config, ~/.local/share and ~/.cache. Set before any test module is imported, so the subprocesses
+the tests start inherit it. Modules that want a cache of their own still point SKYVIEW_CACHE
+elsewhere with monkeypatch.
 """
 
 import os
@@ -10,6 +13,9 @@ import tempfile
 
 _CACHE = tempfile.mkdtemp(prefix="skyview-test-cache-")
 os.environ["SKYVIEW_CACHE"] = _CACHE
+for _var, _sub in (("XDG_CONFIG_HOME", "config"), ("XDG_DATA_HOME", "data"), ("XDG_CACHE_HOME", "xdg-cache"),
+                   ("XDG_STATE_HOME", "state")):
+    os.environ[_var] = os.path.join(_CACHE, "home", _sub)
 
 
 def pytest_sessionfinish(session, exitstatus):
