@@ -26,14 +26,13 @@ def solution_wcs(R: np.ndarray, camera: Camera):
         from astropy.wcs import WCS, Sip
     except ImportError:
         raise BadInput("writing a WCS needs astropy: pip install astropy") from None
-    from skyview.attitude import radec_roll_from_R
+    from skyview.attitude import east_north
     from skyview.catalog import vec_to_radec
 
     R = np.asarray(R, dtype=np.float64)
     ra, dec = vec_to_radec(R[2])
     # intermediate world coordinates (degrees) of the gnomonic projection at the boresight, in the
     # local east/north frame: xi to the east, eta to the north
-    from skyview.attitude import east_north
 
     e, n = east_north(R[2])
     # camera x / y axes (rows 0, 1 of R) expressed in (east, north): a unit step in normalised camera
@@ -53,7 +52,6 @@ def solution_wcs(R: np.ndarray, camera: Camera):
     else:
         w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
     w.wcs.set()
-    del radec_roll_from_R
     return w
 
 

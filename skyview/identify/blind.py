@@ -32,17 +32,15 @@ import copy
 import itertools
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import bdtrc
 
-from skyview.attitude import RAD_TO_ARCSEC
 from skyview.camera import Camera
 from skyview.camera_fit import CameraFit, fit_camera
 from skyview.catalog import GuideCatalog, chord
-from skyview.errors import BadInput
 from skyview.identify import database
 from skyview.identify import patterns as pdb
 from skyview.identify.base import FAILED, INCONCLUSIVE, Identification, Step
@@ -403,7 +401,7 @@ class BlindIdentifier:
                 keep[o] = c
         return keep if len(keep) >= 2 else matches
 
-    def _fail(self, status, reason, steps, stats=None, t0=None) -> BlindResult:
+    def _fail(self, status, reason, steps, stats=None) -> BlindResult:
         ident = Identification(method=self.name, status=status, matches={}, steps=steps, reason=reason,
                                stats=stats or {}, database_key=database.key_string(self.database_key))
         return BlindResult(ident)
