@@ -16,6 +16,7 @@ os.environ["SKYVIEW_CACHE"] = _CACHE
 for _var, _sub in (("XDG_CONFIG_HOME", "config"), ("XDG_DATA_HOME", "data"), ("XDG_CACHE_HOME", "xdg-cache"),
                    ("XDG_STATE_HOME", "state")):
     os.environ[_var] = os.path.join(_CACHE, "home", _sub)
+    os.makedirs(os.environ[_var], exist_ok=True)  # astropy ignores (and warns about) a missing one
 
 
 def pytest_sessionfinish(session, exitstatus):
