@@ -346,7 +346,7 @@ def cmd_demo(a) -> int:
     _print_human(out)
     blind = blind_solver(catalog=catalog, progress=_progress_line)
     print(f"\n3. the default pipeline, blind: no FOV given (the pattern database of the whole sky loaded in "
-          f"{blind.setup_ms['database_load']:.0f} ms; a first run builds it once, ~10 s):")
+          f"{blind.setup_ms['database_load']:.0f} ms; a first run builds it once, ~15-20 s):")
     bres = blind.solve_array(frame.image)
     _print_human(with_truth(bres, R, frame.truth))
     photos = REPO_ROOT / "tests" / "data" / "real-images"
