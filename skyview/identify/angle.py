@@ -148,11 +148,9 @@ class AngleMethod(Identifier):
         n_pairs = database.pairs_estimate(len(catalog), self.max_sep_rad)
         what = (f"the angle database ({len(catalog):,} stars, pairs up to {np.degrees(self.max_sep_rad):.1f} deg, "
                 f"~{n_pairs / 1e6:.1f} M pairs)")
-        if not database.database_path(self.database_key).exists():
-            database.check_memory(48 * n_pairs, what)
         arrays, info = database.load_or_build(
             self.database_key, lambda: build_angle_database(catalog, self.max_sep_rad, kvector_fit),
-            what=what, estimate_s=0.5e-6 * n_pairs)
+            what=what, estimate_s=0.5e-6 * n_pairs, estimate_bytes=48 * n_pairs)
         self.pair_i = arrays["pair_i"].astype(np.int64)
         self.pair_j = arrays["pair_j"].astype(np.int64)
         self.kv = KVector.from_arrays(arrays)

@@ -107,7 +107,8 @@ ANNOUNCE_AFTER_S = 2.0  # a build expected to take longer says what it builds an
 
 
 def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap: bool = False,
-                  what: str | None = None, estimate_s: float = 0.0) -> tuple[dict[str, np.ndarray], dict]:
+                  what: str | None = None, estimate_s: float = 0.0, estimate_bytes: float = 0.0
+                  ) -> tuple[dict[str, np.ndarray], dict]:
     """The arrays of the database for `key`: loaded from the cache, or built once and saved.
 
     Returns (arrays, info); info holds the key, its string form, the path, whether it was built or
@@ -115,7 +116,8 @@ def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap
     the arrays of the (uncompressed) file read-only instead of reading them: a large database then
     loads in milliseconds and its pages are shared between processes. what / estimate_s: a build
     expected to take more than ANNOUNCE_AFTER_S seconds prints one line on stderr before it starts
-    (what it builds, about how long) and one when it is done.
+    (what it builds, about how long) and one when it is done. estimate_bytes: the build's peak memory,
+    checked against the budget (`check_memory`) before a build starts, never for a cached database.
     """
     path = database_path(key)
     info = {"key": key, "key_string": key_string(key), "path": str(path)}
@@ -129,6 +131,8 @@ def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap
             return arrays, info
         print(f"skyview: the cached database {path.name} is damaged or from another version; rebuilding it",
               file=sys.stderr, flush=True)
+    if estimate_bytes:
+        check_memory(estimate_bytes, what or f"the {key.get('method', '')} database")
     announce = what is not None and estimate_s > ANNOUNCE_AFTER_S
     if announce:
         print(f"skyview: building {what} once (about {estimate_s:.0f} s; cached for later runs)",

@@ -778,11 +778,9 @@ class GeneticMethod(Identifier):
         n_pairs = database.pairs_estimate(len(catalog), self.max_sep_rad)
         what = (f"the genetic method's pair database ({len(catalog):,} stars, pairs up to "
                 f"{np.degrees(self.max_sep_rad):.1f} deg, ~{n_pairs / 1e6:.1f} M pairs)")
-        if not database.database_path(self.database_key).exists():
-            database.check_memory(40 * n_pairs, what)
         arrays, info = database.load_or_build(self.database_key,
                                               lambda: build_pair_separations(catalog, self.max_sep_rad),
-                                              what=what, estimate_s=0.5e-6 * n_pairs)
+                                              what=what, estimate_s=0.5e-6 * n_pairs, estimate_bytes=40 * n_pairs)
         self.separations = arrays["separations"]
         info.update(pairs=len(self.separations), catalog_stars=len(catalog),
                     max_sep_deg=float(np.degrees(self.max_sep_rad)),

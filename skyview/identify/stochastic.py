@@ -360,13 +360,12 @@ class StochasticMethod(Identifier):
         n_pairs = database.pairs_estimate(len(catalog), self.neighbour_radius_rad)
         what = (f"the stochastic method's database ({len(catalog):,} stars, neighbours within "
                 f"{np.degrees(self.neighbour_radius_rad):.1f} deg, {int(n_roll)} rolls)")
-        if not database.database_path(self.database_key).exists():
-            # neighbour lists (index, distance, angle: ~48 bytes a neighbour, both ways) and the statistics
-            # vector of every star at every roll
-            database.check_memory(96 * n_pairs + 64 * len(catalog) * int(n_roll), what)
+        # neighbour lists (index, distance, angle: ~48 bytes a neighbour, both ways) and the statistics vector
+        # of every star at every roll
         arrays, info = database.load_or_build(
             self.database_key, lambda: build_stochastic_database(catalog, camera, int(n_roll),
-                                                                 self.neighbour_radius_rad), what=what)
+                                                                 self.neighbour_radius_rad),
+            what=what, estimate_bytes=96 * n_pairs + 64 * len(catalog) * int(n_roll))
         self.xi = arrays["xi"]
         self.nb_offsets = arrays["nb_offsets"].astype(np.int64)
         self.nb_index = arrays["nb_index"].astype(np.int64)

@@ -484,15 +484,13 @@ class SVDMethod(Identifier):
                   "mag_step": self.mag_step, "min_separation_rad": self.min_separation_rad,
                   "kvector_fit": kvector_fit, "version": DATABASE_VERSION}
         self.database_key = database.make_key(self.name, params, catalog, camera)
-        if not database.database_path(self.database_key).exists():
-            # the neighbours of every star within the FOV radius (~32 bytes each, both ways) while built
-            database.check_memory(64 * database.pairs_estimate(len(catalog), self.fov_radius_rad),
-                                  f"the svd database ({len(catalog):,} stars within "
-                                  f"{np.degrees(self.fov_radius_rad):.1f} deg)")
+        # the neighbours of every star within the FOV radius (~32 bytes each, both ways) while built
         arrays, info = database.load_or_build(
             self.database_key,
             lambda: build_svd_database(catalog, self.fov_radius_rad, self.N, self.delta_m_catalog, self.mag_step,
-                                       self.min_separation_rad, kvector_fit))
+                                       self.min_separation_rad, kvector_fit),
+            what=f"the svd database ({len(catalog):,} stars within {np.degrees(self.fov_radius_rad):.1f} deg)",
+            estimate_bytes=64 * database.pairs_estimate(len(catalog), self.fov_radius_rad))
         self.reference = reference_mask(catalog, self.min_separation_rad)
         self.sets = arrays["sets"].astype(np.int64)
         self.sv = arrays["sv"]

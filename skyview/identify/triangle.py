@@ -360,13 +360,11 @@ class TriangleMethod(Identifier):
         n_tri = len(catalog) * k * k / 6.0
         what = (f"the triangle database ({len(catalog):,} stars, caps up to "
                 f"{np.degrees(self.max_radius_rad):.1f} deg, ~{n_tri / 1e6:.1f} M triangles)")
-        if not database.database_path(self.database_key).exists():
-            database.check_memory(250.0 * n_tri, what)
         arrays, info = database.load_or_build(
             self.database_key,
             lambda: build_triangle_database(catalog, self.max_radius_rad, self.depth, kvector_fit,
                                             np.radians(camera.fov_deg)),
-            what=what, estimate_s=13e-6 * n_tri)
+            what=what, estimate_s=13e-6 * n_tri, estimate_bytes=250.0 * n_tri)
         t0 = time.perf_counter()
         self.tri = arrays["tri"]
         self.area = arrays["area"]
