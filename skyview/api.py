@@ -119,6 +119,8 @@ class Solution:
         time_ms: milliseconds per stage ("centroid", "identify", "attitude", "total", ...).
         epoch: Julian year of the catalog positions.
         result: the underlying `skyview.pipeline.SolveResult` (identification steps, ...).
+        notes: how the input was read, where it matters (a FITS file solved with its rows the other
+            way up, ...).
     """
 
     status: Status
@@ -145,6 +147,7 @@ class Solution:
     time_ms: Mapping[str, float]
     epoch: float
     result: SolveResult = field(repr=False)
+    notes: tuple[str, ...] = ()
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -183,7 +186,7 @@ class Solution:
             sigma_roll_arcsec=_finite(result.sigma_roll_arcsec) if solved else None,
             p_false=p_false, matches=matches, n_centroids=len(result.centroids),
             time_ms=MappingProxyType({str(k): float(v) for k, v in result.time_ms.items()}),
-            epoch=float(result.epoch), result=result)
+            epoch=float(result.epoch), result=result, notes=tuple(getattr(result, "notes", ())))
 
     # ------------------------------------------------------------------ views
     @property
@@ -220,7 +223,7 @@ class Solution:
             "matches": [m.to_dict() for m in self.matches], "n_matches": len(self.matches),
             "n_centroids": self.n_centroids,
             "time_ms": {k: _finite(v) for k, v in self.time_ms.items()},
-            "epoch": self.epoch,
+            "epoch": self.epoch, "notes": list(self.notes),
         }
 
     def to_json(self, indent: int | None = None) -> str:
@@ -297,10 +300,10 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
     """Solve one star-field image: where was the camera pointing?
 
     Args:
-        image: a file path (PNG, TIFF, JPEG, ...; 8/16-bit or float, grey or colour) or a numpy array,
+        image: a file path (PNG, TIFF, JPEG, FITS, ...; 8/16-bit or float, grey or colour) or a numpy array,
             2-D grey or 3-D BGR/BGRA (OpenCV's channel order), any real dtype and memory layout.
         fov_deg: the camera's *horizontal* full field of view in degrees, if known. None: searched
-            blind (about 2.5-54 deg).
+            blind (about 2.5-81 deg).
         fov_error: how far ``fov_deg`` may be off, a fraction in [0, 1) (0.1 = +-10 %). 0 means exact:
             the papers' calibrated mode (no camera fitting).
         method: None runs the default pipeline (blind four-star patterns, the camera's FOV and

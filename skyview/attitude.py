@@ -98,16 +98,34 @@ class AttitudeEstimate:
 
 
 def _weights(n: int, sigma: float | np.ndarray) -> np.ndarray:
+    if isinstance(sigma, (float, int)) and not isinstance(sigma, bool):  # the usual case: one sigma for all
+        if not sigma > 0:
+            raise ValueError("measurement sigma must be positive")
+        return np.full(n, 1.0 / (float(sigma) * float(sigma)))
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
     if np.any(s <= 0):
         raise ValueError("measurement sigma must be positive")
     return 1.0 / (s * s)
 
 
+def _inverse_3x3(F: np.ndarray) -> np.ndarray | None:
+    """Inverse of a symmetric 3x3 matrix by cofactors; None when it is near singular (then pinv)."""
+    (a, b, c), (_, d, e), (_, _, f) = F.tolist()  # Python floats: cheaper than numpy scalars here
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * c00 + b * c01 + c * c02
+    scale = max(abs(a), abs(d), abs(f))
+    if not (scale > 0 and abs(det) > 1e-9 * scale ** 3):
+        return None
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    return np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]]) / det
+
+
 def attitude_covariance(b: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """QUEST model covariance (sum w_i (I - b_i b_i^T))^-1, camera frame, rad^2."""
+    """QUEST model covariance (sum w_i (I - b_i b_i^T))^-1, camera frame, rad^2 (the pseudo-inverse
+    when the matrix is singular: all vectors parallel)."""
     F = w.sum() * np.eye(3) - (b * w[:, None]).T @ b
-    return np.linalg.pinv(F)
+    inv = _inverse_3x3(F)
+    return np.linalg.pinv(F) if inv is None else inv
 
 
 def _finish(R: np.ndarray, b: np.ndarray, r: np.ndarray, w: np.ndarray) -> AttitudeEstimate:
@@ -125,9 +143,18 @@ def svd_attitude(b: np.ndarray, r: np.ndarray, sigma: float | np.ndarray = 1.0) 
     w = _weights(len(b), sigma)
     B = (b * w[:, None]).T @ r
     U, _, Vt = np.linalg.svd(B)
-    d = np.linalg.det(U) * np.linalg.det(Vt)
-    R = U @ np.diag([1.0, 1.0, d]) @ Vt
+    if _det3(U) * _det3(Vt) < 0:  # det(U) det(V) = -1: flip the axis of the smallest singular value
+        U = U.copy()
+        U[:, 2] = -U[:, 2]
+    R = U @ Vt
     return _finish(R, b, r, w)
+
+
+def _det3(M: np.ndarray) -> float:
+    """Determinant of a 3x3 matrix (+-1 for the orthogonal factors of an SVD), without np.linalg.det's
+    per-call overhead."""
+    (a, b, c), (d, e, f), (g, h, i) = M.tolist()
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
 def q_method_attitude(b: np.ndarray, r: np.ndarray, sigma: float | np.ndarray = 1.0) -> AttitudeEstimate:

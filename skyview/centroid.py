@@ -226,7 +226,7 @@ def finite_image(img: np.ndarray, name: str = "the image") -> np.ndarray:
 
 
 def load_image(path: str | os.PathLike) -> np.ndarray:
-    """Read an image file (PNG, TIFF, JPEG, ... anything cv2 decodes) unchanged in depth, as grey.
+    """Read an image file (PNG, TIFF, JPEG, ... anything cv2 decodes, and FITS) unchanged in depth, as grey.
 
     Raises BadInput with one line for a missing file, a directory, an empty file, a file OpenCV
     cannot decode and an image of size 0.
@@ -243,6 +243,9 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     if data.size == 0:
         raise BadInput(f"image {p} is empty (0 bytes)")
     check_pixel_count(data, f"image {p}")
+    if data[:9].tobytes() == b"SIMPLE  =":  # FITS (skyview.fits_image: rows turned to top-first)
+        from skyview.fits_image import read_fits
+        return finite_image(read_fits(p, max_image_pixels())[0], f"image {p}")
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
@@ -270,6 +273,39 @@ def _median_sorted(s: np.ndarray) -> np.ndarray:
     return (s[..., n // 2 - 1] + s[..., n // 2]) / s.dtype.type(2)
 
 
+def _kth_of_two_sorted(a: np.ndarray, b: np.ndarray, k: int):
+    """The k-th smallest (0-based) element of the union of two sorted 1-D arrays (a bisection on
+    how many come from a: O(log n) scalar steps, no merge)."""
+    lo, hi = max(0, k + 1 - b.size), min(k + 1, a.size)
+    while lo < hi:
+        i = (lo + hi) // 2
+        if a[i] < b[k - i]:
+            lo = i + 1
+        else:
+            hi = i
+    j = k + 1 - lo
+    if lo == 0:
+        return b[j - 1]
+    if j == 0:
+        return a[lo - 1]
+    return max(a[lo - 1], b[j - 1])
+
+
+def _median_abs_dev_sorted(rs: np.ndarray, med) -> np.ndarray:
+    """_median_sorted(np.sort(np.abs(rs - med))) of a sorted 1-D array, without the second sort: the
+    deviations below the median (med - rs, read backwards) and above it (rs - med) are two sorted runs
+    (|x - m| and m - x are the same float), whose middle element(s) a bisection finds; the same value."""
+    p = int(np.searchsorted(rs, med, side="left"))
+    below = med - rs[:p][::-1]
+    above = rs[p:] - med
+    n = rs.size
+    if n % 2:
+        return _kth_of_two_sorted(below, above, n // 2)
+    lo = _kth_of_two_sorted(below, above, n // 2 - 1)
+    hi = _kth_of_two_sorted(below, above, n // 2)
+    return (lo + hi) / rs.dtype.type(2)
+
+
 def _background_stats(f: np.ndarray, block: int = 64):
     """(grid, block height, block width, sample step, level, sigma, flat) of a 2-D image of any real
     dtype: the statistics of `_estimate_background_reference` computed from the sub-sampled pixels
@@ -285,13 +321,14 @@ def _background_stats(f: np.ndarray, block: int = 64):
     by, bx = sh // gh, sw // gw
     cells = sub[: gh * by, : gw * bx].reshape(gh, by, gw, bx).transpose(0, 2, 1, 3).reshape(gh, gw, by * bx)
     grid = _median_sorted(np.sort(cells, axis=2)).astype(np.float32)
-    level = float(np.median(grid))
+    level = float(_median_sorted(np.sort(grid, axis=None)))  # = np.median(grid), without its overhead
     if gh * gw > 1:
         r = (sub - _upsample(grid, by, bx, sh, sw)).ravel()
     else:
         r = (sub - level).ravel()
-    med = _median_sorted(np.sort(r))
-    mad = float(_median_sorted(np.sort(np.abs(r - med))))
+    rs = np.sort(r)
+    med = _median_sorted(rs)
+    mad = float(_median_abs_dev_sorted(rs, med))
     s0 = _MAD_TO_SIGMA * mad
     is_int = f.dtype.kind in "ui" or bool(np.all(np.floor(sub) == sub))
     floor = 1.0 if is_int else max(1e-12, 1e-9 * float(np.abs(sub).max()))
@@ -369,6 +406,14 @@ class _Pixels:
 def _gather_px(px, H, W, bkg, resid, pi, pj, h):
     """_gather reading through a _Pixels: (values - background (0 off the image), on-image mask, raw)."""
     d = np.arange(-h, h + 1)
+    n = len(pi)
+    if n and pi.min() >= h and pi.max() < H - h and pj.min() >= h and pj.max() < W - h:
+        # every window inside the image (the usual case): no clipping, no masking
+        valid = np.ones((n, 2 * h + 1, 2 * h + 1), dtype=bool)
+        fi = (pi * W + pj)[:, None, None] + (d[:, None] * W + d[None, :])[None]
+        raw = px.take(fi).astype(np.float64)
+        vals = resid.reshape(-1)[fi].astype(np.float64) if resid is not None else raw - bkg
+        return vals, valid, raw
     rows = pi[:, None, None] + d[None, :, None]
     cols = pj[:, None, None] + d[None, None, :]
     valid = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)
@@ -379,11 +424,31 @@ def _gather_px(px, H, W, bkg, resid, pi, pj, h):
     return vals, valid, raw
 
 
+def _neighbour_max(px, H, W, bkg, resid, fi: np.ndarray) -> np.ndarray:
+    """Largest background-subtracted value among the 8 neighbours of the pixels at flat indices fi (0
+    for a neighbour off the image): what `_gather_px(..., 1)[0]` gives with its centre left out, maxed,
+    without the (n, 3, 3) index arrays for the pixels away from the border. The background is subtracted
+    after the max (float32 -> float64 is exact and subtracting a scalar keeps order: the same number)."""
+    out = np.empty(fi.size, dtype=np.float64)
+    i, j = fi // W, fi % W
+    inner = (i > 0) & (i < H - 1) & (j > 0) & (j < W - 1)
+    k = np.flatnonzero(inner)
+    if k.size:
+        offs = np.array([-W - 1, -W, -W + 1, -1, 1, W - 1, W, W + 1], dtype=np.int64)
+        nf = fi[k][:, None] + offs
+        v = (resid.reshape(-1)[nf] if resid is not None else px.take(nf)).max(axis=1).astype(np.float64)
+        out[k] = v if resid is not None else v - bkg
+    b = np.flatnonzero(~inner)
+    if b.size:
+        nb = _gather_px(px, H, W, bkg, resid, i[b], j[b], 1)[0]
+        nb[:, 1, 1] = -np.inf
+        out[b] = nb.reshape(b.size, -1).max(axis=1)
+    return out
+
+
 def _label_sparse(idx: np.ndarray, W: int) -> tuple[np.ndarray, int]:
     """8-connected labels (1..n) of the pixels at sorted flat indices idx of a width-W image, numbered
     in raster order of each component's first pixel; (labels, n + 1) like cv2's count."""
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import connected_components
     n = idx.size
     col = idx % W
     heads, tails = [], []
@@ -398,11 +463,26 @@ def _label_sparse(idx: np.ndarray, W: int) -> tuple[np.ndarray, int]:
             ok &= col > 0
         heads.append(np.flatnonzero(ok))
         tails.append(pos[ok])
-    a = np.concatenate(heads)
-    if a.size == 0:  # isolated pixels: still numbered in block order
-        a = np.zeros(0, dtype=np.int64)
-    g = csr_matrix((np.ones(a.size, dtype=np.int8), (a, np.concatenate(tails).astype(np.int64))), shape=(n, n))
-    k, labels = connected_components(g, directed=False)
+    a = np.concatenate(heads).astype(np.int64)
+    b = np.concatenate(tails).astype(np.int64)
+    # union-find by label propagation with pointer jumping: each link pulls both ends down to the
+    # smaller root until no link joins two roots (a few rounds for star-sized blobs)
+    root = np.arange(n, dtype=np.int64)
+    while a.size:
+        ra, rb = root[a], root[b]
+        diff = ra != rb
+        if not diff.any():
+            break
+        ra, rb = ra[diff], rb[diff]
+        lo, hi = np.minimum(ra, rb), np.maximum(ra, rb)
+        np.minimum.at(root, hi, lo)
+        while True:  # compress: every pixel points at its root
+            nxt = root[root]
+            if np.array_equal(nxt, root):
+                break
+            root = nxt
+    _, labels = np.unique(root, return_inverse=True)
+    k = int(labels.max()) + 1 if n else 0
     # number the components as cv2 does (provisional labels per 2x2 block, in raster order of the
     # blocks: rows in pairs, columns in pairs), so that ties in brightness keep the reference order
     key = (idx // W // 2) * W + col // 2
@@ -441,11 +521,13 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
     least 20 % and 3 sigma between them) into one centroid per peak, flagged `blended`; with the
     "fit" estimator each one is refitted after subtracting its neighbours' fitted PSFs.
 
-    Same results as `_detect_centroids_reference` (the former implementation), computed without a
-    float copy of a uint8/uint16/int16 frame: background statistics from the sub-sampled pixels
-    (sorts, not partitions), a scalar threshold on the native image when the background is flat,
-    only the above-threshold pixels labelled (a graph of their 8-neighbour links; a full-frame
-    cv2.connectedComponents when there are many), hot pixels patched on read instead of in a copy.
+    Same detections, flags and statistics as `_detect_centroids_reference` (the former
+    implementation), positions within 1e-4 px (the PSF fit of a star stops once its steps are below
+    that), computed without a float copy of a uint8/uint16/int16 frame: background statistics from
+    the sub-sampled pixels (one sort; the MAD read from the two sorted runs of deviations), a scalar
+    threshold on the native image when the background is flat, only the above-threshold pixels
+    labelled (union-find over their 8-neighbour links; a full-frame cv2.connectedComponents when
+    there are many), hot pixels patched on read instead of in a copy.
     """
     if estimator not in ESTIMATORS:
         raise BadInput(f"unknown centroid estimator {estimator!r}: choose one of {', '.join(ESTIMATORS)}")
@@ -465,16 +547,11 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         raise BadInput(f"image of shape {img.shape} is too small to search for stars")
     if img.dtype in _NATIVE_DTYPES:
         f = img  # read as float32 value by value (exact): no full-frame copy
-        fmin, fmax, _, _ = cv2.minMaxLoc(f)
     else:
         f = img.astype(np.float32, copy=False)
         if img.dtype.kind == "f" and not np.all(np.isfinite(f)):
             f = np.where(np.isfinite(f), f, np.float32(np.nanmedian(np.where(np.isfinite(f), f, np.nan))))
-        fmin, fmax = float(f.min()), float(f.max())
     dtype_max = float(np.iinfo(img.dtype).max) if img.dtype.kind in "ui" else math.inf
-    if fmax == fmin:
-        return Centroids.empty(background_level=float(fmin), noise_sigma=0.0, estimator=estimator,
-                               image_shape=(H, W), params=params)
 
     grid, gby, gbx, level, sigma, flat = _background_stats(f, background_block)
     thr = float(k_sigma) * sigma
@@ -489,14 +566,18 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
                  image_shape=(H, W), params=params)
     idx = np.flatnonzero(mask)
     if idx.size == 0:
+        # a constant image has no pixel above the threshold: told apart here, not by a full-frame pass first
+        fmin, fmax, _, _ = cv2.minMaxLoc(f)  # f: uint8 / uint16 / int16 or float32
+        if fmax == fmin:
+            return Centroids.empty(background_level=float(fmin), noise_sigma=0.0, estimator=estimator,
+                                   image_shape=(H, W), params=params)
         return Centroids.empty(**empty)
     px = _Pixels(f)
     # hot pixels (see the reference): counted, taken out of the mask, repaired on read
     if idx.size <= _GATHER_HOT_MAX:
-        nb = _gather_px(px, H, W, bkg, resid, idx // W, idx % W, 1)[0]
-        centre = nb[:, 1, 1].copy()
-        nb[:, 1, 1] = -np.inf
-        nb_max = nb.reshape(len(idx), -1).max(axis=1)
+        nb_max = _neighbour_max(px, H, W, bkg, resid, idx)
+        centre = (px.take(idx).astype(np.float64) - bkg if resid is None
+                  else resid.reshape(-1)[idx].astype(np.float64))
     else:
         src = f if resid is None else resid
         ring = np.ones((3, 3), np.uint8)
@@ -661,39 +742,34 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
 # reference keeps the originals): the Gaussian weight and the PSF model are separable, so sums run
 # over rows and columns; the 3x3 normal equations are batched and solved in closed form; a star
 # leaves the Gauss-Newton loop once its steps are below _FIT_TOL (the reference always makes
-# max(3, iterations) steps). Positions agree with the originals to ~1e-6 px.
+# max(3, iterations) steps). Positions agree with the originals to ~3e-5 px.
 
-_FIT_TOL = 1e-7  # px; a converged star's remaining steps are far below this
+_FIT_TOL = 1e-4  # px: the Gauss-Newton fit of a star stops once its steps are below this
 
 
 def _iwcog_sep(vals, X, Y, uv0, s_eff, h, pi, pj, iterations):
-    """_iwcog with the separable weight exp(-dx^2/2s^2) exp(-dy^2/2s^2)."""
-    x = X[:, 0, :]
-    y = Y[:, :, 0]
+    """_iwcog with the separable weight exp(-dx^2/2s^2) exp(-dy^2/2s^2), u and v stepped together as
+    one (n, 2) array (the same sums in the same order as stepping them apart: the same positions)."""
+    XY = np.stack([X[:, 0, :], Y[:, :, 0]], axis=1).astype(np.float64)  # (n, 2, w): columns, rows
     k = -1.0 / (2.0 * s_eff * s_eff)
-    gainf = 2.0
-    u = uv0[:, 0].copy()
-    v = uv0[:, 1].copy()
-    ok_all = np.ones(len(u), dtype=bool)
+    uv = np.array(uv0, dtype=np.float64)
+    c0 = np.stack([pj, pi], axis=1)
+    lo, hi = c0 - h, c0 + h
+    ok_all = np.ones(len(uv), dtype=bool)
     for _ in range(iterations):
-        gx = np.exp(k * (x - u[:, None]) ** 2)
-        gy = np.exp(k * (y - v[:, None]) ** 2)
-        col = np.einsum("nij,ni->nj", vals, gy)  # sum over rows of vals * gy
-        row = np.einsum("nij,nj->ni", vals, gx)
-        s = (col * gx).sum(axis=1)
+        g = np.exp(k * (XY - uv[:, :, None]) ** 2)  # (n, 2, w): the weights along u and along v
+        col = np.einsum("nij,ni->nj", vals, g[:, 1])  # sum over rows of vals * gy
+        row = np.einsum("nij,nj->ni", vals, g[:, 0])
+        cg = np.stack([col, row], axis=1) * g
+        s = cg[:, 0].sum(axis=1)
         ok = s > 0
         ok_all &= ok
-        s = np.where(ok, s, 1.0)
-        cu = (col * gx * x).sum(axis=1) / s
-        cv = (row * gy * y).sum(axis=1) / s
-        u = np.where(ok, u + gainf * (cu - u), u)
-        v = np.where(ok, v + gainf * (cv - v), v)
-        u = np.clip(u, pj - h, pj + h)
-        v = np.clip(v, pi - h, pi + h)
-    bad = ~ok_all | ~np.isfinite(u) | ~np.isfinite(v)
-    u[bad] = uv0[bad, 0]
-    v[bad] = uv0[bad, 1]
-    return np.stack([u, v], axis=1)
+        c = (cg * XY).sum(axis=2) / np.where(ok, s, 1.0)[:, None]
+        uv = np.where(ok[:, None], uv + 2.0 * (c - uv), uv)  # gain 2: converges on a Gaussian's centre
+        uv = np.minimum(np.maximum(uv, lo), hi)  # = np.clip, without its per-call overhead
+    bad = ~ok_all | ~np.isfinite(uv).all(axis=1)
+    uv[bad] = uv0[bad]
+    return uv
 
 
 def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None):
@@ -758,8 +834,8 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
         s1 = np.where(np.isfinite(s1), s1, 0.0)
         s2 = np.where(np.isfinite(s2), s2, 0.0)
         A[act] = Aa + s0
-        du = np.clip(s1, -0.5, 0.5)
-        dv = np.clip(s2, -0.5, 0.5)
+        du = np.minimum(np.maximum(s1, -0.5), 0.5)
+        dv = np.minimum(np.maximum(s2, -0.5), 0.5)
         u[act] = ua + du
         v[act] = va + dv
         act = act[(np.abs(du) > _FIT_TOL) | (np.abs(dv) > _FIT_TOL)]
@@ -778,19 +854,17 @@ def _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, p
     sel = np.isin(lab, big)
     sidx, slab, sval, sraw = idx[sel], lab[sel], val[sel], raw[sel]
     ri, rj = sidx // W, sidx % W
-    nb = _gather_px(px, H, W, bkg, resid, ri, rj, 1)[0]
-    nb[:, 1, 1] = -np.inf
-    ismax = (sval >= nb.reshape(len(sval), -1).max(axis=1)) & (sraw < sat)
+    ismax = (sval >= _neighbour_max(px, H, W, bkg, resid, sidx)) & (sraw < sat)
     if not ismax.any():
         return None
     c_lab, c_val, c_i, c_j, c_raw = slab[ismax], sval[ismax], ri[ismax], rj[ismax], sraw[ismax]
-    where = {int(c): k for k, c in enumerate(comp)}
+    # a blob whose only local maximum is its peak has nothing to split: those are set aside at once
+    labs, first, counts = np.unique(c_lab, return_index=True, return_counts=True)
+    k0s = np.searchsorted(comp, labs)  # comp is ascending
+    lone = (counts == 1) & (c_i[first] == pi[k0s]) & (c_j[first] == pj[k0s])
     out = []
-    for L in np.unique(c_lab):
+    for L, k0 in zip(labs[~lone].tolist(), k0s[~lone].tolist()):
         m = np.flatnonzero(c_lab == L)
-        k0 = where[int(L)]
-        if len(m) == 1 and c_i[m[0]] == pi[k0] and c_j[m[0]] == pj[k0]:
-            continue
         acc = [(int(pi[k0]), int(pj[k0]))]
         for q in m[np.argsort(-c_val[m], kind="stable")]:
             if len(acc) >= max_peaks:

@@ -200,6 +200,8 @@ def _print_human(out: dict, file=sys.stdout) -> None:
               f"k2 {d.get('k2', 0.0):+.4f}; catalog to Hp {out.get('mag_limit') or 0:.2f}", file=file)
     else:
         print(f"not solved by {out['method']}: {out.get('reason', '')} ({out['n_centroids']} centroids)", file=file)
+    for note in out.get("notes", []):
+        print(f"  note: {note}", file=file)
     t = out["time_ms"]
     print("  time: " + ", ".join(f"{k} {v:.1f} ms" for k, v in t.items()), file=file)
     if "truth" in out and "error_arcsec" in out["truth"]:
@@ -211,6 +213,7 @@ def _print_human(out: dict, file=sys.stdout) -> None:
 
 def cmd_solve(a) -> int:
     from skyview.centroid import load_image
+    from skyview.fits_image import undeclared_row_order
     from skyview.pipeline import solve_image
 
     path = Path(a.image)
@@ -225,7 +228,7 @@ def cmd_solve(a) -> int:
     method_params = _method_params(a)
     output = _check_new_file(a.output, a.force)
     if a.record:  # check the recording's path before solving (the recorder is imported only when asked)
-        from skyview.record import check_output_path
+        from skyview.record_draw import check_output_path
 
         check_output_path(a.record, a.force)
     _check_new_file(a.wcs, a.force)
@@ -234,7 +237,8 @@ def cmd_solve(a) -> int:
     result = solve_image(image, a.fov_deg, a.method, fov_error=a.fov_error, mag_limit=a.mag_limit, epoch=a.epoch,
                          estimator=a.estimator, max_stars=a.max_stars, k_sigma=a.k_sigma,
                          distortion=tuple(a.distortion), method_params=method_params or None,
-                         variant=a.variant, memory_mb=a.memory_mb, progress=_progress_line, **params)
+                         variant=a.variant, memory_mb=a.memory_mb, progress=_progress_line,
+                         try_flipped_rows=undeclared_row_order(path), **params)
     truth = None
     if a.truth:
         truth = Path(a.truth)
@@ -252,7 +256,11 @@ def cmd_solve(a) -> int:
     if a.wcs and result.solved:
         from skyview.wcs import write_wcs
 
-        write_wcs(a.wcs, result.R, result.camera, force=a.force)
+        from skyview.fits_image import rows_reversed_on_read
+
+        # for the file's own pixel grid: a FITS file read bottom row first, unless solved the other way up
+        write_wcs(a.wcs, result.R, result.camera, force=a.force,
+                  rows_reversed=rows_reversed_on_read(path) != result.rows_reversed)
         out["wcs"] = str(a.wcs)
     text = json.dumps(out, indent=1 if a.json else None, allow_nan=False)
     if output is not None:
@@ -344,6 +352,12 @@ def cmd_demo(a) -> int:
     result = solver.solve_array(frame.image)
     out = with_truth(result, R, frame.truth)
     _print_human(out)
+    if a.record:  # the demo's own recording: an earlier demo's is replaced
+        from skyview.record import record_solve
+
+        info = record_solve(a.record, result, frame.image, catalog=solver.catalog, truth=frame.truth, force=True,
+                            meta={"command": "skyview demo", "seed": a.seed})
+        print(f"  recorded every step in {info.path} ({info.bytes / 1e6:.2f} MB): skyview replay {info.path}")
     blind = blind_solver(catalog=catalog, progress=_progress_line)
     print(f"\n3. the default pipeline, blind: no FOV given (the pattern database of the whole sky loaded in "
           f"{blind.setup_ms['database_load']:.0f} ms; a first run builds it once, ~15-20 s):")
@@ -362,7 +376,18 @@ def cmd_demo(a) -> int:
     print(f"\ntotal {1e3 * (time.perf_counter() - t0):.0f} ms. Next: skyview solve YOUR_PHOTO.jpg, skyview view")
     if a.json:
         print(json.dumps(out))
-    return EXIT_SOLVED if result.solved and bres.solved else EXIT_NOT_SOLVED
+    code = EXIT_SOLVED if result.solved and bres.solved else EXIT_NOT_SOLVED
+    if a.no_view or not (sys.stdin.isatty() and sys.stdout.isatty()):
+        # headless (--no-view, a script, a pipe, a test): print and exit, never block
+        print("(viewer not opened: --no-view or not a terminal; 'skyview view' opens it)")
+        return code
+    from skyview.viewer.app import serve
+    from skyview.viewer.run import SceneConfig
+
+    print(f"\n5. the viewer on this solved scene ({a.method}, {a.variant}): step through how it was identified.")
+    serve(config=SceneConfig(ra_deg=a.ra % 360.0, dec_deg=a.dec, roll_deg=a.roll, fov_deg=a.fov_deg, seed=a.seed),
+          method=a.method, variant=a.variant, say=lambda line: print(line, flush=True))
+    return code
 
 
 def _param_value(text: str):
@@ -411,10 +436,23 @@ def cmd_bench(a) -> int:
     _interruptible()
     if a.jpeg_quality is not None and not 1 <= a.jpeg_quality <= 100:
         raise BadInput(f"--jpeg-quality {a.jpeg_quality} must be in 1..100")
+    if a.scheduler is not None and (a.speed or a.blind or a.compare or a.centroids):
+        raise BadInput("--scheduler runs the Monte Carlo bench of one method: leave out --speed, --blind, "
+                       "--compare and --centroids")
+    if a.speed:
+        return _bench_speed(a)
     if a.blind:
         return _bench_blind(a)
     if a.fov_error is not None:
         raise BadInput("--fov-error goes with --blind (the calibrated bench gives the exact FOV)")
+    if a.compare:  # every method, both variants, the same images (skyview.compare)
+        from skyview.compare import cli_compare
+
+        if a.method or a.param or a.jobs != 1:
+            raise BadInput("--compare runs every method with its own parameters: leave out --method, --param, --jobs")
+        a.scenario = a.scenario or "cole8"
+        out_dir = _check_out_folder(a.out)
+        return cli_compare(_bench_scenario(a), a.n, a.seed, a.compare_slow_n, not a.no_real, out_dir, a.quiet)
     a.method = a.method or "angle"
     a.scenario = a.scenario or "cole8"
     _check_out_folder(a.out)  # before the Monte Carlo, not after it
@@ -445,12 +483,17 @@ def cmd_bench(a) -> int:
         raise BadInput("--record-failures replays the named scenario: leave out --k1/--jpeg-quality/... with it")
     on_trial = None
     if a.record_failures:  # the recorder is imported only when asked: unrecorded benches stay as fast
-        from skyview.record import FailureRecorder
+        from skyview.record_cases import FailureRecorder
 
         on_trial = FailureRecorder(a.record_failures, method=a.method, variant=a.variant, scenario=scenario.name,
                                    seed=a.seed)
+    if a.scheduler is not None and (a.jobs != 1 or a.record_failures):
+        raise BadInput("--scheduler runs the trials on Dask: leave out --jobs and --record-failures")
+    if a.workers < 1:
+        raise BadInput("--workers must be at least 1")
     summary = run_bench(a.method, scenario, a.n, seed=a.seed, method_params=method_params or None,
-                        variant=a.variant, progress=not a.quiet, on_trial=on_trial, jobs=a.jobs)
+                        variant=a.variant, progress=not a.quiet, on_trial=on_trial, jobs=a.jobs,
+                        scheduler=a.scheduler, workers=a.workers)
     md = format_markdown(summary)
     print(md)
     tag = (f"-{a.variant}" if a.variant != "paper" else "") + (f"-{a.statistic}" if a.statistic else "")
@@ -506,6 +549,29 @@ def _bench_scenario(a):
     return changed
 
 
+def _bench_speed(a) -> int:
+    """`bench --speed`: per-stage times of skyview (and tetra3rs when its virtualenv exists), same images."""
+    from skyview.bench import save_results
+    from skyview.speed_bench import DEFAULT_METHODS, format_markdown, run_speed_bench
+
+    if a.blind or a.centroids or a.record_failures or a.jobs != 1 or a.fov_error is not None:
+        raise BadInput("--speed times one process with the exact FOV: leave out --blind, --centroids, "
+                       "--record-failures, --jobs and --fov-error")
+    a.scenario = a.scenario or "cole8"
+    scenario = _bench_scenario(a)
+    methods = ((a.method, a.variant),) if a.method and a.method != "blind" else DEFAULT_METHODS
+    out_dir = _check_out_folder(a.out)
+    if a.rounds < 1:
+        raise BadInput("--rounds must be at least 1")
+    summary = run_speed_bench(scenario, a.n, seed=a.seed, methods=methods, peers=not a.no_peers,
+                              python=a.peers_python, rounds=a.rounds, progress=not a.quiet)
+    md = format_markdown(summary)
+    print(md)
+    j, m = save_results(summary, out_dir, f"speed-{_file_tag(scenario.name)}-n{a.n}-seed{a.seed}", markdown=md)
+    print(f"saved {j} and {m}")
+    return EXIT_SOLVED
+
+
 def _bench_blind(a) -> int:
     from skyview.bench import format_blind_markdown, run_blind_bench, save_results
 
@@ -551,15 +617,18 @@ def cmd_record(a) -> int:
         raise BadInput(f"give the output once: {a.path} or --out {a.out}")
     target = a.path if a.path is not None else a.out
     if a.examples:
-        from skyview.record import MANIFEST, record_examples
+        from skyview.record_examples import MANIFEST, record_examples
 
         out = Path(target) if target else Path("recordings")
         entries = record_examples(out, force=a.force)
         print(f"wrote {len(entries)} example recordings and {out / MANIFEST}")
         return EXIT_SOLVED
-    if a.method == "stochastic":  # a sequence method: the paper's experiment, frame by frame
+    from skyview.identify import METHODS
+    from skyview.identify.base import is_sequence_method
+
+    if is_sequence_method(METHODS[a.method]):  # a sequence method: the paper's experiment, frame by frame
         return _record_stochastic(a, target)
-    from skyview.record import record_case
+    from skyview.record_cases import record_case
 
     scenario = a.scenario or "cole8"
     out = Path(target) if target else Path(f"{a.method}-{scenario}-{a.seed}.rrd")
@@ -642,7 +711,7 @@ def cmd_solve_sequence(a) -> int:
 def _solve_sequence_stochastic(a, solve_sequence) -> int:
     output = _check_new_file(a.output, a.force)
     if a.record:  # check the recording's path before solving (the recorder is imported only when asked)
-        from skyview.record import check_output_path
+        from skyview.record_draw import check_output_path
 
         check_output_path(a.record, a.force)
     method_params = {} if a.p_identify is None else {"p_identify": a.p_identify}
@@ -689,11 +758,15 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     from skyview.truth import wrong_matches
 
     stochastic_only = [o for o, v in (("--p-identify", a.p_identify), ("--mag-zero-point", a.mag_zero_point),
-                                      ("--mag-cut", a.mag_cut), ("--record", a.record)) if v is not None]
+                                      ("--mag-cut", a.mag_cut)) if v is not None]
     if stochastic_only:
         raise BadInput(f"{', '.join(stochastic_only)} go{'es' if len(stochastic_only) == 1 else ''} with the "
                        f"stochastic method, not with tracking")
     output = _check_new_file(a.output, a.force)
+    if a.record:  # checked before tracking (skyview.record_track writes it after)
+        if not str(a.record).lower().endswith(".rrd"):
+            raise BadInput(f"{a.record}: a recording's name ends in .rrd")
+        _check_new_file(a.record, a.force)
     truths = None
     if one:
         seq = load_sequence(paths[0], a.fov_deg)
@@ -716,9 +789,10 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     tracker = Tracker(camera, method, mag_limit=a.mag_limit, variant=a.variant, epoch=a.epoch,
                       sigma_rad=None if a.sigma_arcsec is None else a.sigma_arcsec * ARCSEC,
                       max_stars=a.max_stars, k_sigma=a.k_sigma, progress=_progress_line)
-    lines, failed = [], []
+    lines, failed, tracked = [], [], []
     for k, img in enumerate(images):
         fr = tracker.process(img, None if (k == 0 or turns is None) else turns[k - 1])
+        tracked.append(fr)
         d = fr.to_dict()
         d = {"frame": k, "image": names[k], **{key: v for key, v in d.items() if key not in ("frame", "R")}}
         d["method"] = a.method or "blind"
@@ -751,6 +825,12 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
             print(line, flush=True)
     if output is not None:
         _write_text_new(output, "\n".join(lines) + "\n", a.force)
+    if a.record:
+        from skyview.record_track import record_track
+
+        info = record_track(a.record, tracked, images, tracker.camera, tracker.catalog, truths=truths,
+                            method=a.method or "blind", force=a.force)
+        print(f"recorded {info.frames} frames into {info.path} ({info.bytes / 1e6:.1f} MB)", file=sys.stderr)
     if failed:
         print(f"skyview: {len(failed)} of {len(images)} frames not solved: frame{'s' if len(failed) > 1 else ''} "
               f"{', '.join(map(str, failed))}", file=sys.stderr)
@@ -877,7 +957,7 @@ def cmd_view(a) -> int:
 
     if not 0 <= a.port <= 65535:
         raise BadInput(f"--port {a.port} is not a TCP port (0-65535)")
-    return serve(host=a.host, port=a.port, image=a.image, fov_deg=a.fov_deg,
+    return serve(host=a.host, port=a.port, image=a.image, fov_deg=a.fov_deg, coverage=a.coverage,
                  say=lambda line: print(line, flush=True))
 
 
@@ -906,6 +986,11 @@ def _example_recordings() -> dict[str, Path]:
     return found
 
 
+def _statistic_arg(parser, extra: str = "") -> None:
+    parser.add_argument("--statistic", choices=("calibrated", "tetra3"), default=None,
+                        help=f"{extra}verification statistic, calibrated (default) or tetra3")
+
+
 def _variant_arg(parser, extra: str = "") -> None:
     parser.add_argument("--variant", choices=("paper", "improved"), default="paper",
                         help=f"{extra}paper (default): the paper's parameters; improved: the method's improvements "
@@ -927,10 +1012,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"skyview {__import__('skyview').__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="COMMAND")
 
-    d = sub.add_parser("demo", help="simulate a default sky (Orion) and solve it",
+    d = sub.add_parser("demo", help="simulate a default sky (Orion), solve it and open the viewer on it",
                        description="Simulate a 1024 x 1024 image (Hp <= 6), solve it with one method at the "
-                                   "exact FOV and with the default blind pipeline (no FOV), and solve one of the "
-                                   "real photographs in tests/data/ blind; each compared with its truth.")
+                                   "exact FOV (saved step by step as demo.rrd) and with the default blind pipeline "
+                                   "(no FOV), and solve one of the real photographs in tests/data/ blind; each "
+                                   "compared with its truth. In a terminal it then opens the viewer on the solved "
+                                   "scene (prints its URL; Ctrl-C stops it).")
     d.add_argument("--ra", type=_float, default=83.8, help="boresight right ascension, deg (default 83.8)")
     d.add_argument("--dec", type=_float, default=-5.4, help="boresight declination, deg (default -5.4)")
     d.add_argument("--roll", type=_float, default=30.0,
@@ -941,6 +1028,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"identification method: {method_list} (default angle)")
     _variant_arg(d)
     d.add_argument("--json", action="store_true", help="also print the result as JSON")
+    d.add_argument("--record", default="demo.rrd", metavar="PATH",
+                   help="save the method's solve, step by step, as a Rerun recording (default demo.rrd in this "
+                        "folder, replacing an earlier demo's; '' for none)")
+    d.add_argument("--no-view", action="store_true",
+                   help="do not open the viewer at the end (it opens only in a terminal: in a script or a pipe "
+                        "the demo prints and exits)")
     d.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("simulate", help="render a star-field image (PNG) and its truth sidecar (JSON)",
@@ -988,12 +1081,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_simulate)
 
     v = sub.add_parser("solve", help="image -> attitude (blind: no field of view needed)",
-                       description="Solve a star-field image (PNG, TIFF, JPEG; grey or colour). With no options "
+                       description="Solve a star-field image (PNG, TIFF, JPEG, FITS; grey or colour). With no options "
                                    "it runs the default pipeline: blind four-star patterns over a horizontal FOV "
-                                   "of about 2.5-54 deg, then the camera (FOV, k1, k2) fitted to the stars and the "
+                                   "of about 2.5-81 deg, then the camera (FOV, k1, k2) fitted to the stars and the "
                                    "shared verification. Exit code 0 solved, 1 not solved (the reason and what to "
                                    "try on stderr), 2 bad input.")
-    v.add_argument("image", help="the image file (PNG, TIFF, JPEG, BMP, WebP, ...; 8/16-bit or float, grey or colour)")
+    v.add_argument("image", help="the image file (PNG, TIFF, JPEG, BMP, WebP, FITS, ...; 8/16-bit or float, grey or "
+                   "colour)")
     v.add_argument("--fov-deg", type=_float, default=None,
                    help="horizontal full field of view, deg, as far as it is known (default: searched blind)")
     v.add_argument("--fov-error", type=_float, default=0.1,
@@ -1016,8 +1110,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--epoch", type=_float, default=DEFAULT_EPOCH, help=epoch_help)
     v.add_argument("--estimator", choices=("svd", "q-method"), default="svd",
                    help="attitude estimator: svd (Markley, default) or q-method (Davenport)")
-    v.add_argument("--statistic", choices=("calibrated", "tetra3"), default=None,
-                   help="with --method: verification statistic, calibrated (default) or tetra3")
+    _statistic_arg(v, "with --method: ")
     v.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a method parameter by its name (docs/methods.md), repeatable: e.g. --param workers=2 "
                         "(genetic: both cores), --param p_identify=0.99")
@@ -1066,10 +1159,24 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also render stars this many magnitudes below the scenario's limit (overrides it)")
     b.add_argument("-n", type=int, default=100, help="number of random attitudes (trials; default 100)")
     b.add_argument("--seed", type=int, default=0, help="random seed of the trials (default 0)")
-    b.add_argument("--statistic", choices=("calibrated", "tetra3"), default=None,
-                   help="verification statistic: calibrated (default) or tetra3")
+    _statistic_arg(b)
+    b.add_argument("--speed", action="store_true",
+                   help="time each stage (decode, centroids, identification, attitude) of the improved angle "
+                        "method (or --method/--variant) and the blind pipeline, and tetra3rs on the same images "
+                        "when its virtualenv exists (benchmarks/README.md); prints the ratio")
+    b.add_argument("--peers-python", default=None, help="with --speed: python of the tetra3rs virtualenv "
+                   "(default $SKYVIEW_PEERS_PYTHON or .venv-peers/bin/python)")
+    b.add_argument("--no-peers", action="store_true", help="with --speed: skyview alone")
+    b.add_argument("--rounds", type=int, default=2, help="with --speed: passes over the images, the solvers "
+                   "taking turns; each image keeps its fastest (default 2)")
     b.add_argument("--centroids", action="store_true",
                    help="measure centroid accuracy (pixels, by SNR) instead, over -n images")
+    b.add_argument("--compare", action="store_true",
+                   help="every method, both variants, on the same -n simulated images of --scenario (default cole8) "
+                        "and on the real photographs (calibrated mode); tables by stars in the field (skyview.compare)")
+    b.add_argument("--compare-slow-n", type=int, default=30,
+                   help="with --compare: images for the genetic method (the first of the -n; default 30)")
+    b.add_argument("--no-real", action="store_true", help="with --compare: leave out the real photographs")
     b.add_argument("--out", default="bench-results", help="folder for the JSON and Markdown results")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
@@ -1080,7 +1187,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "include the sharing of the cores)")
     b.add_argument("--record-failures", default=None, metavar="DIR",
                    help="save a Rerun recording of every trial that is not correct into DIR (created if missing)")
+    b.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the trials on Dask (skyview.bench_dask): 'local' for a LocalCluster on this machine, "
+                        "or a scheduler's address (tcp://host:8786); same outcomes as the local run")
+    b.add_argument("--workers", type=int, default=2, help="with --scheduler local: worker processes (default 2)")
     b.set_defaults(func=cmd_bench)
+
+    from skyview.coverage import add_coverage_parser  # skyview coverage (docs/coverage.md)
+
+    add_coverage_parser(sub, _float)
 
     q = sub.add_parser("solve-sequence", help="a sequence of frames -> attitude per frame (tracking; stochastic "
                                               "on a sequence without --method)",
@@ -1218,6 +1333,8 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default: this machine only; 0.0.0.0 opens it to the network)")
     w.add_argument("--port", type=int, default=8080, help="HTTP port (the next free one if it is taken; default 8080)")
+    w.add_argument("--coverage", metavar="DIR", default=None,
+                   help="draw this sky-coverage map (the folder of `skyview coverage --out DIR`) on the sphere")
     w.set_defaults(func=cmd_view)
     return p
 

@@ -24,6 +24,8 @@ from skyview.attitude import ESTIMATORS, RAD_TO_ARCSEC, quat_from_R, radec_roll_
 from skyview.camera import Camera
 from skyview.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.centroid import Centroids, detect_centroids, finite_image, load_image, to_gray
+from skyview.detect import detect_stars
+from skyview.fits_image import undeclared_row_order
 from skyview.errors import BadInput
 from skyview.identify import make_identifier
 from skyview.identify.base import Identification, Observation
@@ -63,6 +65,8 @@ class SolveResult:
     residuals_arcsec: list[float] = field(default_factory=list)
     mag_limit: float | None = None  # the catalog depth the solve used (Hp)
     camera_fitted: bool = False  # the camera (FOV, distortion) was fitted to the stars, not given
+    notes: list[str] = field(default_factory=list)  # how the input was read, when it matters (FITS rows)
+    rows_reversed: bool = False  # solved with the image's rows turned over (try_flipped_rows)
 
     @property
     def solved(self) -> bool:
@@ -72,6 +76,8 @@ class SolveResult:
         out: dict[str, Any] = {"status": self.status}
         if self.reason:
             out["reason"] = self.reason
+        if self.notes:
+            out["notes"] = list(self.notes)
         if self.R is not None:
             ra, dec, roll = radec_roll_from_R(self.R)
             out.update({
@@ -307,7 +313,7 @@ class BlindSolver:
                     fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
         img = as_image(image)
         t0 = time.perf_counter()
-        centroids = detect_centroids(img, k_sigma=self.k_sigma)
+        centroids = detect_stars(img, k_sigma=self.k_sigma)
         t1 = time.perf_counter()
         result = self.solve_centroids(centroids, img.shape[1], img.shape[0], fov_deg=fov_deg, fov_error=fov_error)
         result.time_ms = {"centroid": (t1 - t0) * 1e3, **result.time_ms}
@@ -339,6 +345,38 @@ class BlindSolver:
         if not result.solved and n:
             result.reason = explain_failure(result.reason, len(centroids), fov_deg, fov_error, self.fov_range_deg)
         return result
+
+
+def check_solve_options(*, max_stars: int, mag_limit: float | None, distortion: tuple[float, float], epoch: float,
+                        memory_mb: float | None) -> None:
+    """One-line BadInput for a solve option no camera or sky can have (before any work)."""
+    def number(name, v):
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            raise BadInput(f"{name} {v!r} is not a number") from None
+        if not np.isfinite(x):
+            raise BadInput(f"{name} {v} is not a finite number")
+        return x
+
+    if number("max_stars", max_stars) < 3 or int(max_stars) != max_stars:
+        raise BadInput(f"max_stars={max_stars}: at least 3 stars must enter the identification (a whole number)")
+    if mag_limit is not None and not (MAG_LIMIT_RANGE[0] <= number("mag_limit", mag_limit) <= MAG_LIMIT_RANGE[1]):
+        raise BadInput(f"magnitude limit {mag_limit} is outside the sky's stars (Hp {MAG_LIMIT_RANGE[0]:g} to "
+                       f"{MAG_LIMIT_RANGE[1]:g}; the guide catalog holds stars to Hp 9)")
+    for name, k in zip(("k1", "k2"), distortion):
+        if abs(number(f"distortion {name}", k)) > 1.0:
+            raise BadInput(f"distortion {name}={k} is beyond any lens skyview models (|k| <= 1; a few percent at the "
+                           "corner is k ~ 0.05)")
+    if not (EPOCH_RANGE[0] <= number("epoch", epoch) <= EPOCH_RANGE[1]):
+        raise BadInput(f"epoch {epoch} is outside {EPOCH_RANGE[0]}-{EPOCH_RANGE[1]} (Julian year of the image; proper "
+                       "motions are not extrapolated further)")
+    if memory_mb is not None and not number("memory budget", memory_mb) > 0:
+        raise BadInput(f"memory budget {memory_mb} MB must be positive")
+
+
+MAG_LIMIT_RANGE = (-1.5, 12.0)
+EPOCH_RANGE = (1000.0, 3000.0)
 
 
 def check_fov_error(fov_error: float) -> None:
@@ -389,7 +427,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                 fov_error: float = DEFAULT_FOV_ERROR, mag_limit: float | None = None,
                 distortion: tuple[float, float] = (0.0, 0.0), variant: str = "paper", epoch: float = DEFAULT_EPOCH,
                 max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd", memory_mb: float | None = None,
-                progress=None, **kwargs) -> SolveResult:
+                progress=None, try_flipped_rows: bool | None = None, **kwargs) -> SolveResult:
     """Solve one image: a path, or a 2-D (grey) or 3-D (BGR/BGRA) numpy array of any layout.
 
     fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
@@ -398,10 +436,14 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     "triangle", ... runs that method (`variant` "paper" or "improved"), on the camera the blind
     front end fitted when fov_error > 0. mag_limit=None takes the depth from the image. Other
     keyword arguments go to `Solver` (sigma_rad, method_params). Solvers are cached (the 8 most
-    recently used configurations), so a second call reuses the loaded database.
+    recently used configurations), so a second call reuses the loaded database. try_flipped_rows:
+    when the image does not solve, solve it upside down (rows reversed) once more; None does so for a
+    FITS file that does not declare its row order (see `skyview.fits_image`).
     """
-    img = as_image(image)
     check_fov_error(fov_error)
+    check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
+                        memory_mb=memory_mb)
+    img = as_image(image)
     H, W = img.shape
     k1, k2 = distortion
     if fov_deg is not None:
@@ -424,7 +466,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         return res
 
     t0 = time.perf_counter()
-    centroids = detect_centroids(img, k_sigma=k_sigma)
+    centroids = detect_stars(img, k_sigma=k_sigma)
     t_cent = (time.perf_counter() - t0) * 1e3
     exact = fov_deg is not None and fov_error == 0.0
     result = None
@@ -452,6 +494,20 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         mres = calibrated(method, camera, variant, centroids)
         mres.camera_fitted = fitted is not None
         result = mres
+    if try_flipped_rows is None:
+        try_flipped_rows = isinstance(image, (str, Path)) and undeclared_row_order(image)
+    if not result.solved and try_flipped_rows:
+        # a FITS file that does not say which way up its rows are: read bottom-first (the standard),
+        # it did not solve; a mirror image never solves, so the other way up is tried once
+        other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error,
+                            mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
+                            max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
+                            progress=progress, try_flipped_rows=False, **kwargs)
+        if other.solved:
+            other.rows_reversed = True
+            other.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel "
+                               "rows as stored; v = 0 is the file's first row)")
+            result = other
     result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
     result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
     return result

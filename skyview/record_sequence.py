@@ -7,7 +7,8 @@ simulates the paper's experiment (Udomkesmalee et al.: the boresight on Betelgeu
 right ascension, 5 frames, 0.6 mag magnitude noise; docs/stochastic.md), solves it and records it
 (`skyview record --method stochastic`); `skyview solve-sequence PATH --record OUT.rrd` records a sequence
 read from disk. The sky, the colours, the image stretch, the step drawing and the safe writing are
-`skyview.record`'s; this module adds what a sequence has and a single image does not. Entity paths
+`skyview.record_draw`'s (steps are `skyview.present` StepViews, as in the viewer); this module adds
+what a sequence has and a single image does not. Entity paths
 (docs/recordings.md) — those of `skyview.record` with the same meaning, per frame:
 
     sky/catalog, sky/grid               the guide catalog and the RA/Dec grid (static)
@@ -18,7 +19,7 @@ read from disk. The sky, the colours, the image stretch, the step drawing and th
     camera/image/centroids              the frame's centroids, labelled with their brightness rank
     camera/image/truth/...              where the simulator drew stars and false stars (truth known)
     truth/camera                        the frame's true camera (truth known)
-    sky/step/..., camera/image/step     the step's stars; steps/log, steps/numbers/<n>, steps/series/<n>
+    sky/step/<role>, camera/image/step/<role>  the step's drawables; steps/log, steps/numbers/<unit>/<n>
     result                              the sequence summary (Markdown, static)
 
 and its own:
@@ -47,20 +48,22 @@ import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from skyview import record as R_
+from skyview import record_draw as D
 from skyview import sky_geometry as sg
 from skyview.attitude import attitude_error_arcsec, east_north, quat_from_R, radec_roll_from_R
 from skyview.errors import BadInput
+from skyview.present import posterior_figures, step_views
+from skyview.record import write_matches
+from skyview.scoring import frame_truth
 
 FRAME_TIMELINE = "frame"
-STEP_TIMELINE = R_.TIMELINE
+STEP_TIMELINE = D.TIMELINE
 
 # Entity paths of a sequence recording (besides skyview.record's, which keep their meaning per frame).
 TRUE_PATH = "sky/path/true"
@@ -101,7 +104,7 @@ NOISE_NOTE = ("Position noise 10 arcsec per axis: the paper's \"10\" read as arc
 
 
 @dataclass
-class SequenceRecordInfo(R_.RecordInfo):
+class SequenceRecordInfo(D.RecordInfo):
     """What `record_sequence` wrote: RecordInfo (steps = entries on the step timeline, all frames) plus
     the number of frames and the identified frame (the latest verified one, None when none)."""
 
@@ -123,7 +126,7 @@ def _ring3d(d: np.ndarray, radius_rad: float) -> np.ndarray:
 
 def _ring2d(uv: np.ndarray, radius_px: float) -> np.ndarray:
     t = np.linspace(0.0, 2.0 * np.pi, RING_POINTS)
-    c = R_._rerun_uv(uv)[0]
+    c = D.rerun_uv(uv)[0]
     return np.stack([c[0] + radius_px * np.cos(t), c[1] + radius_px * np.sin(t)], axis=1).astype(np.float32)
 
 
@@ -145,8 +148,8 @@ class _Frames:
         self.rec = rec
         self.drawn: set[str] = set()
 
-    def log(self, path: str, *archetypes) -> None:
-        self.rec.log(path, *archetypes)
+    def log(self, path: str, *archetypes, static: bool = False) -> None:
+        self.rec.log(path, *archetypes, static=static)
         self.drawn.add(path)
 
     def clear(self, path: str) -> None:
@@ -196,6 +199,24 @@ def _truth_rows(seq_result, truths):
     return [truth_rows(o.uv, t, seq_result.catalog) for o, t in zip(seq_result.observations, truths)]
 
 
+def frame_figures(seq_result, rows=None) -> list[dict]:
+    """Per frame, the figures a recording shows, read from the steps' Posterior layers
+    (`present.posterior_figures`) and scored against the truth rows here (`scoring.frame_truth`), not
+    taken from the method: designated, top_rows, top_mass, top_hips, top_posterior, above_prior,
+    true_row, true_posterior; plus the method's own count of field stars and true-sequence posterior
+    when it reports them (stars, true_sequence_posterior)."""
+    cat = seq_result.catalog
+    out = []
+    for k, r in enumerate(seq_result.identifications):
+        f = dict(posterior_figures(r.steps) or {})
+        f.update(frame_truth(r.steps, None if rows is None else rows[k]))
+        f["top_hips"] = [int(cat.hip[c]) for c in f.get("top_rows", [])]
+        f["stars"] = r.stats.get("stars")
+        f["true_sequence_posterior"] = r.stats.get("true_sequence_posterior")
+        out.append(f)
+    return out
+
+
 def sequence_outcome(seq_result, rows=None) -> str:
     """correct (the last frame identified, no identified frame with a wrong match), incorrect (a wrong
     match anywhere), inconclusive (not identified at the last frame), or unknown (no truth: solved/failed)."""
@@ -238,7 +259,7 @@ def sequence_markdown(seq_result, *, true_R: list | None = None, rows: list | No
     if k_id is None and ids:
         lines += [f"**Reason (last frame):** {ids[-1].reason}", ""]
     if meta:
-        lines += ["| | |", "|---|---|"] + [f"| {k} | {R_._fmt(v)} |" for k, v in meta.items()] + [""]
+        lines += ["| | |", "|---|---|"] + [f"| {k} | {D.fmt(v)} |" for k, v in meta.items()] + [""]
     for n in notes or []:
         lines += [n, ""]
     lines += ["## Frames", "",
@@ -251,8 +272,9 @@ def sequence_markdown(seq_result, *, true_R: list | None = None, rows: list | No
         cols += ["paper: above 1/N", "paper: P(true)"]
     cols += ["status", "shown attitude"]
     lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    figs = frame_figures(seq_result, rows)
     for k, r in enumerate(ids):
-        st = r.stats
+        st = figs[k]
         n_c = len(seq_result.centroids[k]) if seq_result.centroids is not None else (
             len(seq_result.observations[k]) if seq_result.observations else None)
         tr = st.get("true_row")
@@ -280,10 +302,10 @@ def sequence_markdown(seq_result, *, true_R: list | None = None, rows: list | No
                   f"- RA **{math.degrees(ra):.5f}°**, Dec **{math.degrees(dec):+.5f}°**, roll "
                   f"**{math.degrees(roll):+.4f}°**",
                   f"- quaternion [w x y z]: {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}",
-                  f"- designated star HIP {int(cat.hip[r.matches[r.stats['designated']]])}"
-                  if r.stats.get("designated") in r.matches else "- designated star: -",
+                  f"- designated star HIP {int(cat.hip[r.matches[figs[k_id]['designated']]])}"
+                  if figs[k_id].get("designated") in r.matches else "- designated star: -",
                   f"- {len(r.matches)} stars matched; verification: "
-                  + ", ".join(f"{k} {R_._fmt(v[k])}" for k in ("n_agree", "n_tested", "p_false", "p_magnitudes")
+                  + ", ".join(f"{k} {D.fmt(v[k])}" for k in ("n_agree", "n_tested", "p_false", "p_magnitudes")
                               if k in v)]
         obs = seq_result.observations[k_id] if seq_result.observations else None
         lines += ["", "| # | u | v | HIP | Hp |", "|---|---|---|---|---|"]
@@ -320,7 +342,7 @@ def sequence_markdown(seq_result, *, true_R: list | None = None, rows: list | No
 
 # ============================================================================ the blueprint
 
-def sequence_blueprint(R_view: np.ndarray | None, series: list[str]) -> rrb.Blueprint:
+def sequence_blueprint(R_view: np.ndarray | None, plots: list) -> rrb.Blueprint:
     """The 3D sky (from the sphere's centre, looking at the middle of the path), the sensor image, the
     posterior plots over the frames, and tabs with the step log, the result and the bar charts."""
     eye = None
@@ -330,18 +352,17 @@ def sequence_blueprint(R_view: np.ndarray | None, series: list[str]) -> rrb.Blue
                                 look_target=b.tolist(), eye_up=up.tolist())
     sky = rrb.Spatial3DView(name="sky", origin="/", contents=["/sky/**", "/camera/**", "/truth/**"],
                             background=[5, 8, 16], line_grid=rrb.LineGrid3D(visible=False), eye_controls=eye,
-                            spatial_information=R_.NO_AXES)
-    tabs = [rrb.TextLogView(name="step log", origin=f"/{R_.STEP_LOG}"),
-            rrb.TextDocumentView(name="result", origin=f"/{R_.RESULT}")]
-    tabs += [rrb.BarChartView(name=name, origin=f"/{R_.STEP_SERIES}/{name}") for name in series]
-    tabs.append(rrb.TimeSeriesView(name="step numbers", origin=f"/{R_.STEP_NUMBERS}",
-                                   plot_legend=rrb.Corner2D.RightTop))
+                            spatial_information=D.NO_AXES)
+    tabs = [rrb.TextLogView(name="step log", origin=f"/{D.STEP_LOG}"),
+            rrb.TextDocumentView(name="result", origin=f"/{D.RESULT}")]
+    seen: set[str] = set()
+    tabs += [pl for pl in plots if not (pl.name in seen or seen.add(pl.name))]  # one plot per unit
     plots = rrb.Horizontal(
         rrb.TimeSeriesView(name="posterior over frames", origin=f"/{POSTERIOR}", axis_y=rrb.ScalarAxis(range=(0.0, 1.0)),
                            plot_legend=rrb.Corner2D.LeftTop),
         rrb.TimeSeriesView(name="stars above 1/N", origin=f"/{ABOVE_PRIOR}", plot_legend=rrb.Corner2D.RightTop),
         column_shares=[3, 2])
-    right = rrb.Vertical(rrb.Spatial2DView(name="image", origin=f"/{R_.IMAGE}"), plots, rrb.Tabs(*tabs, active_tab=0),
+    right = rrb.Vertical(rrb.Spatial2DView(name="image", origin=f"/{D.IMAGE}"), plots, rrb.Tabs(*tabs, active_tab=0),
                          row_shares=[5, 3, 3])
     return rrb.Blueprint(rrb.Horizontal(sky, right, column_shares=[3, 2]),
                          rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
@@ -364,7 +385,7 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
     Same path rules as `record.record_solve` (checked first; nothing overwritten unless `force`).
     """
     t0 = time.perf_counter()
-    p = R_.check_output_path(path, force)
+    p = D.check_output_path(path, force)
     ids = list(seq_result.identifications)
     K = len(ids)
     if K == 0:
@@ -385,15 +406,16 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
               else ([np.asarray(R, dtype=np.float64) for R in seq_result.true_R] if seq_result.true_R is not None
                     else None))
     rows = _truth_rows(seq_result, truths)
+    figs = frame_figures(seq_result, rows)
     shown, how = shown_attitudes(seq_result, true_R, turns)
-    centroids = seq_result.centroids
-    if centroids is None:  # solved from observation vectors: draw what the method saw
-        centroids = [_Cents(o.uv) for o in seq_result.observations]
+    if seq_result.centroids is not None:
+        centroids = [np.asarray(c.uv, dtype=np.float64).reshape(-1, 2) for c in seq_result.centroids]
+    else:  # solved from observation vectors: draw what the method saw
+        centroids = [np.asarray(o.uv, dtype=np.float64).reshape(-1, 2) for o in seq_result.observations]
     if len(centroids) != K:
         raise BadInput(f"the result has centroids for {len(centroids)} of its {K} frames")
     steps = [list(r.steps) for r in ids]
-    series = sorted({R_._entity_name(k) for ss in steps for s in ss for k, v in s.extra.items()
-                     if R_._series(v) is not None})
+    views = [step_views(ss, catalog.xyz, len(uv), camera=camera, hip=catalog.hip) for ss, uv in zip(steps, centroids)]
     with_view = [R for R in shown if R is not None]
     R_mid = shown[K // 2] if shown[K // 2] is not None else (with_view[len(with_view) // 2] if with_view else None)
 
@@ -404,29 +426,30 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
     rec_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"skyview:{title}:{seq_result.method}:{seq_result.variant}:"
                                                 f"sequence:{digest.hexdigest()}"))
     n_steps = sum(len(s) for s in steps)
-    with R_.open_recording(p, rec_id, title, sequence_blueprint(R_mid, series)) as rec:
-        _write_static(rec, seq_result, true_R)
+    with D.open_recording(p, rec_id, title, sequence_blueprint(R_mid, [p for vv in views for p in D.unit_plots(vv)])) as rec:
+        _write_static(rec, seq_result, true_R, figs)
         image_note = ""
         fr = _Frames(rec)
         first = 0
-        drawn: tuple[set[str], set[str]] = (set(), set())
+        drawn: set[str] = set()
         for k in range(K):
             rec.set_time(FRAME_TIMELINE, sequence=k)
             rec.set_time(STEP_TIMELINE, sequence=first)
             note = _write_frame(fr, k, seq_result, images[k], centroids[k], shown[k],
-                                None if true_R is None else true_R[k], None if truths is None else truths[k])
+                                None if true_R is None else true_R[k], None if truths is None else truths[k], figs[k])
             image_note = image_note or f"frame {k}: {note}"
-            drawn = R_._write_steps(rec, steps[k], SimpleNamespace(camera=camera, centroids=centroids[k]), catalog,
-                                    shown[k], first=first, shown=drawn)
+            for i, v in enumerate(views[k]):
+                rec.set_time(STEP_TIMELINE, sequence=first + i)
+                drawn = D.log_step(rec, v, centroids[k], drawn)
             at = next((first + i for i, s in enumerate(steps[k]) if s.kind == "update"),
                       first + max(len(steps[k]) - 1, 0))
             rec.set_time(STEP_TIMELINE, sequence=at)
             for path_, (key, _, _) in SERIES.items():
-                v = ids[k].stats.get(key)
+                v = figs[k].get(key)
                 if v is not None and math.isfinite(float(v)):
                     rec.log(path_, rr.Scalars(float(v)))
             first += len(steps[k])
-        rec.log(R_.RESULT, rr.TextDocument(
+        rec.log(D.RESULT, rr.TextDocument(
             sequence_markdown(seq_result, true_R=true_R, rows=rows, meta=meta, reference=reference, notes=notes,
                               how=how, image_note=image_note), media_type=rr.MediaType.MARKDOWN), static=True)
     k_id = seq_result.frame
@@ -435,82 +458,67 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
                               identified=[k for k, r in enumerate(ids) if r.identified])
 
 
-class _Cents:
-    """The centroids a recording draws when the result has none (solved from observation vectors)."""
-
-    def __init__(self, uv):
-        self.uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-
-    def __len__(self) -> int:
-        return len(self.uv)
-
-
-def _write_static(rec, seq_result, true_R) -> None:
+def _write_static(rec, seq_result, true_R, figs) -> None:
     catalog, camera = seq_result.catalog, seq_result.camera
-    radii = sg.star_radius(catalog.mag, r_bright=0.007, r_faint=0.0018).astype(np.float32)
-    rec.log(R_.CATALOG, rr.Points3D(catalog.xyz.astype(np.float32), radii=radii,
-                                    colors=sg.star_color(catalog.mag, catalog.bv)), static=True)
-    rec.log(R_.GRID, rr.LineStrips3D([g.astype(np.float32) for g in sg.radec_grid()], colors=R_.C_GRID,
-                                     radii=rr.Radius.ui_points(0.5)), static=True)
-    rec.log(R_.IMAGE, *R_._pinhole(camera, color=R_.C_FOV_EST), static=True)
+    D.log_sky(rec, catalog)
+    rec.log(D.IMAGE, *D.pinhole(camera, color=D.C_FOV_EST), static=True)
     if true_R is not None:
-        rec.log(R_.TRUE_CAMERA, *R_._pinhole(camera, color=R_.C_FOV_TRUE), static=True)
+        rec.log(D.TRUE_CAMERA, *D.pinhole(camera, color=D.C_FOV_TRUE), static=True)
         b = [np.asarray(R, dtype=np.float64)[2] for R in true_R]
         if len(b) >= 2:
             arcs = [sg.great_circle_arc(b[k], b[k + 1], 24) for k in range(len(b) - 1)]
-            rec.log(TRUE_PATH, rr.LineStrips3D([np.concatenate(arcs).astype(np.float32)], colors=R_.C_TRUTH,
+            rec.log(TRUE_PATH, rr.LineStrips3D([np.concatenate(arcs).astype(np.float32)], colors=D.C_TRUTH,
                                                radii=rr.Radius.ui_points(1.0)), static=True)
     for path_, (key, color, label) in SERIES.items():  # the legend of each series the frames have
-        if all(r.stats.get(key) is None for r in seq_result.identifications):
+        if all(f.get(key) is None for f in figs):
             continue
         rec.log(path_, rr.SeriesLines(colors=color, names=label, widths=2.0), rr.SeriesPoints(
             colors=color, names=label, markers="circle", marker_sizes=4.0), static=True)
 
 
-def _write_frame(fr: _Frames, k: int, seq_result, image, cents, R_view, R_true, truth) -> str:
+def _write_frame(fr: _Frames, k: int, seq_result, image, uv_c: np.ndarray, R_view, R_true, truth, st: dict) -> str:
     """Everything of frame k that is not a step (logged at its frame and its first step); returns how the
     image was stretched for display."""
     camera, catalog = seq_result.camera, seq_result.catalog
     r = seq_result.identifications[k]
-    st = r.stats
     R_est = np.asarray(r.R, dtype=np.float64) if (r.identified and r.R is not None) else None
     # --- the camera: pose, image, centroids
     if R_view is not None:
-        fr.log(R_.CAMERA, R_._pose(R_view))
+        fr.log(D.CAMERA, D.pose(R_view))
     else:
-        fr.clear(R_.CAMERA)
-    shown_img, note = R_.display_image(image)
-    fr.log(R_.IMAGE, rr.Image(shown_img, color_model="L").compress(jpeg_quality=R_.JPEG_QUALITY))
-    n = len(cents)
+        fr.clear(D.CAMERA)
+    shown_img, note = D.display_image(image)
+    fr.log(D.IMAGE, rr.Image(shown_img, color_model="L").compress(jpeg_quality=D.JPEG_QUALITY))
+    n = len(uv_c)
     labels = [f"#{i}" for i in range(n)]
-    fr.log(R_.CENTROIDS, rr.Points2D(R_._rerun_uv(cents.uv) if n else np.zeros((0, 2), np.float32),
-                                      radii=rr.Radius.ui_points(4.0), colors=R_.C_CENTROID, labels=labels,
-                                      show_labels=True, draw_order=20))
+    fr.log(D.CENTROIDS, rr.Points2D(D.rerun_uv(uv_c) if n else np.zeros((0, 2), np.float32),
+                                      radii=rr.Radius.ui_points(4.0), colors=D.C_CENTROID, labels=labels,
+                                      show_labels=False, draw_order=20))
     if R_view is not None and n:
-        v = camera.unproject(cents.uv) @ R_view
-        fr.log(R_.OBSERVED, rr.Points3D(v.astype(np.float32), radii=0.004, colors=R_.C_OBSERVED, labels=labels,
+        v = camera.unproject(uv_c) @ R_view
+        fr.log(D.OBSERVED, rr.Points3D(v.astype(np.float32), radii=0.004, colors=D.C_OBSERVED, labels=labels,
                                          show_labels=False))
     else:
-        fr.clear(R_.OBSERVED)
+        fr.clear(D.OBSERVED)
     # --- footprints and the true camera
     if R_est is not None:
-        fr.log(R_.FOV_ESTIMATED, rr.LineStrips3D([sg.sensor_footprint(camera, R_est).astype(np.float32)],
-                                                  colors=R_.C_FOV_EST, radii=rr.Radius.ui_points(1.5)))
+        fr.log(D.FOV_ESTIMATED, rr.LineStrips3D([sg.sensor_footprint(camera, R_est).astype(np.float32)],
+                                                  colors=D.C_FOV_EST, radii=rr.Radius.ui_points(1.5)))
     else:
-        fr.clear(R_.FOV_ESTIMATED)
+        fr.clear(D.FOV_ESTIMATED)
     if R_true is not None:
-        fr.log(R_.FOV_TRUE, rr.LineStrips3D([sg.sensor_footprint(camera, R_true).astype(np.float32)],
-                                             colors=R_.C_FOV_TRUE, radii=rr.Radius.ui_points(1.0)))
-        fr.log(R_.TRUE_CAMERA, R_._pose(R_true))
+        fr.log(D.FOV_TRUE, rr.LineStrips3D([sg.sensor_footprint(camera, R_true).astype(np.float32)],
+                                             colors=D.C_FOV_TRUE, radii=rr.Radius.ui_points(1.0)))
+        fr.log(D.TRUE_CAMERA, D.pose(R_true))
     # --- the designated star, ringed in the image and on the sky
     d = st.get("designated")
     if d is not None and 0 <= int(d) < n:
         d = int(d)
-        fr.log(IMAGE_DESIGNATED, rr.LineStrips2D([_ring2d(cents.uv[d:d + 1], DESIGNATED_RING_PX)],
+        fr.log(IMAGE_DESIGNATED, rr.LineStrips2D([_ring2d(uv_c[d:d + 1], DESIGNATED_RING_PX)],
                                                   colors=C_DESIGNATED, radii=rr.Radius.ui_points(1.5),
                                                   labels=[f"designated #{d}"], show_labels=True, draw_order=25))
         if R_view is not None:
-            v_d = camera.unproject(cents.uv[d:d + 1])[0] @ R_view
+            v_d = camera.unproject(uv_c[d:d + 1])[0] @ R_view
             fr.log(DESIGNATED, rr.LineStrips3D([_ring3d(v_d, DESIGNATED_RING_RAD)], colors=C_DESIGNATED,
                                                 radii=rr.Radius.ui_points(1.5), labels=[f"designated #{d}"],
                                                 show_labels=True))
@@ -521,7 +529,7 @@ def _write_frame(fr: _Frames, k: int, seq_result, image, cents, R_view, R_true, 
         fr.clear(DESIGNATED)
     # --- the leading hypotheses and the true designated star
     top = [int(c) for c in st.get("top_rows", []) if 0 <= int(c) < len(catalog)]
-    post = np.asarray(st.get("posterior_top", [])[:len(top)], dtype=np.float64)
+    post = np.asarray(st.get("top_mass", [])[:len(top)], dtype=np.float64)
     if top:
         radii, colors = hypothesis_style(post)
         fr.log(HYPOTHESES, rr.Points3D(catalog.xyz[top].astype(np.float32), radii=radii, colors=colors,
@@ -532,44 +540,35 @@ def _write_frame(fr: _Frames, k: int, seq_result, image, cents, R_view, R_true, 
     tr = st.get("true_row")
     if tr is not None and 0 <= int(tr) < len(catalog):
         tr = int(tr)
-        fr.log(TRUE_DESIGNATED, rr.LineStrips3D([_ring3d(catalog.xyz[tr], TRUE_RING_RAD)], colors=R_.C_TRUTH,
+        fr.log(TRUE_DESIGNATED, rr.LineStrips3D([_ring3d(catalog.xyz[tr], TRUE_RING_RAD)], colors=D.C_TRUTH,
                                                  radii=rr.Radius.ui_points(1.5),
                                                  labels=[f"true: HIP {int(catalog.hip[tr])}"], show_labels=True))
     else:
         fr.clear(TRUE_DESIGNATED)
     # --- the verified matches
     if R_est is not None and r.matches:
-        mrows = [int(c) for _, c in sorted(r.matches.items())]
-        obs_idx = [int(o) for o, _ in sorted(r.matches.items())]
-        mlabels = [f"HIP {int(catalog.hip[c])} (#{o})" for o, c in zip(obs_idx, mrows)]
-        fr.log(R_.MATCHES, rr.Points3D(catalog.xyz[mrows].astype(np.float32), radii=0.006, colors=R_.C_MATCH,
-                                        labels=mlabels, show_labels=len(mlabels) <= R_.MAX_SHOWN_LABELS))
-        uv, _ = camera.project(catalog.xyz[mrows] @ R_est.T)
-        fr.log(R_.IMAGE_MATCHES, rr.Points2D(R_._rerun_uv(uv), radii=rr.Radius.ui_points(7.0),
-                                              colors=R_.C_MATCH + (110,),
-                                              labels=[f"HIP {int(catalog.hip[c])}" for c in mrows], show_labels=False,
-                                              draw_order=10))
+        write_matches(fr, sorted((int(o), int(c)) for o, c in r.matches.items()), catalog, camera, R_est, False)
     else:
-        fr.clear(R_.MATCHES)
-        fr.clear(R_.IMAGE_MATCHES)
+        for path_ in (D.MATCHES, D.MATCH_LABELS, D.IMAGE_MATCHES, D.IMAGE_LABELS):
+            fr.clear(path_)
     # --- where the simulator drew stars
     if truth is not None:
         stars = truth.get("stars", [])
         if stars:
             uv = np.array([[s.get("u_noisy", s["u"]), s.get("v_noisy", s["v"])] for s in stars])
-            fr.log(R_.TRUTH_STARS, rr.Points2D(R_._rerun_uv(uv), radii=rr.Radius.ui_points(10.0),
-                                                colors=R_.C_TRUTH + (60,), labels=[f"HIP {s['hip']}" for s in stars],
+            fr.log(D.TRUTH_STARS, rr.Points2D(D.rerun_uv(uv), radii=rr.Radius.ui_points(10.0),
+                                                colors=D.C_TRUTH + (60,), labels=[f"HIP {s['hip']}" for s in stars],
                                                 show_labels=False, draw_order=5))
         else:
-            fr.clear(R_.TRUTH_STARS)
+            fr.clear(D.TRUTH_STARS)
         false = truth.get("false_stars", [])
         if false:
             uv = np.array([[f["u"], f["v"]] for f in false])
-            fr.log(R_.TRUTH_FALSE_STARS, rr.Points2D(R_._rerun_uv(uv), radii=rr.Radius.ui_points(10.0),
-                                                      colors=R_.C_FALSE + (140,), labels=["false star"] * len(false),
+            fr.log(D.TRUTH_FALSE_STARS, rr.Points2D(D.rerun_uv(uv), radii=rr.Radius.ui_points(10.0),
+                                                      colors=D.C_FALSE + (140,), labels=["false star"] * len(false),
                                                       show_labels=True, draw_order=6))
         else:
-            fr.clear(R_.TRUTH_FALSE_STARS)
+            fr.clear(D.TRUTH_FALSE_STARS)
     return note
 
 
@@ -666,14 +665,14 @@ def record_paper_sequence(path: str | os.PathLike, seed: int = 0, *, scenario: s
                           variant: str = "paper", force: bool = False, catalog=None
                           ) -> tuple[SequenceRecordInfo, SequenceCase]:
     """Simulate the paper's experiment (run 0 of bench seed `seed`), solve it and record it at `path`."""
-    R_.check_output_path(path, force)  # fail before the slow part
+    D.check_output_path(path, force)  # fail before the slow part
     runner = PaperSequenceRunner(scenario, variant, catalog)
     case = runner.run(seed)
     return runner.record(case, path, force), case
 
 
 def record_example(path: Path, *, scenario: str = PAPER_SCENARIO, catalog=None, force: bool = False,
-                   seed_start: int = R_.EXAMPLE_SEED_START, tries: int = R_.EXAMPLE_SEED_TRIES) -> dict | None:
+                   seed_start: int = 1, tries: int = 40) -> dict | None:
     """The example recording of the paper's experiment: the first seed from `seed_start` whose sequence the
     paper variant identifies at its last frame with no wrong match. Returns its manifest entry (None when
     no seed in the range qualifies)."""
@@ -692,5 +691,5 @@ def record_example(path: Path, *, scenario: str = PAPER_SCENARIO, catalog=None, 
             "bytes": info.bytes, "write_ms": round(info.write_ms, 1),
             "solve_ms": round(sum(res.time_ms.values()), 1), "frames": info.frames, "identified_frames": info.identified,
             "noise_arcsec": runner.noise_arcsec,
-            "true_posterior": [None if r.stats.get("true_posterior") is None else round(r.stats["true_posterior"], 4)
-                               for r in res.identifications]}
+            "true_posterior": [None if f.get("true_posterior") is None else round(f["true_posterior"], 4)
+                               for f in frame_figures(res, _truth_rows(res, [f.truth for f in case.sim.frames]))]}

@@ -73,6 +73,11 @@ SCENARIOS: dict[str, Scenario] = {
                  fov_deg=8.0, width=1024, height=1024, mag_limit=6.0, noise_rad=87e-6),
         Scenario("cole8-false", "cole8 with one false star (debris) within half the FOV of the boresight",
                  fov_deg=8.0, width=1024, height=1024, mag_limit=6.0, noise_rad=87e-6, n_false_stars=1),
+        Scenario("cole8-hp62", "cole8 at the paper's catalog depth: Hp <= 6.2, where the catalog's pairs within 8 deg "
+                 "(93,434) come nearest the paper's 106,308 angles at the depth the paper names (6.0: 59,622)",
+                 fov_deg=8.0, width=1024, height=1024, mag_limit=6.2, noise_rad=87e-6),
+        Scenario("cole8-hp62-false", "cole8-hp62 with one false star within half the FOV of the boresight",
+                 fov_deg=8.0, width=1024, height=1024, mag_limit=6.2, noise_rad=87e-6, n_false_stars=1),
         Scenario("udomkesmalee30", "Udomkesmalee et al.: 30 deg FOV, 1024x1024, Hp <= 4.5, 1 deg noise per axis "
                  "(the paper's '10' read as 1 deg) and 0.6 mag (docs/stochastic.md)",
                  fov_deg=30.0, width=1024, height=1024, mag_limit=4.5, noise_rad=0.017453292519943295),

@@ -1,8 +1,8 @@
 """Drawable geometry on the celestial sphere, shared by the Viser viewer and the Rerun recorder.
 
 Pure numpy: great-circle arcs between stars, the sensor footprint on the sky, an RA/Dec grid, outlines
-of regions of the sky (`outline_polyline`: the step-extra convention both drawers share), and the sizes
-and colours of stars from their magnitudes. Nothing here knows about a viewer.
+of regions of the sky (a polygon of great-circle arcs, a small circle), and the sizes and colours of
+stars from their magnitudes. Nothing here knows about a viewer or a step.
 """
 
 from __future__ import annotations
@@ -66,58 +66,26 @@ OUTLINE_EDGE_POINTS = 9  # points per great-circle edge of an outline polygon (8
 OUTLINE_CIRCLE_POINTS = 97  # points around an outline small circle (96 segments, first == last)
 
 
-def _unit_vectors(val, min_rows: int) -> np.ndarray | None:
-    """`val` as (K, 3) finite unit vectors (a single 3-vector: K = 1), normalised, or None."""
-    if val is None or isinstance(val, (str, bytes, dict)):
-        return None
-    try:
-        a = np.asarray(val, dtype=np.float64)
-    except (TypeError, ValueError):
-        return None
-    a = a.reshape(1, 3) if a.shape == (3,) else a
-    if a.ndim != 2 or a.shape[1] != 3 or len(a) < min_rows or not np.all(np.isfinite(a)):
-        return None
-    norm = np.linalg.norm(a, axis=1)
-    if np.abs(norm - 1.0).max() > 1e-3:
-        return None
-    return a / norm[:, None]
+def polygon_outline(corners: np.ndarray, n_per_edge: int = OUTLINE_EDGE_POINTS) -> np.ndarray:
+    """A closed polygon on the sphere ((M, 3), first == last): corners (K, 3) unit vectors, K >= 3, in order
+    around the region, joined by great-circle arcs (the last corner joins the first)."""
+    c = np.asarray(corners, dtype=np.float64).reshape(-1, 3)
+    c = c / np.linalg.norm(c, axis=1)[:, None]
+    segs = arcs_as_segments(c, np.roll(c, -1, axis=0), max(2, int(n_per_edge)))
+    poly = np.concatenate([segs[:, 0], segs[-1:, 1]])
+    poly[-1] = poly[0]  # exactly closed
+    return poly
 
 
-def outline_polyline(value, n_per_edge: int = OUTLINE_EDGE_POINTS,
-                     n_circle: int = OUTLINE_CIRCLE_POINTS) -> np.ndarray | None:
-    """A region of the sky outlined by a step extra, as a closed polyline ((M, 3) unit vectors, first == last).
-
-    The convention (the viewer's and the Rerun recorder's):
-
-    - a dict with "corners": (K, 3) unit vectors, K >= 3, in order around the region, is a polygon whose
-      edges are great-circle arcs (closed: the last corner joins the first);
-    - else a dict with "center" (a unit 3-vector) and "radius_rad" (0 < radius < pi) is the small circle
-      at that angular radius around the centre;
-    - anything else (not a dict, corners None and no radius: e.g. the whole sky) is no outline: None.
-
-    Other keys of the dict (a kind, a half width, ...) are ignored here.
-    """
-    if not isinstance(value, dict):
-        return None
-    corners = _unit_vectors(value.get("corners"), 3)
-    if corners is not None:
-        segs = arcs_as_segments(corners, np.roll(corners, -1, axis=0), max(2, int(n_per_edge)))
-        poly = np.concatenate([segs[:, 0], segs[-1:, 1]])
-        poly[-1] = poly[0]  # exactly closed
-        return poly
-    center = _unit_vectors(value.get("center"), 1)
-    try:
-        radius = float(value.get("radius_rad"))
-    except (TypeError, ValueError):
-        return None
-    if center is None or len(center) != 1 or not (0.0 < radius < np.pi):
-        return None
-    c = center[0]
+def small_circle(center: np.ndarray, radius_rad: float, n_points: int = OUTLINE_CIRCLE_POINTS) -> np.ndarray:
+    """The small circle at angular radius `radius_rad` around the unit vector `center`, closed ((n, 3))."""
+    c = np.asarray(center, dtype=np.float64).reshape(3)
+    c = c / np.linalg.norm(c)
     e = np.cross([0.0, 0.0, 1.0], c) if abs(c[2]) < 0.9 else np.cross([1.0, 0.0, 0.0], c)
     e /= np.linalg.norm(e)
     n = np.cross(c, e)
-    t = np.linspace(0.0, 2.0 * np.pi, max(4, int(n_circle)))[:, None]
-    poly = np.cos(radius) * c + np.sin(radius) * (np.cos(t) * e + np.sin(t) * n)
+    t = np.linspace(0.0, 2.0 * np.pi, max(4, int(n_points)))[:, None]
+    poly = np.cos(radius_rad) * c + np.sin(radius_rad) * (np.cos(t) * e + np.sin(t) * n)
     poly[-1] = poly[0]
     return poly
 

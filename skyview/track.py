@@ -14,13 +14,20 @@ as `solve_image` runs them). For every later frame it
    RADIUS_SIGMAS sqrt(sigma^2 + s_i^2), s_i the largest standard deviation of its predicted
    position (`verify.predicted_sigma`, the same construction as `verify.star_radii`) and sigma the
    centroid direction noise;
-3. matches the observed centroids to the predicted catalog stars by nearest neighbour within the
-   bound (one-to-one; a centroid with two catalog stars within its bound is left out), estimates the
-   attitude from the matches (`svd_attitude`) and matches once more with the bound of that estimate;
-4. runs the shared verification (`verify.verify`): the hypothesis is the tracked matches' best
-   spread three (their attitude), tested by every other observed star; n_hypotheses counts the
-   tracked hypotheses verified for the frame (Bonferroni). A passed verification extends and
-   re-estimates the attitude from every agreeing star, exactly as for a lost-in-space solve.
+3. measures the frame (`process`): only windows around the brightest TRACK_STARS predicted stars,
+   all at once (`track_window.centroid_windows`: a (K, S, S) stack, border background, a
+   Gaussian-weighted centroid per window); `Tracker(..., windows=False)` and `process_centroids`
+   take whole-image centroids instead;
+4. matches the observed centroids to the catalog stars around the predicted field by nearest
+   neighbour within the bound (one-to-one; a centroid with two catalog stars within its bound is left
+   out; `track_verify.nearest_one_to_one`); when some were left out, estimates the attitude from the
+   matches and matches once more with the bound of that estimate;
+5. verifies: the hypothesis is the tracked matches' best spread three (their attitude), tested by
+   every other observed star; n_hypotheses counts the tracked hypotheses verified for the frame
+   (Bonferroni). Windowed frames use `track_verify.verify_windowed` (the statistic of `verify.verify`
+   with the chance of one star taken within its window), whole-image frames the shared
+   `verify.verify`. A passed verification extends and re-estimates the attitude from every agreeing
+   star, exactly as for a lost-in-space solve.
 
 Loss of lock (fewer than MIN_TRACK_MATCHES matches, or the verification refused) falls back to LIS for
 that frame; a frame that neither solves is reported failed, and the next one is predicted from the
@@ -34,7 +41,7 @@ the same convention as a sequence's relative[k]["turn_rotvec_cam_rad"]), the mat
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -45,17 +52,22 @@ from skyview.camera import Camera
 from skyview.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.centroid import Centroids, detect_centroids
 from skyview.errors import BadInput
-from skyview.identify.verify import (MAX_RADIUS_RAD, RADIUS_SIGMAS, match_one_to_one, predicted_sigma, verify)
+from skyview.identify.verify import MAX_RADIUS_RAD, RADIUS_SIGMAS, verify
 from skyview.pipeline import (BLIND, DEFAULT_CENTROID_SIGMA_PX, DEFAULT_FOV_ERROR, PAPER_MAG_LIMIT, SOLVED,
                               NOT_SOLVED, BlindSolver, SolveResult, Solver, as_image, blind_solver)
+from skyview.track_verify import (HYPOTHESIS_STARS, cross, nearest_one_to_one, predicted_sigma, rotation_matrix,
+                                   rotvec, spread_subset, verify_windowed, wahba)
+from skyview.track_window import DEFAULT_PSF_SIGMA_PX, MAX_HALF_PX, PSF_REACH_SIGMAS, centroid_windows, window_centers
 
 LOST_IN_SPACE = "lost_in_space"
 TRACKING = "tracking"
 MIN_TRACK_MATCHES = 3  # fewer tracked matches than this: lock is lost (two give an attitude, a third tests it)
-HYPOTHESIS_STARS = 3  # tracked matches that make the verified hypothesis (the rest test it)
 TURN_SIGMA_RAD = float(np.radians(30.0 / 3600.0))  # 1 sigma per axis, per predicted frame (rate change, gyro)
 STILL_SIGMA_RAD = float(np.radians(0.05))  # the motion is unknown (one solved frame, no turn given)
 MAX_TRACK_TRIES = 2  # tracked hypotheses verified per frame before falling back to LIS
+TRACK_STARS = 16  # a tracked frame measures windows around the brightest this many predicted stars
+WINDOW_MARGIN_PX = 2.0  # a window's half-size: the match bound + the PSF's reach + this
+FIELD_MARGIN_RAD = float(np.radians(0.5))  # catalog stars this far beyond the frame's corners are candidates
 
 
 @dataclass
@@ -75,6 +87,7 @@ class TrackFrame:
     predicted_by: str = ""  # "turn" | "rate" | "still" | "" (LIS only)
     time_ms: dict[str, float] = field(default_factory=dict)
     lis_result: SolveResult | None = None
+    centroids: Centroids | None = None  # what the frame measured: window centroids when tracked in windows
 
     @property
     def solved(self) -> bool:
@@ -116,21 +129,13 @@ def body_turn_rotvec(R_from: np.ndarray, R_to: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(dR.T).as_rotvec()
 
 
-def _spread_subset(vectors: np.ndarray, order: np.ndarray, k: int) -> list[int]:
-    """k indices of `order` (brightest first) that spread far: the brightest, the farthest from it,
-    then the one farthest from the line through the two (largest triangle)."""
-    order = np.asarray(order, dtype=np.int64)
-    if len(order) <= k:
-        return order.tolist()
-    v = vectors[order]
-    first = 0
-    second = int(np.argmax(np.linalg.norm(v - v[first], axis=1)))
-    chosen = [first, second]
-    if k >= 3:
-        area = np.linalg.norm(np.cross(v[second] - v[first], v - v[first]), axis=1)
-        area[chosen] = -1.0
-        chosen.append(int(np.argmax(area)))
-    return order[chosen].tolist()
+def _subset(c: Centroids, keep: np.ndarray) -> Centroids:
+    """The centroids at indices keep (order kept)."""
+    if len(keep) == len(c):
+        return c
+    return replace(c, uv=c.uv[keep], brightness=c.brightness[keep], peak=c.peak[keep], n_pixels=c.n_pixels[keep],
+                   saturated=c.saturated[keep], elongated=c.elongated[keep], edge=c.edge[keep],
+                   blended=c.blended[keep], axis_ratio=c.axis_ratio[keep])
 
 
 class Tracker:
@@ -148,7 +153,8 @@ class Tracker:
                  catalog: GuideCatalog | None = None, max_stars: int = 40, k_sigma: float = 5.0,
                  method_params: dict | None = None, fov_error: float = DEFAULT_FOV_ERROR,
                  turn_sigma_rad: float = TURN_SIGMA_RAD, still_sigma_rad: float = STILL_SIGMA_RAD,
-                 min_matches: int = MIN_TRACK_MATCHES, blind: BlindSolver | None = None, progress=None):
+                 min_matches: int = MIN_TRACK_MATCHES, blind: BlindSolver | None = None, progress=None,
+                 windows: bool = True, track_stars: int = TRACK_STARS):
         if method == BLIND:
             method = None
         if method is not None and camera is None:
@@ -171,6 +177,10 @@ class Tracker:
         self.turn_sigma = float(turn_sigma_rad)
         self.still_sigma = float(still_sigma_rad)
         self.min_matches = int(min_matches)
+        self.windows = bool(windows)
+        self.track_stars = int(track_stars)
+        if self.track_stars < MIN_TRACK_MATCHES + 1:
+            raise BadInput(f"tracking needs windows around at least {MIN_TRACK_MATCHES + 1} stars")
         self.camera = camera
         self.catalog = self.base.brighter_than(self.mag_limit)
         self._solver: Solver | None = None
@@ -189,6 +199,10 @@ class Tracker:
         self.frame = -1
         self.history: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, R, covariance) of solved frames
         self._turns_since: list[np.ndarray] = []  # turns given since the last solved frame
+        self.rate: np.ndarray | None = None  # filtered turn per frame (rotation vector, camera axes, rad)
+        self.rate_covariance: np.ndarray | None = None
+        self._psf_sigma_px: float | None = None  # measured on the last whole-image centroiding
+        self._half_diag: tuple | None = None  # (camera, its half-diagonal in rad), computed once per camera
 
     @property
     def sigma_rad(self) -> float:
@@ -208,24 +222,116 @@ class Tracker:
         if self.camera is not None and img.shape != (self.camera.height, self.camera.width):
             raise BadInput(f"image is {img.shape[1]}x{img.shape[0]} but the camera is "
                            f"{self.camera.width}x{self.camera.height}")
+        if self.windows and self.history and self.camera is not None:
+            return self._process_windowed(img, turn)
         t0 = time.perf_counter()
         cents = detect_centroids(img, k_sigma=self.k_sigma)
         t_c = (time.perf_counter() - t0) * 1e3
+        self._note_psf(cents)
         out = self.process_centroids(cents, img.shape[1], img.shape[0], turn)
         out.time_ms = {"centroid": t_c, **out.time_ms}
         out.time_ms["total"] = t_c + out.time_ms.get("track", 0.0) + out.time_ms.get("lost_in_space", 0.0)
         return out
 
+    def _note_psf(self, cents: Centroids) -> None:
+        if np.isfinite(cents.psf_sigma_px) and len(cents) >= 3:
+            self._psf_sigma_px = float(cents.psf_sigma_px)
+
+    def _process_windowed(self, img: np.ndarray, turn: np.ndarray | None) -> TrackFrame:
+        """A tracked frame: centroids only in windows around the predicted stars (`track_window`), the
+        matching and the windowed verification; on loss of lock the whole image is centroided and
+        solved lost-in-space."""
+        self._advance(turn)
+        res = TrackFrame(frame=self.frame, mode=TRACKING, status=NOT_SOLVED)
+        t0 = time.perf_counter()
+        R_pred, P_pred, how = self._prediction()
+        res.predicted_by = how
+        rows = self._field(R_pred)
+        centers, half = self._windows(rows, R_pred, P_pred, img.shape[1], img.shape[0])
+        win = None
+        if len(centers):
+            win = centroid_windows(img, centers, half, self.camera.pixel_scale_rad, k_sigma=self.k_sigma,
+                                   psf_sigma_px=self._psf_sigma_px)
+        t1 = time.perf_counter()
+        times = {"centroid_windows": (t1 - t0) * 1e3}
+        if win is None:
+            res.lost_lock = f"no predicted star within a window's reach ({how})"
+        else:
+            keep = np.flatnonzero(~win.centroids.edge)  # light cut by a window side or the image border
+            cents = _subset(win.centroids, keep)
+            res.n_centroids = len(cents)
+            res.centroids = cents
+            ok = self._track(cents, res, prediction=(R_pred, P_pred, how), box_sr=win.box_sr[keep], rows=rows)
+            times["track"] = (time.perf_counter() - t1) * 1e3
+            if ok:
+                times["total"] = sum(times.values())
+                res.time_ms = times
+                self._solved(res)
+                return res
+        t2 = time.perf_counter()
+        cents = detect_centroids(img, k_sigma=self.k_sigma)
+        t3 = time.perf_counter()
+        self._note_psf(cents)
+        res.n_centroids = len(cents)
+        res.centroids = cents
+        times["centroid"] = (t3 - t2) * 1e3
+        if len(cents) == 0:
+            res.reason = "no stars found in the image (blank or empty sky)"
+        else:
+            self._lost_in_space(cents, img.shape[1], img.shape[0], res)
+            times["lost_in_space"] = (time.perf_counter() - t3) * 1e3
+        times["total"] = sum(times.values())
+        res.time_ms = times
+        if res.solved:
+            self._solved(res)
+        return res
+
+    def _field(self, R: np.ndarray) -> np.ndarray:
+        """Catalog rows around the predicted field: within the half-diagonal + FIELD_MARGIN of R's
+        boresight (one tree query per frame; the windows and the matching use these rows)."""
+        cam = self.camera
+        if self._half_diag is None or self._half_diag[0] is not cam:
+            self._half_diag = (cam, float(cam.half_diagonal_rad))
+        return self.catalog.within(R[2], self._half_diag[1] + FIELD_MARGIN_RAD)
+
+    def _windows(self, near: np.ndarray, R: np.ndarray, P: np.ndarray, width: int, height: int
+                 ) -> tuple[np.ndarray, int]:
+        """The windows to centroid (`track_window.window_centers`: centre pixels, common half-size): around
+        the brightest track_stars predicted catalog stars (of the field rows `near`), of half-size the
+        largest match bound (pixels) + the PSF's reach + a margin; none when a bound exceeds MAX_HALF_PX."""
+        cam = self.camera
+        none = (np.zeros((0, 2), dtype=np.int64), 0)
+        if len(near) == 0:
+            return none
+        v = self.catalog.xyz[near] @ R.T
+        uv, front = cam.project(v)
+        on = front & cam.in_image(uv, margin=-10.0)
+        if not np.any(on):
+            return none
+        rows, v, uv = near[on], v[on], uv[on]
+        order = np.argsort(self.catalog.mag[rows], kind="stable")[:self.track_stars]
+        v, uv = v[order], uv[order]
+        sigma = self.sigma_rad
+        bound = RADIUS_SIGMAS * np.sqrt(sigma ** 2 + predicted_sigma(v, P) ** 2)
+        psf = self._psf_sigma_px or DEFAULT_PSF_SIGMA_PX
+        half = bound / cam.pixel_scale_rad + PSF_REACH_SIGMAS * psf + WINDOW_MARGIN_PX
+        if np.any(half > MAX_HALF_PX):
+            return none
+        return window_centers(uv, half, width, height)
+
+    def _advance(self, turn: np.ndarray | None) -> None:
+        self.frame += 1
+        if self.frame > 0:
+            self._turns_since.append(None if turn is None else np.asarray(turn, dtype=np.float64))
+
     def process_centroids(self, centroids: Centroids, width: int, height: int,
                           turn: np.ndarray | None = None) -> TrackFrame:
-        self.frame += 1
+        """One frame from its whole-image centroids (the tracked matches verified by the shared
+        `verify.verify` against the whole frame)."""
+        self._advance(turn)
         k = self.frame
-        if self.frame > 0 and turn is not None:
-            self._turns_since.append(np.asarray(turn, dtype=np.float64))
-        elif self.frame > 0:
-            self._turns_since.append(None)
         res = TrackFrame(frame=k, mode=TRACKING if self.history else LOST_IN_SPACE, status=NOT_SOLVED,
-                         n_centroids=len(centroids))
+                         n_centroids=len(centroids), centroids=centroids)
         times: dict[str, float] = {}
         if len(centroids) == 0:
             res.reason = "no stars found in the image (blank or empty sky)"
@@ -233,7 +339,8 @@ class Tracker:
             return res
         if self.history:
             t0 = time.perf_counter()
-            ok = self._track(centroids, res)
+            prediction = self._prediction()
+            ok = self._track(centroids, res, prediction=prediction, rows=self._field(prediction[0]))
             times["track"] = (time.perf_counter() - t0) * 1e3
             if ok:
                 res.time_ms = times
@@ -262,11 +369,32 @@ class Tracker:
 
     def _solved(self, res: TrackFrame) -> None:
         if self.history:
-            j, Rj, _ = self.history[-1]
+            j, Rj, Pj = self.history[-1]
             res.relative_to = j
-            res.relative_rotvec_rad = body_turn_rotvec(Rj, res.R)
+            res.relative_rotvec_rad = -rotvec(res.R @ Rj.T)  # body_turn_rotvec(Rj, res.R)
+            self._update_rate(Rj, Pj, res.R, res.covariance, res.frame - j)
         self.history = (self.history + [(res.frame, res.R, res.covariance)])[-2:]
         self._turns_since = []
+
+    def _update_rate(self, Ri: np.ndarray, Pi: np.ndarray, Rj: np.ndarray, Pj: np.ndarray, gap: int) -> None:
+        """Constant-rate Kalman filter on the turn per frame w (camera axes): the measurement is the
+        turn between two solved attitudes over their gap, with covariance (P_i + P_j) / gap^2; between
+        measurements the rate may change by turn_sigma per frame (process noise). A measurement that
+        disagrees with the rate by more than 5 sigma (the motion changed) restarts the filter from it."""
+        z = rotvec(Rj @ Ri.T) / gap
+        Rz = (Pi + Pj) / gap ** 2
+        if self.rate is None:
+            self.rate, self.rate_covariance = z, Rz
+            return
+        Pp = self.rate_covariance + gap * self.turn_sigma ** 2 * np.eye(3)
+        S = Pp + Rz
+        d = z - self.rate
+        if float(d @ np.linalg.solve(S, d)) > 25.0 * 3:
+            self.rate, self.rate_covariance = z, Rz
+            return
+        K = Pp @ np.linalg.inv(S)
+        self.rate = self.rate + K @ d
+        self.rate_covariance = (np.eye(3) - K) @ Pp
 
     def _prediction(self) -> tuple[np.ndarray, np.ndarray, str]:
         """The predicted attitude of this frame, its covariance (camera axes, rad^2), and what it came from."""
@@ -278,53 +406,56 @@ class Tracker:
                 R = t @ R
             P = Pj + (n * self.turn_sigma) ** 2 * np.eye(3)
             return R, P, "turn"
-        if len(self.history) == 2:
-            i, Ri, Pi = self.history[0]
-            gap = j - i
-            w = Rotation.from_matrix(Rj @ Ri.T).as_rotvec() / gap  # per frame, in ICRS-fixed stars' camera turn
-            R = Rotation.from_rotvec(w * n).as_matrix() @ Rj
-            P_rate = (Pi + Pj) / gap ** 2
-            P = Pj + n ** 2 * P_rate + (n * self.turn_sigma) ** 2 * np.eye(3)
+        if self.rate is not None:  # the filtered rate (per frame, the camera's turn in its own axes)
+            R = rotation_matrix(self.rate * n) @ Rj
+            P = Pj + n ** 2 * self.rate_covariance + (n * self.turn_sigma) ** 2 * np.eye(3)
             return R, P, "rate"
         return Rj, Pj + (self.still_sigma ** 2 + (n * self.turn_sigma) ** 2) * np.eye(3), "still"
 
-    def _match(self, b: np.ndarray, R: np.ndarray, P: np.ndarray) -> dict[int, int]:
-        """Observed index -> catalog row: nearest neighbours within the bound of prediction (R, P)."""
-        sigma = self.sigma_rad
-        cam = self.camera
-        near = self.catalog.within(R[2], cam.half_diagonal_rad + np.radians(0.5))
-        if len(near) == 0:
-            return {}
-        v = self.catalog.xyz[near] @ R.T
-        uv, front = cam.project(v)
-        on = front & cam.in_image(uv, margin=-10.0)
-        rows, v = near[on], v[on]
-        if len(rows) == 0:
-            return {}
+    def _match(self, b: np.ndarray, rows: np.ndarray, R: np.ndarray, P: np.ndarray) -> tuple[dict[int, int], int]:
+        """Observed index -> catalog row (of the field rows): nearest neighbours within the bound of
+        prediction (R, P), one-to-one; an observed star with two catalog stars within its bound is left
+        out. Also returns how many were left out so (ambiguous, or their catalog star taken by a closer one)."""
+        if len(rows) == 0 or len(b) == 0:
+            return {}, 0
+        v = self.catalog.xyz[rows] @ R.T
         s = predicted_sigma(b, P)  # at the observed directions (close to the predicted ones)
-        radii = np.minimum(RADIUS_SIGMAS * np.sqrt(sigma ** 2 + s ** 2), MAX_RADIUS_RAD)
-        qi, rj, _, amb = match_one_to_one(b, v, radii)
-        bad = set(amb.tolist())
-        return {int(q): int(rows[r]) for q, r in zip(qi, rj) if int(q) not in bad}
+        radii = np.minimum(RADIUS_SIGMAS * np.sqrt(self.sigma_rad ** 2 + s ** 2), MAX_RADIUS_RAD)
+        qi, rj, n_left = nearest_one_to_one(b, v, radii)
+        return dict(zip(qi.tolist(), rows[rj].tolist())), n_left
 
-    def _track(self, centroids: Centroids, res: TrackFrame) -> bool:
-        R_pred, P_pred, how = self._prediction()
+    def _track(self, centroids: Centroids, res: TrackFrame, prediction, rows: np.ndarray,
+               box_sr: np.ndarray | None = None) -> bool:
+        R_pred, P_pred, how = prediction
         res.predicted_by = how
         b, uv = self._observation(centroids)
         sigma = self.sigma_rad
-        matches = self._match(b, R_pred, P_pred)
-        if len(matches) >= 2:  # refine with the matches, then match again with the tighter bound
+        matches, n_left = self._match(b, rows, R_pred, P_pred)
+        if len(matches) >= 2 and (n_left or len(matches) < len(b)):
+            # some stars were left out at the prediction's bound: refine the attitude with the matches,
+            # then match again with the tighter bound of that estimate
             idx = np.array(sorted(matches))
-            est = svd_attitude(b[idx], self.catalog.xyz[[matches[i] for i in idx]], sigma)
-            resid = np.linalg.norm(np.cross(b[idx], self.catalog.xyz[[matches[i] for i in idx]] @ est.R.T), axis=1)
+            r = self.catalog.xyz[[matches[i] for i in idx]]
+            R_est, P_est = wahba(b[idx], r, sigma)
+            resid = np.linalg.norm(cross(b[idx], r @ R_est.T), axis=1)
             if np.all(resid < RADIUS_SIGMAS * sigma * 3):
-                matches = self._match(b, est.R, est.covariance)
+                matches, _ = self._match(b, rows, R_est, P_est)
         if len(matches) < self.min_matches:
             res.lost_lock = (f"{len(matches)} of {len(b)} stars matched the prediction ({how}); tracking needs "
                              f"{self.min_matches}")
             return False
         idx = np.array(sorted(matches))
         order = idx[np.argsort(-centroids.brightness[idx], kind="stable")]
+        if box_sr is not None:  # a windowed frame: the chance agreement within each star's window
+            sol, reason = verify_windowed(b, matches, order, box_sr[:len(b)], self.catalog.xyz, sigma,
+                                          RADIUS_SIGMAS * sigma, self.min_matches, MAX_TRACK_TRIES)
+            if sol is None:
+                res.lost_lock = "verification refused the tracked matches: " + reason
+                return False
+            res.mode, res.status = TRACKING, SOLVED
+            res.R, res.covariance, res.p_false = sol.R, sol.covariance, sol.p_false
+            res.matches = self._match_list(sol.matches, uv)
+            return True
         ver = None
         for t in range(MAX_TRACK_TRIES):
             # hypothesis: three well-spread tracked matches (the next try: three of the rest); every
@@ -333,7 +464,7 @@ class Tracker:
             k = min(HYPOTHESIS_STARS, len(b) - 1, len(pool))
             if k < 2:
                 break
-            hyp_idx = _spread_subset(b, pool, k)
+            hyp_idx = spread_subset(b, pool, k)
             ver = verify(b, {int(i): matches[int(i)] for i in hyp_idx}, self.catalog, self.camera, sigma,
                          n_hypotheses=t + 1)
             if ver.passed:

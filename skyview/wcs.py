@@ -20,8 +20,12 @@ from skyview.errors import BadInput
 SIP_ORDER = 5  # r^4 terms of the inverse need order 5
 
 
-def solution_wcs(R: np.ndarray, camera: Camera):
-    """astropy.wcs.WCS for attitude R (v_cam = R v_icrs) and the camera (with k1, k2 as SIP)."""
+def solution_wcs(R: np.ndarray, camera: Camera, *, rows_reversed: bool = False):
+    """astropy.wcs.WCS for attitude R (v_cam = R v_icrs) and the camera (with k1, k2 as SIP).
+
+    rows_reversed: the WCS of the file the image was read from with its rows turned over (a FITS
+    file stored bottom row first, as the standard has it: file row = height - 1 - image row).
+    """
     try:
         from astropy.wcs import WCS, Sip
     except ImportError:
@@ -40,14 +44,21 @@ def solution_wcs(R: np.ndarray, camera: Camera):
     M = np.array([[R[0] @ e, R[1] @ e], [R[0] @ n, R[1] @ n]])  # (xi, eta) = M (x, y)
     scale = np.diag([1.0 / camera.fx, 1.0 / camera.fy])
     cd = np.degrees(M @ scale)
+    cy = camera.cy
+    if rows_reversed:  # v' = -v about the principal point: the second column of CD changes sign
+        cd[:, 1] *= -1.0
+        cy = camera.height - 1.0 - camera.cy
     w = WCS(naxis=2)
-    w.wcs.crpix = [camera.cx + 1.0, camera.cy + 1.0]
+    w.wcs.crpix = [camera.cx + 1.0, cy + 1.0]
     w.wcs.crval = [float(np.degrees(ra)), float(np.degrees(dec))]
     w.wcs.cd = cd
     w.wcs.radesys = "ICRS"
     if camera.distorted:
         w.wcs.ctype = ["RA---TAN-SIP", "DEC--TAN-SIP"]
         a, b, ap, bp = _sip(camera)
+        if rows_reversed:  # A(u, -v) and -B(u, -v): the terms in v^q take (-1)^q
+            sign = (-1.0) ** np.arange(SIP_ORDER + 1)[None, :]
+            a, ap, b, bp = a * sign, ap * sign, -b * sign, -bp * sign
         w.sip = Sip(a, b, ap, bp, w.wcs.crpix)
     else:
         w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
@@ -84,14 +95,16 @@ def _poly_fit(u, v, target):
     return m
 
 
-def write_wcs(path: str | Path, R: np.ndarray, camera: Camera, *, force: bool = False) -> Path:
-    """Write the solution's FITS header (a header-only primary HDU) to path, atomically."""
+def write_wcs(path: str | Path, R: np.ndarray, camera: Camera, *, force: bool = False,
+              rows_reversed: bool = False) -> Path:
+    """Write the solution's FITS header (a header-only primary HDU) to path, atomically (rows_reversed:
+    see `solution_wcs`)."""
     from astropy.io import fits
 
     from skyview.simulate import _write_atomic
 
     p = Path(path)
-    hdr = solution_wcs(R, camera).to_header(relax=True)
+    hdr = solution_wcs(R, camera, rows_reversed=rows_reversed).to_header(relax=True)
     hdr["IMAGEW"] = (camera.width, "image width, pixels")
     hdr["IMAGEH"] = (camera.height, "image height, pixels")
     hdr["COMMENT"] = "written by skyview: attitude and camera fitted to the identified stars"

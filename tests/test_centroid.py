@@ -285,10 +285,12 @@ def test_bench_small_run(cat):
 # ------------------------------------------------------------------------------------ fast path = reference
 # detect_centroids (fast path) against _detect_centroids_reference (the former implementation, kept
 # unchanged). Tolerance: the same detections in the same order with identical flags, pixel counts,
-# background, noise, threshold, PSF width and rejection counts; positions within 1e-6 px (the fast
-# estimators sum in another order and stop a converged fit early: observed <= 4e-8 px), brightness
-# and axis ratio within 1e-6 relative. The issue's looser criterion (brightest 40 matched one to one
-# within 0.05 px) is implied and checked too.
+# background, noise, threshold, PSF width and rejection counts; positions within 1e-4 px (the fast
+# estimators sum in another order and stop the PSF fit once its steps are below 1e-4 px: observed
+# <= 3e-5 px, ~2000 times below the 0.056 px centroid error at SNR >= 20), brightness (of a blend:
+# less its neighbours' fitted PSFs) within 1e-4 relative + 1e-3 absolute, the axis ratio (second
+# moments about the fitted position) within 1e-4 relative.
+# The issue's looser criterion (brightest 40 matched one to one within 0.05 px) is checked too.
 
 from skyview.centroid import _background_stats, _label_sparse  # noqa: E402
 from skyview.centroid_reference import _detect_centroids_reference, _estimate_background_reference  # noqa: E402
@@ -296,7 +298,7 @@ from skyview.centroid_reference import _detect_centroids_reference, _estimate_ba
 _REAL = sorted((__import__("pathlib").Path(__file__).parent / "data" / "real-images").glob("*.png"))
 
 
-def _assert_same(fast, ref, pos_tol=1e-6):
+def _assert_same(fast, ref, pos_tol=1e-4):
     assert len(fast) == len(ref)
     for k in ("n_pixels", "saturated", "elongated", "edge", "blended"):
         assert np.array_equal(getattr(fast, k), getattr(ref, k)), k
@@ -306,8 +308,8 @@ def _assert_same(fast, ref, pos_tol=1e-6):
     assert fast.psf_sigma_px == pytest.approx(ref.psf_sigma_px, rel=1e-12, nan_ok=True)
     if len(ref):
         assert np.abs(fast.uv - ref.uv).max() <= pos_tol
-        np.testing.assert_allclose(fast.brightness, ref.brightness, rtol=1e-6, atol=1e-6)
-        np.testing.assert_allclose(fast.axis_ratio, ref.axis_ratio, rtol=1e-6, equal_nan=True)
+        np.testing.assert_allclose(fast.brightness, ref.brightness, rtol=1e-4, atol=1e-3)  # blends: fitted neighbours
+        np.testing.assert_allclose(fast.axis_ratio, ref.axis_ratio, rtol=1e-4, equal_nan=True)  # moments about uv
         assert np.array_equal(fast.peak, ref.peak)
         top = min(40, len(ref))  # the brightest 40, one to one within 0.05 px
         m = _match(fast.uv[:top], ref.uv[:top], 0.05)
@@ -380,6 +382,21 @@ def test_fast_background_statistics_are_the_reference_ones(cat):
         new = estimate_background(im)
         assert new[1:] == ref[1:]
         assert np.array_equal(np.asarray(new[0]), np.asarray(ref[0]))
+
+
+def test_median_absolute_deviation_without_a_second_sort():
+    """The MAD from the two sorted runs of deviations is the value np.sort gives, bit for bit."""
+    from skyview.centroid import _median_abs_dev_sorted, _median_sorted
+    rng = np.random.default_rng(11)
+    for k in range(2000):
+        r = rng.normal(0.0, 3.0, int(rng.integers(1, 80))).astype(np.float32)
+        if k % 3 == 0:
+            r = np.round(r)  # ties at the median (integer images)
+        rs = np.sort(r)
+        med = _median_sorted(rs)
+        mad = _median_abs_dev_sorted(rs, med)
+        ref = _median_sorted(np.sort(np.abs(r - med)))
+        assert mad == ref and np.asarray(mad).dtype == np.asarray(ref).dtype
 
 
 def test_sparse_labels_are_cv2_labels():

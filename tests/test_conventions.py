@@ -154,3 +154,27 @@ def test_attitude_error_components():
     err = attitude_error_arcsec(Rz @ R, R)
     assert err["roll"] == pytest.approx(10.0, rel=1e-6)
     assert err["boresight"] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_covariance_and_weights_match_the_general_linear_algebra():
+    """The closed-form 3x3 inverse, the scalar-sigma weights and the determinant sign give what
+    np.linalg.pinv / det / broadcast weights give; all-parallel vectors fall back to the pseudo-inverse."""
+    from skyview.attitude import _weights, attitude_covariance
+    for R in random_attitudes(20, RNG):
+        n = int(RNG.integers(2, 12))
+        b, r = _noisy_pairs(R, n, 1e-4)
+        sig = RNG.uniform(1e-5, 1e-3, n)
+        for s in (float(sig[0]), np.float64(sig[0]), sig):
+            w = 1.0 / np.broadcast_to(np.asarray(s, dtype=np.float64), (n,)) ** 2
+            np.testing.assert_array_equal(_weights(n, s), w)
+            F = w.sum() * np.eye(3) - (b * w[:, None]).T @ b
+            np.testing.assert_allclose(attitude_covariance(b, w), np.linalg.pinv(F), rtol=1e-9, atol=0)
+        est = svd_attitude(b, r, 1e-4)
+        U, _, Vt = np.linalg.svd((b / 1e-8).T @ r)
+        np.testing.assert_allclose(est.R, U @ np.diag([1.0, 1.0, np.linalg.det(U) * np.linalg.det(Vt)]) @ Vt,
+                                   atol=1e-12)
+    b = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(attitude_covariance(b, np.ones(2)), np.linalg.pinv(2 * np.eye(3) - b.T @ b))
+    for bad in (0.0, -1.0, np.array([1.0, 0.0])):
+        with pytest.raises(ValueError):
+            svd_attitude(b, b, bad)

@@ -196,7 +196,7 @@ def test_damaged_recordings_are_refused(capsys, tmp_path):
 
 def test_a_truncated_cached_database_heals_itself(capsys, tmp_path, monkeypatch, sky):
     monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
-    args = ["solve", sky, "--method", "angle", "--fov-deg", "12", "--fov-error", "0", "--json"]
+    args = ["solve", sky, "--method", "angle", "--variant", "improved", "--fov-deg", "12", "--fov-error", "0", "--json"]
     code, out, err = run(capsys, *args)
     assert code == 0, err
     dbs = list((tmp_path / "databases").glob("angle-*.npz"))

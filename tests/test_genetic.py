@@ -254,10 +254,12 @@ def test_registered_and_parameters_checked(cache, cat, cam20):
     g = make_identifier("genetic", cat, cam20, SIGMA)
     assert (g.first.initial, g.first.population, g.first.survivors) == (300, 150, 80)
     assert (g.spiral.initial, g.roll.initial) == (100, 120) and g.mutation_rate == 0.06
-    assert g.deltas == (3.0, 1.0, 0.001882) and g.box_factor == 1.1 and g.mag_tolerance == 1.0
+    # the magnitude pre-filter is only proposed by the paper: off in its variant, on in the improved one
+    assert g.deltas == (3.0, 1.0, 0.001882) and g.box_factor == 1.1 and g.mag_tolerance is None
     assert g.database_info["pairs"] > 0 and g.database_info["source"] in ("built", "cache")
     imp = make_identifier("genetic", cat, cam20, SIGMA, variant="improved")
     assert imp.seeding == IMPROVED_PARAMS["seeding"] and imp.first.initial == IMPROVED_PARAMS["initial"]
+    assert imp.mag_tolerance == 1.0
     for bad in ({"mutation_rate": 2.0}, {"survivors": 200}, {"seeding": "grid"}, {"workers": 3},
                 {"deltas": ()}, {"mag_tolerance": -1.0}, {"outliers": 2}):
         with pytest.raises(BadInput):

@@ -56,6 +56,10 @@ def test_vectorised_ranges_equal_scalar_queries(fit):
     np.testing.assert_array_equal(kv.count(lo, hi), stop - start)
     for k in range(0, 2000, 97):
         assert kv.range(lo[k], hi[k]) == (start[k], stop[k])
+    # the k-vector walk (Mortari's superset + bisection) gives the very same slices as the binary searches
+    ks, ke = kv.ranges_kvector(lo, hi)
+    np.testing.assert_array_equal(ks, start)
+    np.testing.assert_array_equal(ke, stop)
 
 
 def test_edge_cases():

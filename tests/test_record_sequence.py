@@ -12,7 +12,7 @@ import pytest
 from rerun.chunk import RrdReader
 from test_record import REPO, _open, needs_lavapipe, one_line_error, read, strict_rerun, viewer  # noqa: F401
 
-from skyview import record as rec
+from skyview import record_examples
 from skyview import record_sequence as rs
 from skyview.cli import main
 from skyview.errors import BadInput
@@ -78,7 +78,7 @@ def test_frame_and_step_timelines(paper):
     got = []
     for b in log["batches"]:
         got += list(zip(b.column("step").to_pylist(), b.column("frame").to_pylist(),
-                        [t[0] for t in b.column("TextLog:text").to_pylist()]))
+                        [t[0].split("\n")[0] for t in b.column("TextLog:text").to_pylist()]))
     got.sort()
     want = [(i, k, f"[{s.kind}] {s.note}") for i, (k, s) in enumerate((k, s) for k, r in enumerate(ids) for s in r.steps)]
     assert got == want
@@ -135,10 +135,12 @@ def test_camera_pose_per_frame(paper):
     # footprint at the estimated attitude only where the frame was identified (cleared elsewhere)
     fov = last(ents["/sky/fov/estimated"], "LineStrips3D:strips")
     assert [k for k in sorted(fov) if fov[k]] == [k for k, r in enumerate(ids) if r.identified]
-    matches = last(ents["/sky/matches"], "Points3D:labels")
+    matches = last(ents["/sky/matches/labels"], "Points3D:labels")
     k_id = case.result.frame
     cat = case.result.catalog
-    assert matches[k_id] == [f"HIP {int(cat.hip[c])} (#{o})" for o, c in sorted(ids[k_id].matches.items())]
+    # labels beside the matched stars, the brightest that do not collide
+    assert set(matches[k_id]) <= {f"HIP {int(cat.hip[c])} (#{o})" for o, c in sorted(ids[k_id].matches.items())}
+    assert len(matches[k_id]) >= min(4, len(ids[k_id].matches))
     assert all(not matches[k] for k in matches if k != k_id and not ids[k].identified)
 
 
@@ -315,7 +317,7 @@ def test_examples_write_the_sequence(tmp_path, monkeypatch, capsys):
     e = manifest["files"][0]
     assert e["outcome"] == "correct" and e["status"] == "solved" and e["frames"] == 5
     assert e["identified_frames"] and e["identified_frames"][-1] == 4 and e["noise_arcsec"] == 10
-    assert e["seed"] == rec.EXAMPLE_SEED_START  # the first seed from 1 that the paper variant identifies
+    assert e["seed"] == record_examples.EXAMPLE_SEED_START  # the first seed from 1 that the paper variant identifies
     ents = read(tmp_path / e["file"])
     assert ents["/steps/log"]["rows"] == e["steps"] and e["bytes"] == (tmp_path / e["file"]).stat().st_size
     tp = last(ents[f"/{rs.TRUE_POSTERIOR}"], "Scalars:scalars")

@@ -13,6 +13,7 @@ from skyview.cli import main
 from skyview.errors import BadInput
 from skyview.identify import IDENTIFIED, METHODS, make_identifier
 from skyview.identify.base import Observation
+from skyview.identify.layers import Posterior
 from skyview.identify.stochastic import (PAPER_Q, StochasticMethod, field_statistics, neighbour_angles,
                                          observed_basis, position_angles)
 from skyview.scenarios import get_scenario
@@ -180,8 +181,9 @@ def test_sequence_end_to_end_images(ident, cat, cam, full_catalog):
     # the step record: per frame the hypotheses above the prior, the leading ones, the true posterior
     upd = [s for s in res[-1].steps if s.kind == "update"][0]
     assert {"above_prior", "top_posterior", "true_posterior"} <= set(upd.numbers)
-    assert len(upd.extra["posterior_top"]) == len(upd.catalog) == 10
-    assert np.all(np.diff(upd.extra["posterior_top"]) <= 0)
+    post = upd.layer(Posterior)
+    assert len(post.top_mass) == len(upd.catalog) == 10
+    assert np.all(np.diff(post.top_mass) <= 0)
     assert [s.kind for s in res[1].steps][:3] == ["statistics", "predict", "update"]
     json.dumps(res[-1].to_dict())
 

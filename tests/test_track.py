@@ -73,6 +73,15 @@ def test_a_slew_is_tracked_after_one_lost_in_space_frame(tracker, slew):
     assert all("track" in f.time_ms and "lost_in_space" not in f.time_ms for f in frames[1:])
 
 
+@pytest.mark.parametrize("method", ["svd", "ellipticity"])
+def test_other_methods_track_the_slew_too(method, catalog, slew):
+    """The same acceptance for two more methods (their databases build in seconds): one lost-in-space
+    frame, nine tracked, accurate against the truth, no wrong match."""
+    tr = Tracker(CAM, method, variant="improved", catalog=catalog)
+    frames = tr.run([f.image for f in slew.frames], [slew.dR_cam(k) for k in range(9)])
+    _check_slew(frames, slew)
+
+
 def test_the_rate_predicts_once_two_attitudes_are_known(tracker, slew):
     """Without the turns: frame 1 has no rate (the camera moved 2 deg: lock is lost, LIS solves it),
     from frame 2 on the rate of the last two attitudes predicts."""
@@ -163,3 +172,39 @@ def test_slew_bench(cache):
     assert t["relative_rotation_error_arcsec"]["max"] < 30.0
     md = format_markdown(s)
     assert "Tracking with angle" in md and "Time per frame" in md
+
+
+def test_tracked_frames_centroid_only_windows_around_the_predicted_stars(tracker, slew):
+    """A tracked frame measures windows around the brightest TRACK_STARS predicted stars (track_window):
+    the positions are those of the whole-image centroider, and far fewer pixels are read."""
+    from skyview.centroid import detect_centroids
+    from skyview.track import TRACK_STARS
+    from skyview.track_window import centroid_windows
+
+    tracker.reset()
+    frames = tracker.run([f.image for f in slew.frames[:4]], [slew.dR_cam(k) for k in range(3)])
+    assert "centroid" in frames[0].time_ms and "centroid_windows" not in frames[0].time_ms
+    for fr in frames[1:]:
+        assert "centroid_windows" in fr.time_ms and "centroid" not in fr.time_ms and "lost_in_space" not in fr.time_ms
+        assert fr.solved and fr.n_centroids <= 16
+    img = slew.frames[3].image
+    full = detect_centroids(img)
+    R = slew.frames[3].R
+    centers, half = tracker._windows(tracker._field(R), R, np.eye(3) * 1e-12, CAM.width, CAM.height)
+    win = centroid_windows(img, centers, half, CAM.pixel_scale_rad, psf_sigma_px=full.psf_sigma_px)
+    assert len(centers) <= TRACK_STARS and win.n_pixels < 0.02 * CAM.width * CAM.height
+    inner = ~win.centroids.edge
+    d = np.min(np.linalg.norm(win.centroids.uv[inner, None] - full.uv[None], axis=2), axis=1)
+    # the same centroids as the whole image gives (the brightest, saturated star differs most: 0.03 px)
+    assert inner.sum() >= 10 and d.max() < 0.05 and np.median(d) < 0.002
+
+
+def test_the_rate_filter_predicts_a_constant_turn(tracker, slew):
+    """After three solved frames without turns the filtered rate is the slew's 2 deg per frame."""
+    tracker.reset()
+    tracker.run([f.image for f in slew.frames[:5]])
+    true = body_turn_rotvec(slew.frames[0].R, slew.frames[1].R)
+    # the filter's rate is the turn of the attitude (R_j R_i^T), the inverse of the body's turn
+    assert np.linalg.norm(-tracker.rate - true) * 206265 < 10.0
+    sd = np.sqrt(np.diag(tracker.rate_covariance)) * 206265  # its 1-sigma per camera axis: roll is the weak one
+    assert sd[0] < 10.0 and sd[1] < 10.0 and sd[2] < 120.0

@@ -14,6 +14,7 @@ from skyview.errors import BadInput
 from skyview.identify import FAILED, IDENTIFIED, METHODS, make_identifier
 from skyview.identify import spherical as sph
 from skyview.identify.base import Observation
+from skyview.identify.layers import Hypotheses
 from skyview.identify.synthetic import add_noise, synthetic_frame
 from skyview.identify.triangle import (IMPROVED_PARAMS, TriangleMethod, catalog_triangles, join, moment_convergence,
                                        upper_line)
@@ -385,7 +386,23 @@ def test_false_star_never_gives_a_wrong_identification(paper, improved, region, 
     assert n_ok["paper"] >= 4 and n_ok["improved"] > n_ok["paper"] and backtracked
 
 
-def test_steps_shrink_as_it_pivots(paper, region, cam):
+def test_paper_pivoting_prunes_consecutive_lists(paper, region, cam):
+    """The paper's pivoting: each list keeps the candidates with two stars in common with the other list."""
+    assert paper.pivoting == "shared-star" and IMPROVED_PARAMS["pivoting"] == "join"
+    seen = 0
+    for f in frames(region, cam, 12, seed=5, n_min=7):
+        r = paper.identify(f.obs)
+        for s in (s for s in r.steps if s.kind == "pivot"):
+            seen += 1
+            assert s.numbers["sets"] <= s.numbers["candidates"]
+            assert s.numbers["previous_after"] <= s.numbers["previous_before"]
+        if r.status == IDENTIFIED:
+            assert all(f.truth[o] == c for o, c in r.matches.items())
+    assert seen >= 3
+
+
+def test_steps_shrink_as_it_pivots(cache, region, cam):
+    paper = TriangleMethod(region, cam, SIGMA, pivoting="join")  # the join's steps (improved); lists: below
     seen = shrinking = 0
     for f in frames(region, cam, 12, seed=5, n_min=7):
         r = paper.identify(f.obs)
@@ -401,7 +418,7 @@ def test_steps_shrink_as_it_pivots(paper, region, cam):
         assert 0 < len(pick.groups) <= 200 and all(len(g) == 3 for g in pick.groups)
         sets = [n["sets"]] + [s.numbers["sets_after"] for s in pivots]
         for s in pivots:
-            assert s.numbers["shared"] >= 2 and len(s.extra["shared"]) >= 2
+            assert s.numbers["shared"] >= 2 and len(s.layer(Hypotheses).shared) >= 2
             # a join keeps at most every (hypothesis, candidate) pair that agrees on the shared stars
             assert s.numbers["sets_after"] <= s.numbers["sets_before"] * max(1, s.numbers["candidates"])
             assert len(s.catalog) <= 200 and len(s.groups) <= 200

@@ -52,6 +52,22 @@ def test_correct_hypothesis_passes_and_extends(cat, cam):
     assert d["passed"] and d["n_matches"] == len(f.obs) and d["statistic"] == CALIBRATED
 
 
+def test_reported_attitude_is_the_estimate_from_the_reported_matches(cat, cam):
+    """verify reuses an estimate when a round leaves the matches unchanged: what it reports must still be
+    exactly the SVD estimate from the final matches, on frames where rounds change them and where not."""
+    for seed in range(6):
+        f = frame_with(cat, cam, 5, seed=seed)
+        for k in (2, 3, len(f.obs)):
+            hyp = {i: int(f.truth[i]) for i in range(k)}
+            v = verify(f.obs.vectors, hyp, cat, cam, SIGMA)
+            if not v.passed:
+                continue
+            obs = np.array(sorted(v.matches))
+            est = svd_attitude(f.obs.vectors[obs], cat.xyz[[v.matches[o] for o in obs]], SIGMA)
+            assert np.array_equal(v.R, est.R) and np.array_equal(v.covariance, est.covariance)
+            assert v.matches == {int(i): int(f.truth[i]) for i in obs}
+
+
 def test_shuffled_hypothesis_fails(cat, cam):
     f = frame_with(cat, cam, 7, seed=2)
     rows = [int(f.truth[i]) for i in range(4)]
@@ -244,3 +260,24 @@ def test_a_blended_close_pair_is_never_reported():
         if lean:  # within the match radius of one component: without the blend rule it would be reported
             assert k in ver.ambiguous
         assert all(ver.matches[i] == rows[i] for i in ver.matches)
+
+
+def test_predicted_sigma_closed_form_is_the_largest_eigenvalue():
+    """sqrt of the largest eigenvalue of [b]x P [b]x^T (the batched eigensolver's answer) for unit and
+    non-unit vectors, full-rank and rank-deficient covariances."""
+    from skyview.identify.verify import predicted_sigma
+    rng = np.random.default_rng(4)
+    for k in range(200):
+        A = rng.normal(size=(3, 3))
+        P = A @ A.T * 10.0 ** rng.uniform(-12, -6)
+        if k % 4 == 0:
+            P[2], P[:, 2] = 0.0, 0.0
+        b = rng.normal(size=(15, 3))
+        if k % 2:
+            b /= np.linalg.norm(b, axis=1, keepdims=True)
+        K = np.zeros((len(b), 3, 3))
+        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -b[:, 2], b[:, 1], -b[:, 0]
+        K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = b[:, 2], -b[:, 1], b[:, 0]
+        ref = np.sqrt(np.maximum(np.linalg.eigvalsh(K @ P @ K.transpose(0, 2, 1))[:, -1], 0.0))
+        np.testing.assert_allclose(predicted_sigma(b, P), ref, rtol=1e-9, atol=1e-12 * ref.max())
+    assert predicted_sigma(np.zeros((0, 3)), np.eye(3)).shape == (0,)

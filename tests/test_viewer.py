@@ -38,7 +38,10 @@ from skyview.identify import IDENTIFIED, make_identifier
 from skyview.identify.base import Step
 from skyview.identify.genetic import tangent_basis
 from skyview.identify.synthetic import synthetic_frame
-from skyview.viewer import picture, steps
+from skyview import present
+from skyview.identify.layers import HYPOTHESES_SAMPLE, Attitudes, Hypotheses, Population, Posterior, SearchRegion
+from skyview.scoring import centroid_outcomes
+from skyview.viewer import picture
 from skyview.viewer.panel import result_markdown, step_markdown
 from skyview.viewer.run import SceneConfig, Solvers, compare, simulate, solve
 from skyview.viewer.sequence_run import SequenceConfig, solve_sequence_run
@@ -80,49 +83,92 @@ def test_steps_become_arcs_patterns_and_highlights():
         Step("verify", "verified", observed=list(range(8)), catalog=[0, 1, 2, 99], groups=[(0, 99)],
              numbers={"p_false": 1e-40}),
     ]
-    d = steps.step_drawables(st, xyz, n_observed=6, hip=np.arange(100, 106))
+    d = present.step_views(st, xyz, n_observed=6, hip=np.arange(100, 106))
     assert [x.kind for x in d] == ["pick", "pivot", "verify"]
-    # a pair is one edge (ARC_POINTS - 1 segments), a triangle three
-    assert d[0].segments.shape == (2 * (steps.ARC_POINTS - 1), 2, 3)
-    assert d[1].segments.shape == (3 * (steps.ARC_POINTS - 1), 2, 3)
-    np.testing.assert_allclose(np.linalg.norm(d[1].segments, axis=2), 1.0, atol=1e-6)  # on the sphere
-    # the arcs start and end on the catalog stars of the group
-    ends = d[0].segments.reshape(-1, 3).astype(np.float64)
+    # without hypotheses the step's groups are drawn: a pair is one edge (ARC_POINTS - 1 segments), a triangle three
+    seg0, seg1 = d[0].drawables["candidates"].segments, d[1].drawables["candidates"].segments
+    assert seg0.shape == (2 * (present.ARC_POINTS - 1), 2, 3)
+    assert seg1.shape == (3 * (present.ARC_POINTS - 1), 2, 3)
+    np.testing.assert_allclose(np.linalg.norm(seg1, axis=2), 1.0, atol=1e-6)  # on the sphere
+    ends = seg0.reshape(-1, 3).astype(np.float64)  # the arcs start and end on the catalog stars of the group
     for row in (0, 1, 3, 4):
         assert np.min(np.linalg.norm(ends - xyz[row], axis=1)) < 1e-6
     # the observed pattern: a pair, a closed triangle; 8 stars are only highlighted (and 6, 7 are not valid)
     assert d[0].pattern.tolist() == [[0, 1]]
     assert sorted(map(sorted, d[1].pattern.tolist())) == [[0, 1], [0, 2], [1, 2]]
     assert len(d[2].pattern) == 0 and d[2].observed.tolist() == [0, 1, 2, 3, 4, 5]
+    # what earlier steps measured is faded, not highlighted again
+    assert "known" not in d[0].drawables and "known" not in d[1].drawables  # step 1 measures 0 and 1 again
     # rows outside the catalog are dropped, not drawn
-    assert d[2].candidates.tolist() == [0, 1, 2] and d[2].n_groups == 0
+    cs = d[2].drawables["candidate_stars"].xyz
+    np.testing.assert_allclose(cs, xyz[[0, 1, 2]], atol=1e-6)
+    assert "candidates" not in d[2].drawables
     # the plotted series: what is left after each step, so the candidates shrink pivot by pivot
-    assert steps.default_plot_key(d) == "hypotheses"
-    np.testing.assert_array_equal(steps.series(d, "hypotheses")[:2], [4, 1])
-    assert np.isnan(steps.series(d, "hypotheses")[2])
-    assert steps.numeric_keys(d)[:2] == ["candidates", "hypotheses"]
+    assert present.default_plot_key(d) == "hypotheses"
+    np.testing.assert_array_equal(present.series(d, "hypotheses")[:2], [4, 1])
+    assert np.isnan(present.series(d, "hypotheses")[2])
+    assert present.numeric_keys(d)[:2] == ["candidates", "hypotheses"]
+    # only the last step is final: the identification is drawn from there on
+    assert [x.final for x in d] == [False, False, True]
 
 
-def test_step_extras_follow_the_recorder_conventions():
+def test_surviving_hypotheses_thin_and_a_sample_says_how_many():
+    """Hypotheses layer: the arcs drawn are the survivors' (an even sample of at most 200), and the
+    text gives the total."""
+    rng = np.random.default_rng(1)
+    xyz = rng.normal(size=(3000, 3))
+    xyz /= np.linalg.norm(xyz, axis=1, keepdims=True)
+    H0 = rng.integers(0, 3000, size=(950, 2))
+    H1 = H0[:47]
+    H2 = np.hstack([H0[:1], [[5]]])
+    st = [Step("pick", "a", observed=[0, 1], layers=(Hypotheses.sample([0, 1], H0),)),
+          Step("pivot", "b", observed=[1, 2], layers=(Hypotheses.sample([0, 1], H1),)),
+          Step("pivot", "c", observed=[1, 3], layers=(Hypotheses.sample([0, 1, 3], H2),))]
+    d = present.step_views(st, xyz, n_observed=4)
+    drawn = [len(v.drawables["candidates"].segments) // (present.ARC_POINTS - 1) for v in d]
+    layer = st[0].layer(Hypotheses)
+    assert layer.total == 950 and len(layer.rows) == HYPOTHESES_SAMPLE == 500
+    assert drawn[0] == len(np.unique(np.sort(layer.rows, axis=1), axis=0))  # one arc per distinct candidate pair
+    # step 1 measured 1-2: star 2 is not assigned yet, so its hypotheses are drawn along the stars they assign
+    assert drawn[1] == len(np.unique(np.sort(H1, axis=1), axis=0)) and drawn[2] == 1  # step 2: the pair 1-3
+    assert drawn[0] > drawn[1] > drawn[2]  # the arcs thin as the hypotheses fall
+    assert [v.surviving for v in d] == [950, 47, 1]
+    assert "950 hypotheses survive (500 drawn" in d[0].text[0]
+    # the sample spreads over all the survivors, first and last included
+    assert (layer.rows[0] == H0[0]).all() and (layer.rows[-1] == H0[-1]).all()
+    assert d[1].drawables["known"].observed.tolist() == [0]  # measured at step 0, not at step 1: faded
+
+
+def test_step_layers_become_drawables():
     xyz = _tiny_catalog()
     R = R_from_radec_roll(0.3, 0.1, 0.2)
     pop = xyz[[0, 3, 5]].astype(np.float32)
+    cam = Camera.from_fov(8.0, 512)
     st = [
         Step("generation", "GA generation", numbers={"best_cost": 3.0},
-             extra={"population": pop, "costs": np.array([3.0, 1.0, 2.0], np.float32), "box": {"w": 1}}),
-        Step("update", "posterior", catalog=[0, 1, 2], extra={"posterior_top": np.array([0.1, 0.7, 0.2])}),
-        Step("answer", "attitude", extra={"R": R, "boresight": R[2].copy()}),
-        Step("hyp", "hypotheses", catalog=[0, 1], extra={"hypotheses": np.array([[0, 1], [1, 0]]), "used": [2, 5]}),
+             layers=(Population(pop, np.array([3.0, 1.0, 2.0], np.float32)),)),
+        Step("update", "posterior", catalog=[0, 1, 2],
+             layers=(Posterior(np.array([0.1, 0.7, 0.2]), np.array([0, 1, 2]), np.array([0, 1, 2]),
+                               np.array([0.1, 0.7, 0.2])),)),
+        Step("answer", "attitude", layers=(Attitudes.of(R, name="GA answer"),)),
     ]
-    d = steps.step_drawables(st, xyz, n_observed=5, hip=np.arange(100, 106))
-    assert d[0].points.shape == (3, 3) and d[0].point_weights.tolist() == [0.0, 1.0, 0.5]  # lowest cost brightest
-    assert "population" in d[0].points_name and any(e.startswith("box") for e in d[0].extras)
-    np.testing.assert_allclose(d[1].weights, [0.0, 1.0, 1 / 6], atol=1e-12)  # tints the candidates
-    assert len(d[2].attitudes) == 1 and d[2].points.shape == (1, 3)  # a rotation and a direction
-    assert "HIP 100, HIP 101" in " ".join(d[3].extras) and "used: 2, 5" in d[3].extras
+    d = present.step_views(st, xyz, n_observed=5, camera=cam, hip=np.arange(100, 106))
+    pts = d[0].drawables["points"]
+    assert pts.xyz.shape == (3, 3)
+    hi, lo = np.array(present.PALETTE["points_high"]), np.array(present.PALETTE["points"])
+    np.testing.assert_array_equal(pts.colors[1], hi)  # the lowest cost brightest
+    np.testing.assert_array_equal(pts.colors[0], lo)
+    assert "population: 3 individuals, best cost 1" in d[0].text[0]
+    cs = d[1].drawables["candidate_stars"].colors  # the leading star tinted bright
+    np.testing.assert_array_equal(cs[1], np.array(present.PALETTE["candidates_high"]))
+    assert "HIP 101 0.700" in d[1].text[0]
+    fp = d[2].drawables["attitudes"].segments  # the attitude's sensor footprint, around its boresight
+    mid = fp.reshape(-1, 3).mean(0)
+    assert _angle(mid / np.linalg.norm(mid), R[2]) < np.radians(1.0)
+    assert d[2].legend()[-1][0].startswith("identified")  # the last step: the identification in the legend
 
 
-def test_a_posterior_over_hypotheses_lights_their_stars_and_costs_with_inf_still_tint():
+def test_a_posterior_over_hypotheses_lights_their_stars_summed_per_star():
     rng = np.random.default_rng(5)
     xyz = rng.normal(size=(400, 3))
     xyz /= np.linalg.norm(xyz, axis=1, keepdims=True)
@@ -131,18 +177,23 @@ def test_a_posterior_over_hypotheses_lights_their_stars_and_costs_with_inf_still
     rows = np.arange(400, dtype=np.int32)
     rows[[7, 8]] = 42  # ... both designate star 42 now (they moved with a known turn)
     post[100] = 0.1
-    st = [Step("update", "posterior", extra={"posterior": post.astype(np.float32), "rows": rows}),
-          Step("update", "posterior without a row map", extra={"posterior": post.astype(np.float32)})]
-    d = steps.step_drawables(st, xyz, n_observed=0)
-    # summed per star (0.9 on star 42), the negligible ones left dark, tinted on a log scale
-    np.testing.assert_allclose(d[0].points, xyz[[42, 100]], atol=1e-6)
-    assert d[0].point_weights[0] == 1.0 and 0.0 < d[0].point_weights[1] < 1.0 and "summed per star" in d[0].points_name
-    np.testing.assert_allclose(d[1].points, xyz[[7, 8, 100]], atol=1e-6)  # weight i is catalog row i
+    layer = Posterior(post.astype(np.float32), rows, np.array([42, 100]), np.array([0.9, 0.1]))
+    d = present.step_views([Step("update", "posterior", layers=(layer,))], xyz, n_observed=0)[0]
+    # summed per star (0.9 on star 42), the negligible ones left dark
+    np.testing.assert_allclose(d.drawables["points"].xyz, xyz[[42, 100]], atol=1e-6)
+    np.testing.assert_array_equal(d.drawables["points"].colors[0], np.array(present.PALETTE["points_high"]))
+    # the scorer (not the method) reads the true star's posterior from the same layer
+    from skyview.scoring import true_posterior
+
+    (mass, rank), = true_posterior([Step("update", "p", layers=(layer,))], 42)
+    assert abs(mass - 0.9) < 1e-6 and rank == 0
+    assert true_posterior([Step("update", "p", layers=(layer,))], 100)[0][1] == 1
     # a GA population whose costs hold inf (invalid individuals) is still tinted: the lowest cost brightest
-    pop = xyz[:4].astype(np.float32)
-    ga = Step("generation", "GA", extra={"population": pop, "costs": np.array([1.0, np.inf, 3.0, 2.0], np.float32)})
-    g = steps.step_drawables([ga], xyz, n_observed=0)[0]
-    assert g.point_weights.tolist() == [1.0, 0.0, 0.0, 0.5] and "tinted by costs" in g.points_name
+    ga = Step("generation", "GA", layers=(Population(xyz[:4].astype(np.float32),
+                                                     np.array([1.0, np.inf, 3.0, 2.0], np.float32)),))
+    g = present.step_views([ga], xyz, n_observed=0)[0].drawables["points"]
+    np.testing.assert_array_equal(g.colors[0], np.array(present.PALETTE["points_high"]))
+    np.testing.assert_array_equal(g.colors[1], np.array(present.PALETTE["points"]))
 
 
 def _angle(a, b) -> np.ndarray:
@@ -153,19 +204,12 @@ def test_a_square_box_and_a_roll_circle_become_closed_lines_on_the_sphere():
     # a square box: four corners at known RA/Dec, in order around it
     corners = radec_to_vec(np.radians([40.0, 44.0, 44.0, 40.0]), np.radians([10.0, 10.0, 14.0, 14.0]))
     center = radec_to_vec(np.radians(42.0), np.radians(12.0))
-    st = [Step("generation", "square", extra={"box": {"kind": "square", "center": center, "half_width_rad": 0.03,
-                                                      "corners": corners.astype(np.float32)}}),
-          Step("generation", "roll", extra={"box": {"kind": "roll", "center": center, "half_width_rad": 0.05,
-                                                    "corners": None, "radius_rad": 0.05}}),
-          Step("generation", "sky", extra={"box": {"kind": "sky", "center": None, "half_width_rad": np.pi,
-                                                   "corners": None}}),
-          Step("other", "not outlines", extra={"a": {"corners": corners[:2]},
-                                               "b": {"center": center * 2, "radius_rad": 0.1},
-                                               "c": {"center": center, "radius_rad": 4.0}, "d": {"center": center}})]
-    d = steps.step_drawables(st, _tiny_catalog(), n_observed=0)
+    st = [Step("generation", "square", layers=(SearchRegion("square", center, 0.03, corners=corners),)),
+          Step("generation", "roll", layers=(SearchRegion("roll", center, 0.05, radius_rad=0.05),)),
+          Step("generation", "sky", layers=(SearchRegion("sky", None, np.pi),))]
+    d = present.step_views(st, _tiny_catalog(), n_observed=0)
     # the square: a closed polyline through the 4 corners, every point on the sphere and on its edge's great circle
-    assert len(d[0].outlines) == 1 and d[0].outline_names == "box"
-    poly = d[0].outlines[0]
+    poly = present.region_polyline(st[0].layer(SearchRegion))
     n = sg.OUTLINE_EDGE_POINTS - 1  # segments per edge
     assert len(poly) == 4 * n + 1
     np.testing.assert_allclose(poly[::n], np.vstack([corners, corners[:1]]), atol=1e-6)  # corners, loop closed
@@ -175,23 +219,19 @@ def test_a_square_box_and_a_roll_circle_become_closed_lines_on_the_sphere():
         edge = poly[k * n:(k + 1) * n + 1]
         np.testing.assert_allclose(edge @ np.cross(a, b), 0.0, atol=1e-7)  # on the great circle through a and b
         np.testing.assert_allclose(_angle(edge, a) + _angle(edge, b), _angle(a, b), atol=1e-7)  # between them
-    seg = d[0].outline_segments
+    seg = d[0].drawables["outline"].segments
     assert seg.shape == (4 * n, 2, 3) and seg.dtype == np.float32
     np.testing.assert_allclose(seg[1:, 0], seg[:-1, 1], atol=1e-7)  # joined end to end ...
     np.testing.assert_allclose(seg[-1, 1], seg[0, 0], atol=1e-7)  # ... and closed
-    ends = np.concatenate([seg[:, 0], seg[:, 1]])
-    for c in corners:
-        assert np.min(np.linalg.norm(ends - c, axis=1)) < 1e-6  # each corner is a segment endpoint
-    assert "kind square" in " ".join(d[0].extras)  # the rest of the dict is text
+    assert "search region: square" in d[0].text[0]
     # the roll circle: every point at the radius from the centre, all the way round, closed
-    circ = d[1].outlines[0]
+    circ = present.region_polyline(st[1].layer(SearchRegion))
     np.testing.assert_allclose(_angle(circ, center), 0.05, atol=1e-9)
     np.testing.assert_allclose(circ[0], circ[-1])
     np.testing.assert_allclose(circ[:-1].mean(axis=0) / np.linalg.norm(circ[:-1].mean(axis=0)), center, atol=1e-9)
-    assert len(d[1].outline_segments) == sg.OUTLINE_CIRCLE_POINTS - 1
-    # the whole sky, two corners, a centre that is not a unit vector, a radius beyond pi, no radius: no outline
-    assert d[2].outlines == [] and len(d[2].outline_segments) == 0 and "box: kind sky" in d[2].extras[0]
-    assert d[3].outlines == [] and len(d[3].extras) == 4
+    assert len(d[1].drawables["outline"].segments) == sg.OUTLINE_CIRCLE_POINTS - 1
+    # the whole sky: no outline, only text
+    assert "outline" not in d[2].drawables and "search region: sky" in d[2].text[0]
 
 
 @pytest.fixture(scope="module")
@@ -209,37 +249,36 @@ def genetic_solve():
 
 def test_a_genetic_solve_draws_its_search_box_shrinking_around_the_truth(genetic_solve):
     ga, cat, f, r = genetic_solve
-    d = steps.step_drawables(r.steps, cat.xyz, n_observed=len(f.obs.vectors))
+    d = present.step_views(r.steps, cat.xyz, n_observed=len(f.obs.vectors))
     gens = [(s, dd) for s, dd in zip(r.steps, d) if s.kind == "generation"]
-    drawn = [(s, dd) for s, dd in gens if dd.outlines]
-    assert drawn and {s.extra["box"]["kind"] for s, _ in drawn} == {"square", "roll"}
+    drawn = [(s, dd) for s, dd in gens if "outline" in dd.drawables]
+    assert drawn and {s.layer(SearchRegion).kind for s, _ in drawn} == {"square", "roll"}
     b_true = f.R[2]
     halves: dict[int, list[float]] = {}
     for s, dd in gens:
-        box = s.extra["box"]
-        if box["kind"] == "sky":  # the first GA searches the whole sky: nothing to outline
-            assert dd.outlines == []
-        elif box["kind"] == "square":
-            poly = dd.outlines[0]
-            np.testing.assert_allclose(poly[::sg.OUTLINE_EDGE_POINTS - 1][:4], box["corners"], atol=1e-6)
+        box = s.layer(SearchRegion)
+        pop = s.layer(Population)
+        if box.kind == "sky":  # the first GA searches the whole sky: nothing to outline
+            assert "outline" not in dd.drawables
+        elif box.kind == "square":
+            seg = dd.drawables["outline"].segments
+            np.testing.assert_allclose(seg[::sg.OUTLINE_EDGE_POINTS - 1, 0][:4], box.corners, atol=1e-6)
             # the true boresight is inside the box (gnomonic offsets within the half width)
-            e, n = tangent_basis(box["center"])
-            xi, eta = (b_true @ e, b_true @ n) / (b_true @ box["center"])
-            assert max(abs(xi), abs(eta)) < box["half_width_rad"]
-            if "population" in s.extra:  # the stage's chromosomes live in the box
-                assert np.all(_angle(s.extra["population"].astype(np.float64), box["center"])
-                              <= np.sqrt(2) * box["half_width_rad"] + 1e-6)
+            e, n = tangent_basis(box.center)
+            xi, eta = (b_true @ e, b_true @ n) / (b_true @ box.center)
+            assert max(abs(xi), abs(eta)) < box.half_width_rad
+            if pop is not None:  # the stage's chromosomes live in the box
+                assert np.all(_angle(pop.xyz.astype(np.float64), box.center) <= np.sqrt(2) * box.half_width_rad + 1e-6)
             h = halves.setdefault(int(s.numbers["attempt"]), [])
-            if not h or h[-1] != box["half_width_rad"]:
-                h.append(box["half_width_rad"])
+            if not h or h[-1] != box.half_width_rad:
+                h.append(box.half_width_rad)
         else:  # the roll GA: a circle where the image-up directions of its chromosomes sit
-            circ = dd.outlines[0]
-            np.testing.assert_allclose(_angle(circ, box["center"]), box["radius_rad"], atol=1e-9)
-            if "population" in s.extra:
-                np.testing.assert_allclose(_angle(s.extra["population"].astype(np.float64), box["center"]),
-                                           box["radius_rad"], atol=1e-5)
+            seg = dd.drawables["outline"].segments
+            np.testing.assert_allclose(_angle(seg[:, 0].astype(np.float64), box.center), box.radius_rad, atol=1e-6)
+            if pop is not None:
+                np.testing.assert_allclose(_angle(pop.xyz.astype(np.float64), box.center), box.radius_rad, atol=1e-5)
             # centred on the spiral stages' answer, near the truth (within the last square's half width)
-            assert _angle(box["center"], b_true) < halves[int(s.numbers["attempt"])][-1]
+            assert _angle(box.center, b_true) < halves[int(s.numbers["attempt"])][-1]
     # the spiral stages of each attempt: a box of box_factor x the previous stage's cost, shrinking on this frame
     conv = [s for s in r.steps if s.kind == "converged"]
     for att, h in halves.items():
@@ -252,17 +291,23 @@ def test_a_genetic_solve_draws_its_search_box_shrinking_around_the_truth(genetic
 
 def test_match_triangles_and_centroid_outcomes():
     uv = np.array([[10.0, 10.0], [100.0, 10.0], [50.0, 90.0], [200.0, 200.0], [300.0, 40.0], [5.0, 300.0]])
-    tri = steps.match_groups({0: 10, 1: 11, 2: 12, 3: 13}, uv)
+    tri = present.match_groups({0: 10, 1: 11, 2: 12, 3: 13}, uv)
     assert all(len(t) == 3 for t in tri) and len(tri) == 2  # a Delaunay mesh of 4 points: 2 triangles
-    assert steps.match_groups({0: 10, 1: 11}, uv) == [(10, 11)]
+    assert present.match_groups({0: 10, 1: 11}, uv) == [(10, 11)]
     line = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
-    assert steps.match_groups({0: 1, 1: 2, 2: 3}, line) == [(1, 2), (2, 3)]  # collinear: a chain
+    assert present.match_groups({0: 1, 1: 2, 2: 3}, line) == [(1, 2), (2, 3)]  # collinear: a chain
     hip = np.array([500, 501, 502, 503])
     truth = {"stars": [{"hip": 500, "u": 10.0, "v": 10.0}, {"hip": 509, "u": 100.0, "v": 10.0}],
              "false_stars": [{"u": 50.0, "v": 90.0}]}
-    out = steps.centroid_outcomes(6, 5, {0: 0, 1: 1}, uv, hip, truth)
+    out = centroid_outcomes(6, 5, {0: 0, 1: 1}, uv, hip, truth)
     assert out == ["identified", "wrong match", "false star", "unidentified", "unidentified", "not used"]
-    assert steps.centroid_outcomes(2, 2, {0: 0}, uv[:2], hip, None) == ["identified", "unidentified"]
+    assert centroid_outcomes(2, 2, {0: 0}, uv[:2], hip, None) == ["identified", "unidentified"]
+
+
+def test_labels_are_placed_without_collisions_brightest_first():
+    xy = np.array([[0.0, 0.0], [5.0, 0.0], [100.0, 0.0], [103.0, 3.0]])
+    keep = present.place_labels(xy, priority=np.array([2.0, 1.0, 3.0, 0.5]), sizes=np.array([[40.0, 10.0]] * 4))
+    assert keep.tolist() == [False, True, False, True]  # of each overlapping pair the brighter keeps its label
 
 
 def test_geometry_helpers():
@@ -428,6 +473,9 @@ def test_upload_solves_the_users_image(session):
                      s.solvers.base_catalog)
     ok, png = cv2.imencode(".png", frame.image)
     s.panel.upload_fov.value = 12.0
+    # the improved angle method: the paper's, as printed, leaves this 12 deg field ambiguous
+    s.panel.variant.value = "improved"
+    assert s.wait_idle(60)
     ev = SimpleNamespace(target=SimpleNamespace(value=SimpleNamespace(name="mine.png", content=png.tobytes())))
     s._guard(s._on_upload)(ev)
     assert s.wait_idle(30) and s.error == ""
@@ -444,6 +492,8 @@ def test_upload_solves_the_users_image(session):
     assert s.panel.step.disabled and "No steps" in s.panel.step_text.content and "not solved" in s.panel.status.content
     s.use_simulation()
     assert s.wait_idle(30) and s.run.source.truth is not None and _node(server, "frustum") is not None
+    s.panel.variant.value = "paper"
+    assert s.wait_idle(60)
 
 
 def test_clicking_a_star_names_it(session):
@@ -486,6 +536,12 @@ def test_compare_and_export(session, tmp_path):
     assert "| angle | improved | solved |" in s.panel.compare_table.content
     rrd = s.export_rrd(tmp_path / "run.rrd")
     assert rrd.stat().st_size > 10_000 and rrd.read_bytes()[:4] == b"RRF2"
+    # another image on screen: the table of the former one leaves the Result tab
+    s.panel.seed.value = int(s.panel.seed.value) + 1
+    assert s.wait_idle(60)
+    assert s.compare_rows == [] and s.panel.compare_table.content == ""
+    s.panel.seed.value = int(s.panel.seed.value) - 1
+    assert s.wait_idle(60)
 
 
 ORION_30 = SceneConfig(ra_deg=83.8, dec_deg=-5.4, roll_deg=30.0, fov_deg=30.0, resolution="1024x1024", mag_limit=4.5,
@@ -528,8 +584,9 @@ def test_a_stochastic_sequence_identifies_orion_with_known_truth(variant, turn):
     for k, f in enumerate(seq.frames):
         assert [d.kind for d in f.drawables] == [st.kind for st in res.identifications[k].steps]
     upd = [d for d in seq.frames[0].drawables if d.kind == "update"][0]
-    assert len(upd.candidates) == 10 and upd.weights is not None  # the leading stars, tinted by posterior
-    assert len(upd.points) > 50 and upd.point_weights is not None  # the posterior over the sky
+    cs = upd.drawables["candidate_stars"]  # the leading stars, tinted by posterior
+    assert len(cs.xyz) == 10 and len(np.unique(cs.colors, axis=0)) > 2
+    assert len(upd.drawables["points"].xyz) > 50  # the posterior over the sky
 
 
 def test_sequence_settings_are_checked():
@@ -607,7 +664,7 @@ def test_session_shows_a_stochastic_sequence_frame_by_frame(session, monkeypatch
     kinds = [d.kind for d in s.run.drawables]
     assert kinds == [st.kind for st in seq.result.identifications[0].steps] and p.step.max == max(1, len(kinds) - 1)
     p.step.value = kinds.index("update")
-    stars, pts = _node(server, "candidate_stars"), _node(server, "extra_points")
+    stars, pts = _node(server, "candidate_stars"), _node(server, "points")
     assert stars.visible and len(stars.points) == 10 and len(np.unique(stars.colors, axis=0)) > 2
     assert pts.visible and len(pts.points) > 50 and len(np.unique(pts.colors, axis=0)) > 5
     # a crafted frame number is an error in the panel, the session keeps its sequence
@@ -687,6 +744,9 @@ def test_view_bad_arguments_exit_2(tmp_path, capsys):
 
 
 def _start_view(*args) -> tuple[subprocess.Popen, str]:
+    from skyview.pipeline import blind_solver
+
+    blind_solver()  # the viewer opens on the blind pipeline: its database built into the test cache first
     exe = Path(sys.executable).with_name("skyview")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "skyview"]
     p = subprocess.Popen(cmd + ["view", "--port", "0", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -795,12 +855,14 @@ def _ga_box_steps() -> tuple[dict[int, tuple[str, float]], int]:
     cfg = SceneConfig(ra_deg=107.9, dec_deg=-8.9, roll_deg=-170.0, fov_deg=20.0)
     sv = Solvers()
     run = solve(simulate(cfg, sv.base_catalog), "genetic", "improved", cfg.mag_limit, sv)
-    last: dict[str, tuple[int, float]] = {}
+    per_attempt: dict[int, dict[str, tuple[int, float]]] = {}
     for k, st in enumerate(run.result.identification.steps):
-        box = st.extra.get("box")
-        if st.kind == "generation" and box["kind"] != "sky" and st.numbers["attempt"] == 0:
-            name = "roll" if box["kind"] == "roll" else f"stage{int(st.numbers['stage'])}"
-            last[name] = (k, box["half_width_rad"])
+        box = st.layer(SearchRegion)
+        if st.kind == "generation" and box.kind != "sky":
+            name = "roll" if box.kind == "roll" else f"stage{int(st.numbers['stage'])}"
+            per_attempt.setdefault(int(st.numbers["attempt"]), {})[name] = (k, box.half_width_rad)
+    # the first attempt that went through every stage: two spiral squares and the roll circle
+    last = next(v for _, v in sorted(per_attempt.items()) if len(v) >= 3)
     return {k: (name, h) for name, (k, h) in last.items()}, len(run.result.identification.steps)
 
 
@@ -924,11 +986,11 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                 pg2.get_by_role("tab", name="Steps").click()
                 _type(pg2, "Step", 0)  # the first generation: a population over the whole sky, tinted by cost
                 pg2.get_by_text(f"Step 1 / {n_steps} ", exact=False).first.wait_for(timeout=10000)  # the same solve
-                pg2.get_by_text("population (tinted by costs)", exact=False).first.wait_for(timeout=10000)
+                pg2.get_by_text("population: ", exact=False).first.wait_for(timeout=10000)  # its best cost in words
                 pg2.wait_for_timeout(500)
-                population = pg2.evaluate(JS_GEOMETRY, NODES["extra_points"])
+                population = pg2.evaluate(JS_GEOMETRY, NODES["points"])
                 assert population[0] > 10, "no GA population drawn on the sphere"
-                assert pg2.evaluate(JS_DIAMETER, NODES["outlines"]) == 0  # the whole sky: no box
+                assert pg2.evaluate(JS_DIAMETER, NODES["outline"]) == 0  # the whole sky: no box
                 pg2.evaluate(JS_PANEL_TOP)
                 pg2.mouse.move(5, 5)
                 _settle(pg2)
@@ -946,9 +1008,9 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                 for k, (stage, half) in box_steps.items():
                     _type(pg2, "Step", k)
                     pg2.get_by_text(f"Step {k + 1} / ", exact=False).first.wait_for(timeout=10000)
-                    pg2.get_by_text("outlined on the sphere (orange): box", exact=False).first.wait_for(timeout=10000)
+                    pg2.get_by_text("search region:", exact=False).first.wait_for(timeout=10000)
                     pg2.wait_for_timeout(500)
-                    extents.append((stage, half, pg2.evaluate(JS_DIAMETER, NODES["outlines"])))
+                    extents.append((stage, half, pg2.evaluate(JS_DIAMETER, NODES["outline"])))
                     pg2.evaluate(JS_PANEL_TOP)
                     pg2.mouse.move(5, 5)
                     _settle(pg2)
@@ -1016,7 +1078,7 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                 pg2.get_by_role("button", name="Wide sky").click()
                 pg2.get_by_role("tab", name="Steps").click()
                 pg2.wait_for_timeout(800)
-                hypotheses = pg2.evaluate(JS_GEOMETRY, NODES["extra_points"])
+                hypotheses = pg2.evaluate(JS_GEOMETRY, NODES["points"])
                 assert hypotheses[0] > 50  # the posterior's leading stars lit across the sky
                 pg2.evaluate(JS_PANEL_TOP)
                 pg2.mouse.move(5, 5)
@@ -1031,6 +1093,104 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
         _stop_view(proc)
         print("\n[viewer figures]", json.dumps(FIGURES))
         _save_figures()
+
+
+JS_VISIBLE = "(n) => { const o = window.__viserMutable?.nodeRefFromName?.[n]; return !!(o && o.visible); }"
+ORION = {"RA (deg)": 83.8, "Dec (deg)": -5.4, "Roll (deg)": 30.0, "FOV (deg)": 8.0, "Mag limit (Hp)": 6.0}
+# each single-image method on a scene it solves (svd on Orion: not solved, and says why)
+STORY = [("angle", "improved", {}), ("triangle", "paper", {}), ("ellipticity", "improved", {}),
+         ("genetic", "improved", GA_SCENE), ("svd", "improved", {})]
+DOC_IMAGES = REPO / "docs" / "images"
+
+
+def _scene_of(values: dict) -> SceneConfig:
+    v = {**ORION, **values}
+    return SceneConfig(ra_deg=v["RA (deg)"], dec_deg=v["Dec (deg)"], roll_deg=v["Roll (deg)"], fov_deg=v["FOV (deg)"],
+                       mag_limit=v["Mag limit (Hp)"])
+
+
+@pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no chromium at {CHROMIUM} (apt-get install chromium)")
+def test_browser_tells_each_methods_story_step_by_step(tmp_path):
+    """A step is a state of knowledge: at step 0 no identification is drawn, the candidate arcs thin as
+    the hypotheses fall, the last step shows the identification. Screenshots of each method's first, a
+    middle and its last step (copied into docs/images when SKYVIEW_UPDATE_DOC_IMAGES=1)."""
+    pw = pytest.importorskip("playwright.sync_api")
+    sv = Solvers()
+    plan = []
+    for method, variant, scene in STORY:  # the server's solves are seeded: the same steps as here
+        run = solve(simulate(_scene_of(scene), sv.base_catalog), method, variant, _scene_of(scene).mag_limit, sv)
+        plan.append((method, variant, scene, run))
+    proc, url = _start_view()
+    try:
+        with pw.sync_playwright() as p:
+            home = tmp_path / "browser-home"
+            home.mkdir()
+            env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
+                   "XDG_CONFIG_HOME": str(home / ".config")}
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS, env=env)
+            try:
+                pg = _open(browser, url)
+                pg.get_by_role("tab", name="Scenario").click()
+                pg.get_by_role("checkbox", name="Solve on every change").uncheck()
+                story = {}
+                for method, variant, scene, run in plan:
+                    pg.get_by_role("tab", name="Scenario").click()
+                    for label, value in {**ORION, **scene}.items():
+                        _type(pg, label, value)
+                        pg.wait_for_timeout(150)
+                    _choose(pg, "Variant", variant)
+                    _choose(pg, "Method", method)
+                    pg.get_by_role("button", name="Solve", exact=True).click()
+                    pg.get_by_text(f"by {method} ({variant})", exact=False).first.wait_for(timeout=120000)
+                    n = len(run.drawables)
+                    pg.get_by_role("tab", name="Steps").click()
+                    seen = []
+                    for label, k in (("first", 0), ("middle", n // 2), ("last", n - 1)):
+                        _type(pg, "Step", k)
+                        pg.get_by_text(f"Step {k + 1} / {n} · {run.drawables[k].kind}", exact=False).first.wait_for(
+                            timeout=60000)
+                        pg.wait_for_timeout(500)
+                        seen.append((k, pg.evaluate(JS_GEOMETRY, NODES["candidates"])[0],
+                                     pg.evaluate(JS_VISIBLE, NODES["match_stars"])))
+                        pg.evaluate(JS_PANEL_TOP)
+                        pg.mouse.move(5, 5)
+                        _settle(pg)
+                        shot = tmp_path / f"steps-{method}-{label}.png"
+                        pg.screenshot(path=str(shot))
+                        _keep(shot)
+                        if os.environ.get("SKYVIEW_UPDATE_DOC_IMAGES") == "1":
+                            DOC_IMAGES.mkdir(exist_ok=True)
+                            cv2.imwrite(str(DOC_IMAGES / shot.name), cv2.imread(str(shot)))
+                    story[method] = (run, seen)
+                    if not run.result.solved:  # why not, in words, in the panel at the last step
+                        pg.get_by_text("Not solved.", exact=False).first.wait_for(timeout=10000)
+                # the identification is drawn only once it is made
+                for method, (run, seen) in story.items():
+                    assert seen[0][2] is False, (method, seen)
+                    assert seen[-1][2] is run.result.solved, (method, seen)
+                # the angle method's hypotheses fall 950 -> 248 -> 1: its candidate arcs on screen fall with them
+                run, _ = story["angle"]
+                surviving = [v.surviving for v in run.drawables[:3]]
+                assert surviving[0] > surviving[1] > surviving[2] == 1, surviving
+                pg.get_by_role("tab", name="Scenario").click()
+                _choose(pg, "Method", "angle")  # the scene is Orion again (svd's), the variant improved
+                pg.get_by_role("button", name="Solve", exact=True).click()
+                pg.get_by_text("by angle (improved)", exact=False).first.wait_for(timeout=120000)
+                pg.get_by_role("tab", name="Steps").click()
+                arcs = []
+                for k in range(3):
+                    _type(pg, "Step", k)
+                    pg.get_by_text(f"Step {k + 1} / {len(run.drawables)} · {run.drawables[k].kind}",
+                                   exact=False).first.wait_for(timeout=60000)
+                    pg.wait_for_timeout(500)
+                    arcs.append(pg.evaluate(JS_GEOMETRY, NODES["candidates"])[0])
+                FIGURES["angle_story_arcs"] = arcs
+                _save_figures()
+                assert arcs[0] > arcs[1] > arcs[2] > 0, arcs
+            finally:
+                browser.close()
+    finally:
+        _stop_view(proc)
 
 
 def test_view_command_serves_locally_and_stops_on_ctrl_c():

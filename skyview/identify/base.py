@@ -7,9 +7,13 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
+
+from skyview.identify.layers import Layer, legacy_dict
+
+L = TypeVar("L")
 
 IDENTIFIED = "identified"
 INCONCLUSIVE = "inconclusive"
@@ -43,7 +47,9 @@ class Step:
     observed: observed-star indices involved. catalog: catalog rows involved (capped for size).
     groups: candidate catalog tuples (pairs, triangles, ...) to draw, capped; rows of the catalog.
     numbers: the figures behind the decision (candidates, bounds, costs, posteriors, ...).
-    extra: method-specific arrays the viewer may draw (a GA population, a posterior, ...).
+    layers: typed records of what the method knows after the step (`skyview.identify.layers`: the
+    surviving hypotheses, a GA population and its search region, a posterior, candidate attitudes);
+    `skyview.present` turns them into drawables for every sink.
     """
 
     kind: str
@@ -52,7 +58,16 @@ class Step:
     catalog: list[int] = field(default_factory=list)
     groups: list[tuple[int, ...]] = field(default_factory=list)
     numbers: dict[str, float] = field(default_factory=dict)
-    extra: dict[str, Any] = field(default_factory=dict)
+    layers: tuple[Layer, ...] = ()
+
+    def layer(self, kind: type[L]) -> L | None:
+        """The step's first layer of type `kind`, or None."""
+        return next((la for la in self.layers if isinstance(la, kind)), None)
+
+    @property
+    def extra(self) -> dict[str, Any]:
+        """Read-only: the layers as the former `extra` dict, for code not yet moved to `layer()`."""
+        return legacy_dict(self.layers)
 
     def to_dict(self) -> dict:
         return {
@@ -127,6 +142,22 @@ class Identifier(ABC):
     @abstractmethod
     def identify(self, obs: Observation) -> Identification:
         """Identify the observed stars of one frame."""
+
+
+class SequenceIdentifier(Identifier):
+    """A method that identifies over a sequence of frames with known turns between them (one frame alone
+    is only its first step). Sinks and runners ask `is_sequence_method`, never for an attribute."""
+
+    @abstractmethod
+    def identify_sequence(self, observations, turns=None, **kwargs) -> list[Identification]:
+        """Identify frame by frame: observations (one `Observation` per frame) and the known turns
+        between consecutive frames; one `Identification` per frame."""
+
+
+def is_sequence_method(method_or_class) -> bool:
+    """Whether a method (its class or an instance) identifies over sequences (`SequenceIdentifier`)."""
+    cls = method_or_class if isinstance(method_or_class, type) else type(method_or_class)
+    return issubclass(cls, SequenceIdentifier)
 
 
 def _plain(x: Any) -> Any:

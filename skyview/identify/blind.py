@@ -53,6 +53,7 @@ _PAIR_INDEX.update({(b, a): k for (a, b), k in list(_PAIR_INDEX.items())})
 # for each permutation p, the catalog edge that lands on each image edge
 PERM_EDGES = np.array([[_PAIR_INDEX[(int(p[a]), int(p[b]))] for a, b in pdb.PAIRS_OF_FOUR] for p in PERMUTATIONS])
 CAP = 200
+WIDE_FROM_DEG = 54.0  # FOVs above this are searched after the narrower ones (see BlindIdentifier.identify)
 BLEND_DELTA_MAG = 2.5  # a companion this much fainter moves a blended centroid by < 10 % of the separation
 
 
@@ -113,6 +114,9 @@ class _Search:
     checks: int = 0
     shown: int = 0
     out_of_budget: bool = False
+    timed_out: bool = False
+    gave_up: str = ""  # how many checks and how long, when the budget ran out
+    checks_before: int = 0  # checks of the other FOV section (see identify)
     reason: str = ""
 
     def __post_init__(self):
@@ -172,31 +176,48 @@ class BlindIdentifier:
         quads = np.array(list(itertools.combinations(range(n_pat), 4)), dtype=np.int64)
         # brightest first: by the faintest star of the quad, then by the sum of ranks
         quads = quads[np.lexsort((quads.sum(axis=1), quads.max(axis=1)))]
-        # in batches: the quads of the brightest 8 stars, then those that add the next stars
+        # in batches: the quads of the brightest 8 stars, then those that add the next stars. Fields
+        # wider than WIDE_FROM_DEG (a ladder twice as long, for a few cameras) are a section of their
+        # own, searched after the narrower one at each batch, each section with its own count of checks
         state = _Search(uv, min(len(uv), p.verify_stars), width, height)
         n_cands = 0
         res = None
+        sections = [(a, b) for a, b in ((lo, min(hi, WIDE_FROM_DEG)), (max(lo, WIDE_FROM_DEG), hi)) if a < b]
+        spent = [0] * len(sections)
+        exhausted: set[int] = set()
         for upto in sorted({min(n_pat, k) for k in (8, 10, 12, 14, 16, n_pat) if k <= n_pat} | {n_pat}):
             batch = np.flatnonzero((quads.max(axis=1) < upto) & (quads.max(axis=1) >= state.done_upto))
             state.done_upto = upto
             if len(batch) == 0:
                 continue
-            cands = self._lookup(uv[:n_pat], quads, batch, width, height, lo, hi)
-            n_cands += len(cands["pattern"])
-            shown = self.rows[cands["pattern"][:CAP]]
-            steps.append(Step("lookup", f"patterns of four among the {upto} brightest stars ({len(batch)} new), "
-                                        f"FOV {lo:.2f}-{hi:.2f} deg: {len(cands['pattern'])} catalog patterns agree",
-                              observed=list(range(upto)),
-                              catalog=sorted({int(r) for r in shown.ravel()}),
-                              groups=[tuple(int(r) for r in g) for g in shown],
-                              numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
-                                       "fov_min_deg": lo, "fov_max_deg": hi}))
-            res = self._check(uv, quads, cands, state, steps, t0)
-            if res is not None or state.out_of_budget:
+            for k, (s_lo, s_hi) in enumerate(sections):
+                if k in exhausted:
+                    continue
+                cands = self._lookup(uv[:n_pat], quads, batch, width, height, s_lo, s_hi)
+                n_cands += len(cands["pattern"])
+                shown = self.rows[cands["pattern"][:CAP]]
+                steps.append(Step("lookup", f"patterns of four among the {upto} brightest stars ({len(batch)} new), "
+                                            f"FOV {s_lo:.2f}-{s_hi:.2f} deg: {len(cands['pattern'])} catalog patterns "
+                                            "agree",
+                                  observed=list(range(upto)),
+                                  catalog=sorted({int(r) for r in shown.ravel()}),
+                                  groups=[tuple(int(r) for r in g) for g in shown],
+                                  numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
+                                           "fov_min_deg": s_lo, "fov_max_deg": s_hi}))
+                state.checks_before = state.checks - spent[k]  # _check counts this section's checks only
+                before = state.checks
+                res = self._check(uv, quads, cands, state, steps, t0)
+                spent[k] += state.checks - before
+                if res is not None or state.timed_out:
+                    break
+                if state.out_of_budget:
+                    exhausted.add(k)
+                    state.out_of_budget = False
+            if res is not None or state.timed_out or len(exhausted) == len(sections):
                 break
         if res is not None:
             return res
-        reason = state.reason if state.checks else (
+        reason = ": ".join(x for x in (state.gave_up, state.reason) if x) if state.checks else (
             "no catalog pattern matches the brightest stars (not a star field, or its FOV is outside "
             f"{lo:.1f}-{hi:.1f} deg)")
         return self._fail(INCONCLUSIVE if state.checks else FAILED, reason, steps,
@@ -252,10 +273,10 @@ class BlindIdentifier:
         p = self.params
         width, height, n_obs = state.width, state.height, state.n_obs
         for q, pr, fov in zip(cands["quad"], cands["pattern"], cands["fov"]):
-            if state.checks >= p.max_checks or time.perf_counter() - t0 > p.time_budget_s:
+            state.timed_out = time.perf_counter() - t0 > p.time_budget_s
+            if state.checks - state.checks_before >= p.max_checks or state.timed_out:
                 state.out_of_budget = True
-                state.reason = (f"gave up after {state.checks} hypotheses ({time.perf_counter() - t0:.1f} s): "
-                                + state.reason)
+                state.gave_up = f"gave up after {state.checks} hypotheses ({time.perf_counter() - t0:.1f} s)"
                 return None
             obs4 = quads[q]
             rows4 = self.rows[pr].astype(np.int64)

@@ -1,9 +1,12 @@
 """The ellipticity pivot-star method (Sun, Qi, Jin & Wang 2017, Optik).
 
 Guide catalog (section 3.1). Stars brighter than 6.0 (the paper: Mv from SAO; here Hipparcos Hp),
-without double and variable stars (FLAG_DOUBLE | FLAG_VARIABLE), then without every star that has
-another remaining star closer than 0.2 deg (both stars of the pair go). The paper's catalog has
-N = 3,974 stars; ours (Hipparcos-2 at epoch 2025.0) has N = 2,994. The identifier is handed the
+without double stars, then without every star that has another remaining star closer than 0.2 deg
+(both stars of the pair go). The paper's catalog has N = 3,974 stars. "Double stars" are read as
+Hipparcos entries with more than one resolved component (FLAG_MULTIPLE): N = 3,865 (-2.7 %). The
+Hipparcos duplicity and variability-annex flags as well (drop_flags = FLAG_DOUBLE | FLAG_VARIABLE)
+would leave 2,994 (-25 %): the variability annex lists 0.01-mag micro-variables that no SAO-based
+"changing stars" list holds, so the paper's catalog cannot have dropped them. The identifier is handed the
 scenario's catalog (every star the camera sees); the guide catalog is a subset of its rows, and
 everything the method reports (matches, steps, groups) is mapped back to rows of the catalog it was
 given. Verification reprojects that given catalog: the image holds all of its stars, not only the
@@ -32,12 +35,12 @@ already camera-frame unit vectors in the OpenCV convention, so this R is skyview
 verification (`skyview.identify.verify`), and only a verified candidate is an identification.
 
 The paper's camera sees its guide catalog. A real one (and skyview's simulator) sees every star
-brighter than 6.0: with Hipparcos, 4,559 stars, of which the guide catalog keeps 2,994. A third of
-the observed stars are then unknown to the database, and the pivot or one of its 3 nearest observed
-stars is such a star in most frames: the paper's method identifies 22.5 % of the full-sky grid
-(96.6 % when the sky holds only guide stars; `skyview.identify.ellipticity_sweep`). The options
-below bring it to 99.95 % (99.99 %), never wrongly; drop_flags=0 (keep doubles and variables in the
-guide catalog, off by default: real variables change brightness) lifts the paper's variant to ~75 %.
+brighter than 6.0: with Hipparcos, 4,559 stars, of which the guide catalog keeps 3,865. The others
+are unknown to the database, and in many frames the pivot or one of its 3 nearest observed stars is
+such a star. Vector level, 300 random attitudes of sun20's camera (seed 1, 10 urad,
+`python -m skyview.identify.measure`-style run, docs/methods.md): 58.7 % identified with this
+catalog, 25.3 % with the 2,994-star catalog (duplicity and variability flags too), 93.3 % with
+drop_flags=0 (every star; not the paper's). The options below bring it to ~100 %, never wrongly.
 
 What the paper does not say, and what we do. (a) When the pivot has fewer than 3 adjacent stars in
 the image, the paper's Table 3 counts such "first selected pivot stars" among its successes, so it
@@ -53,9 +56,9 @@ identifies 59 % of random attitudes, 82 % with 4 or 5 adjacent stars.
 
 Improvements (options, off by default; `IMPROVED_PARAMS` turns them on, with n_adjacent = 8):
 - next_pivot: on failure take the next pivot nearest the boresight (up to max_pivots = 30), and
-  pivot_radius_deg = 8 instead of 4: with the paper's 4 deg, 3.1 % of the full-sky grid has no guide
-  star near enough (Hipparcos N = 2,994; ~0.8 % expected for the paper's N = 3,974), and the paper
-  still reports 100 %, so its 4 deg cannot have been a hard limit;
+  pivot_radius_deg = 8 instead of 4: with the paper's 4 deg some boresights of a full-sky grid have no
+  guide star near enough (3.1 % with the former 2,994-star guide catalog), and the paper still
+  reports 100 %, so its 4 deg cannot have been a hard limit;
 - adaptive_thresholds: the thresholds follow the measurement noise sigma instead of the paper's fixed
   0.001 and 0.02 deg: the angle threshold is beta sqrt(2) sigma, and the eps threshold is beta times
   the first-order standard deviation of the observed eps (d sigma_k = u_k^T dA v_k for each
@@ -85,11 +88,12 @@ from scipy.spatial import cKDTree
 
 from skyview.attitude import attitude_error_arcsec, svd_attitude
 from skyview.camera import Camera
-from skyview.catalog import FLAG_DOUBLE, FLAG_VARIABLE, GuideCatalog, chord
+from skyview.catalog import FLAG_MULTIPLE, GuideCatalog, chord
 from skyview.errors import BadInput
 from skyview.identify import database
 from skyview.identify.base import (FAILED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
+from skyview.identify.layers import Attitudes, Hypotheses
 from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius, verify
 
 # the paper's parameters (section 3)
@@ -100,7 +104,9 @@ EPS_THRESHOLD = 0.001  # ellipticity threshold
 ANGLE_THRESHOLD_DEG = 0.02  # angular-separation threshold
 PIVOT_RADIUS_DEG = 4.0  # the pivot is no farther than this from the boresight
 N_ADJACENT = 3  # adjacent stars per pattern (the paper's option for fake stars: 4-5 in the image)
-DROP_FLAGS = FLAG_DOUBLE | FLAG_VARIABLE  # "double stars, changing stars ... are discarded"
+# "double stars, changing stars ... are discarded": Hipparcos entries with resolved components (3,865 stars
+# at Hp <= 6.0 against the paper's 3,974; with the duplicity and variability flags too: 2,994)
+DROP_FLAGS = FLAG_MULTIPLE
 
 IMPROVED_PARAMS = {"n_adjacent": 8, "next_pivot": True, "pivot_radius_deg": 8.0, "adaptive_thresholds": True,
                    "theta_min_slack": True, "resolve_ties": True}
@@ -420,7 +426,7 @@ class EllipticityMethod(Identifier):
                               numbers={"eps": float(eps[m]), "eps_threshold": float(tol_eps[m]),
                                        "angle_threshold_deg": float(np.degrees(tol_theta)),
                                        "eps_window": len(window), "candidates": len(within)},
-                              extra={"candidates": self.stars[within][:CAP].copy()}))
+                              layers=(Hypotheses.sample(o, self.stars[within]),)))
             if stats["first_chain"]["outcome"] == "none":
                 stats["first_chain"] = (
                     {"outcome": "unique", "matches": dict(zip(o, self.stars[within[0]].tolist()))} if len(within) == 1
@@ -449,7 +455,7 @@ class EllipticityMethod(Identifier):
                                   observed=sorted(ver.matches or hyp),
                                   catalog=[int(r) for _, r in sorted((ver.matches or hyp).items())][:CAP],
                                   groups=[tuple(rows.tolist())], numbers=num,
-                                  extra={"R_singular_vectors": R_sv}))
+                                  layers=(Attitudes.of(R_sv, name="singular-vector attitude"),)))
                 result.verification = vd
                 if ver.passed:
                     result.accept(ver)

@@ -50,10 +50,11 @@ sigma (n sqrt(2/pi) + 4 sqrt(n (1 - 2/pi))). The roll GA converges when its cost
 sum_k min(pi, (3 sqrt(2) sigma + eps_b) / R_k) with eps_b = 3 C / n from the final position cost C
 (the angle error of a star at R_k from a position error eps_b and noise).
 
-Magnitude pre-filter (the paper's proposal): a chromosome whose nearest catalog star is not within
-mag_tolerance = 1 magnitude of the observed star nearest the boresight gets no cost (infinite).
-Instrument brightness is used as relative magnitude only: both sides are taken relative to the
-median star (by brightness rank) of the stars they use. mag_tolerance=None switches it off.
+Magnitude pre-filter (proposed by the paper as "another option", not part of the method it tested,
+so off in the paper variant and on in `IMPROVED_PARAMS`): a chromosome whose nearest catalog star is
+not within mag_tolerance = 1 magnitude of the observed star nearest the boresight gets no cost
+(infinite). Instrument brightness is used as relative magnitude only: both sides are taken relative
+to the median star (by brightness rank) of the stars they use. mag_tolerance=None switches it off.
 
 Verification (the identifier contract). The GA's answer (boresight + roll) is refined with the
 paired stars (SVD, outliers dropped), every observed star is matched to the catalog within the
@@ -71,13 +72,12 @@ forked processes; attempts are verified in restart order with per-restart seeds,
 the same as with workers=1.
 
 Step record. One step per generation (kind "generation"): numbers best_cost, threshold, stage,
-generation, evaluations, attempt, box_half_width_deg; extra["box"] the search box: {"kind": "sky" |
-"square" | "roll", "center", "half_width_rad", "corners" ((4, 3) ICRS, square only), "radius_rad" (roll
-only: the circle of the image-up directions, = half_width_rad)}; viewers draw the square and the circle
-(skyview.sky_geometry.outline_polyline).
-extra["population"] is the population as (P, 3) ICRS unit vectors (float32, best first) with
-extra["costs"] — for the roll GA the direction of image-up at half the circle radius from the
-boresight, one per roll chromosome, with extra["roll_rad"] the rolls (skyview's convention). To keep
+generation, evaluations, attempt, box_half_width_deg; layers (skyview.identify.layers): the search box
+as a SearchRegion (kind "sky" | "square" | "roll", center, half_width_rad, corners ((4, 3) ICRS, square
+only), radius_rad (roll only: the circle of the image-up directions, = half_width_rad)), drawn by every
+sink through skyview.present; the population as a Population: (P, 3) ICRS unit vectors (float32, best
+first) with their costs — for the roll GA the direction of image-up at half the circle radius from the
+boresight, one per roll chromosome, with roll_rad the rolls (skyview's convention). To keep
 a failing 600-generation stage small, the population is attached to generations 0-20, every 10th,
 those that improve the best cost or converge, and the last of each stage (the generations in
 between show none). Steps "converged", "restart", "answer" and "verify" mark the stages.
@@ -104,6 +104,7 @@ from skyview.errors import BadInput
 from skyview.identify import database
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
+from skyview.identify.layers import Attitudes, Hypotheses, Population, SearchRegion
 from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_one_to_one,
                                      match_radius, verify)
 
@@ -123,9 +124,9 @@ PAPER_MAG_TOLERANCE = 1.0  # the pre-filter's +-1 magnitude
 # the observed nearest-star distance from random catalog stars ("rings") instead of 300 uniform ones;
 # a stage whose best cost has not improved for 60 generations restarts at once instead of waiting
 # for generation 600; with 10 stars or more in the distance vector, eq. 3 forgives one false or
-# missing star (outliers=1).
+# missing star (outliers=1); the magnitude pre-filter the paper only proposes (mag_tolerance=1).
 IMPROVED_PARAMS = {"seeding": "rings", "initial": 60_000, "stall_generations": 60, "max_restarts": 30,
-                   "outliers": 1}
+                   "outliers": 1, "mag_tolerance": PAPER_MAG_TOLERANCE}
 SEEDINGS = ("uniform", "rings")
 # step record: the population is kept for generations 0-20, every 10th, those that improve the best
 # cost or converge, and the last of each stage (a failing 600-generation stage keeps ~100, not 600)
@@ -688,7 +689,7 @@ class GeneticMethod(Identifier):
                  roll_population: int = PAPER_ROLL[1], roll_survivors: int = PAPER_ROLL[2],
                  mutation_rate: float = PAPER_MUTATION_RATE, max_generations: int = PAPER_MAX_GENERATIONS,
                  deltas: tuple[float, ...] = PAPER_DELTAS, delta_fov: float = PAPER_FOV,
-                 box_factor: float = PAPER_BOX_FACTOR, mag_tolerance: float | None = PAPER_MAG_TOLERANCE,
+                 box_factor: float = PAPER_BOX_FACTOR, mag_tolerance: float | None = None,
                  max_restarts: int = 20, stall_generations: int | None = None, seeding: str = "uniform",
                  outliers: int = 0, outlier_min_stars: int = 10, min_stars: int = 3, complete_below: int = 40,
                  merge_px: float = 3.0,
@@ -897,7 +898,7 @@ class GeneticMethod(Identifier):
                               numbers={k: vd[k] for k in ("n_agree", "n_tested", "p_false", "threshold_effective",
                                                          "radius_arcsec", "n_hypotheses", "p_single")}
                               | {"passed": float(ver.passed), "attempt": att.index, "pair_hypotheses": n_pair},
-                              extra={"hypothesis": dict(hyp)}))
+                              layers=(Hypotheses.single(hyp),)))
             result.verification = vd
             if ver.passed:
                 result.accept(ver)
@@ -1030,7 +1031,7 @@ class GeneticMethod(Identifier):
                               numbers={"ra_deg": float(np.degrees(ra)), "dec_deg": float(np.degrees(dec)),
                                        "roll_deg": float(np.degrees(roll)), "matched": len(att.matches),
                                        "attempt": att.index},
-                              extra={"R": att.R.copy(), "boresight": att.R[2].copy()}))
+                              layers=(Attitudes.of(att.R, name="GA answer"),)))
         att.time_s = time.perf_counter() - t0
         return att
 
@@ -1041,31 +1042,31 @@ class GeneticMethod(Identifier):
 
         best_so_far = [np.inf]
 
-        def population_extra(pop, c):
-            extra = {"population": to_vectors(pop).astype(np.float32), "costs": c.astype(np.float32)}
-            if roll:
-                extra["roll_rad"] = _phi_to_roll(box["center"], pop[:, 0])
-            return extra
+        region = SearchRegion.from_box(box)  # one record for every step of the stage
+
+        def population_layer(pop, c):
+            return Population(to_vectors(pop).astype(np.float32), c.astype(np.float32),
+                              _phi_to_roll(box["center"], pop[:, 0]) if roll else None)
 
         def record(gen, pop, c, evals):
             best = float(c[0])
-            extra = {"box": box}
+            layers = (region,)
             if (gen <= RECORD_FIRST_GENERATIONS or gen % RECORD_EVERY == 0 or best < best_so_far[0]
                     or best <= threshold):
-                extra.update(population_extra(pop, c))
+                layers += (population_layer(pop, c),)
             best_so_far[0] = min(best_so_far[0], best)
             att.steps.append(Step("generation", f"attempt {att.index + 1}, {name} GA (stage {stage}), generation "
                                                 f"{gen}: best cost {_deg(best)}",
                                   numbers={"best_cost": best, "threshold": float(threshold), "stage": stage,
                                            "generation": gen, "evaluations": evals, "attempt": att.index,
                                            "box_half_width_deg": half_deg},
-                                  extra=extra))
+                                  layers=layers))
 
         res = run_ga(cost, space, sizes, rng, mutation_rate=self.mutation_rate, threshold=threshold,
                      max_generations=self.max_generations, stall_generations=self.stall_generations,
                      initial=initial, stop=self._stop, on_generation=record)
-        if "population" not in att.steps[-1].extra:  # the last generation of a stage always has it
-            att.steps[-1].extra.update(population_extra(res.population, res.costs))
+        if att.steps[-1].layer(Population) is None:  # the last generation of a stage always has it
+            att.steps[-1].layers += (population_layer(res.population, res.costs),)
         att.generations.append(res.generations)
         att.evaluations += res.evaluations
         att.costs.append(res.cost)

@@ -32,7 +32,7 @@ ANGLE_CONFIGS = {
     "paper": {},
     "fewest": {"order": "fewest"},
     "backtrack": {"backtrack": True},
-    "loops+backtrack": {"close_loops": True, "backtrack": True},
+    "loops+backtrack": {"close_loops": True, "backtrack": True, "pivoting": "join"},  # loops act in the join
     "tetra3-statistic": {"statistic": "tetra3"},
 }
 

@@ -55,7 +55,7 @@ DEFAULT_BUDGET_MB = 1024
 class PatternParams:
     """What a pattern database depends on besides the catalog (all angles in degrees)."""
 
-    max_edge_deg: float = 45.0  # the largest pattern: fits a field of about 50-55 deg
+    max_edge_deg: float = 67.5  # the largest pattern: fits a field of about 80 deg
     min_edge_deg: float = 1.7  # the smallest: fits a field of about 2.5-3 deg
     step: float = 1.5  # ratio of consecutive levels' largest edges
     stars_per_circle: int = 7  # pattern stars: fewer than this many brighter within D_l / 2

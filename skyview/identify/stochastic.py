@@ -99,8 +99,8 @@ from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, chord
 from skyview.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import (FAILED, INCONCLUSIVE, Identification, Identifier, Observation,
-                                   Step)
+from skyview.identify.base import FAILED, INCONCLUSIVE, Identification, Observation, SequenceIdentifier, Step
+from skyview.identify.layers import Posterior
 from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, frame_stars,
                                      match_one_to_one, match_radius, verify, verification_step)
 
@@ -288,7 +288,7 @@ class _Field:
     x: np.ndarray
 
 
-class StochasticMethod(Identifier):
+class StochasticMethod(SequenceIdentifier):
     """Udomkesmalee et al.'s stochastic identification over a sequence of frames, ending in the
     shared verification. `identify(obs)` is one frame (the prior update only);
     `identify_sequence(observations, turns)` runs the recursion of eq. 3."""
@@ -481,8 +481,7 @@ class StochasticMethod(Identifier):
                           f"sigma_theta {fld.x[5]:.3f} rad",
                           observed=fld.used.tolist(),
                           numbers={"frame": k, "designated": fld.designated,
-                                   **{f"x_{n}": float(v) for n, v in zip(STAT_NAMES, self._report_x(fld.x))}},
-                          extra={"x": fld.x.copy()}))
+                                   **{f"x_{n}": float(v) for n, v in zip(STAT_NAMES, self._report_x(fld.x))}}))
 
         # likelihood (eq. 5) and the recursion (eq. 3)
         if first and self.hypothesis == "boresight":  # row r: the boresight is on catalog star r
@@ -789,10 +788,8 @@ class StochasticMethod(Identifier):
         steps.append(Step("update", note, observed=[fld.designated],
                           catalog=[int(c) for c in stars[top]],
                           numbers=numbers,
-                          extra={"posterior_top": mass[top].copy(), "top_rows": stars[top].copy(),
-                                 "xi_top": self._xi(stars[top]), "x": fld.x.copy(),
-                                 "posterior": state.posterior.astype(np.float32),
-                                 "rows": state.rows.astype(np.int32)}))
+                          layers=(Posterior(state.posterior.astype(np.float64), state.rows.astype(np.int32),
+                                            stars[top].copy(), mass[top].copy(), self._xi(stars[top])),)))
         state.history.append({kk: v for kk, v in numbers.items()} | {"designated": fld.designated})
 
     def _conclude(self, state: StochasticState, obs: Observation, V: np.ndarray, fld: _Field, sigma: float,

@@ -31,11 +31,16 @@ catalog and camera, vectorised, and cached (`skyview.identify.database`):
    M guide stars;
 5. the L x 3 singular values of the sets, and a k-vector (`skyview.identify.kvector`) on sigma_2.
 
-The paper also says that measured stars closer than 0.2 in magnitude may be deleted and that
-"analogous steps must be taken in creating the catalog"; its catalog section and Table 1 do not do
-so, and doing it (delta_m_catalog = 0.2: delete every star within 0.2 mag of its neighbour in the
-sorted list) leaves 15,826 of the 18,950 boresights at Hp 7.3 with fewer than 4 stars. So the catalog
-is built as Table 1's (delta_m_catalog = 0, an option).
+The ranking rule (the paper: "choose the stars in ascending order ... delete measured stars that are
+not separated by at least a relative magnitude increment of 0.2 ... analogous steps must be taken in
+creating the catalog"): walking from the brightest, a star within delta_m of the last star kept is
+deleted (delta_m_rule="thin"), on the measured stars (delta_m = 0.2) and in every boresight's sorted
+list of the catalog (delta_m_catalog = 0.2), so both sides make the same set. At Hp 7.3, 8 deg:
+M = 7,246 guide stars, L = 10,379 sets, 494 KiB in Table 1's format, 7 of 18,950 boresights without
+4 stars (Table 1: 5,761, 11,157, 484 KB; without the rule on the catalog, delta_m_catalog = 0:
+5,699, 10,547, 463 KiB). Deleting both stars of a close pair (delta_m_rule="pairs") on the catalog
+leaves 15,826 boresights with fewer than 4 stars; on the measured side only (the former reading) it
+breaks the set in most fields: 25 % identified against 94.3 % (vector level, 300 attitudes, seed 1).
 
 The paper's storage (Table 1) is M x 3 doubles + L x 4 two-byte integers + L x 3 doubles:
 5,761 x 24 + 11,157 x 8 + 11,157 x 24 bytes = 484 KB (1 KB = 1024 bytes). `database_info` reports
@@ -48,9 +53,8 @@ Recognition (the paper's "pattern recognition process"):
 
 1. the measured stars are ranked by brightness (relative magnitudes -2.5 log10(brightness): a rank
    only); a measured star is the boresight, brightest first;
-2. the measured stars within fov_radius_rad of it, brightest first; the ranking-ambiguity rule: the
-   stars whose relative magnitude is within delta_m = 0.2 of the star before or after them are
-   deleted (both stars of an ambiguous pair); the N brightest left are the set. Fewer than N stars
+2. the measured stars within fov_radius_rad of it, brightest first; the ranking-ambiguity rule (above:
+   a star within delta_m = 0.2 of the last star kept is deleted); the N brightest left are the set. Fewer than N stars
    in the circle: "too few stars"; fewer than N left after the deletion: "ranking";
 3. the singular values of W; the catalog sets whose singular values all lie within z_s s_k of the
    measured ones. The bound: to first order a tangent-plane error dw_i moves sigma_k by
@@ -107,9 +111,8 @@ Improvements (options, all off in the paper's method; IMPROVED_PARAMS turns them
   (with the paper's 4 deg only the image centre has its whole circle inside an 8 x 8 deg sensor);
 - N=3: sets of the 3 brightest: fewer stars per circle needed in sparse fields.
 
-Measured (`python -m skyview bench`, 300 image attitudes, seed 0; never a wrong identification):
-juang8 paper 27.0 %, improved 99.3 %; cole8 paper 13.7 %, improved 61.7 %. The paper's method
-without the 0.2 mag deletion (delta_m=0): juang8 82.3 %, cole8 42.0 %.
+Measured: docs/methods.md and docs/benchmarks.md (`skyview bench --compare` and
+`skyview bench --method svd`, with their seeds).
 """
 
 from __future__ import annotations
@@ -130,6 +133,7 @@ from skyview.identify import database
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
 from skyview.identify.kvector import KVector
+from skyview.identify.layers import Attitudes, StarSets
 from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius,
                                      verification_step, verify)
 
@@ -137,7 +141,10 @@ SIGN_RULES = ("max", "dot")
 BORESIGHT_ORDERS = ("brightness", "inside")
 CAUSES = ("too_few_stars", "missing_set", "ranking", "rejected", "ambiguous")
 IMPROVED_PARAMS = {"rank_swaps": True, "boresight_order": "inside", "sign_rule": "dot", "fov_radius_factor": 0.75,
-                   "N": 3}
+                   "N": 3, "delta_m_catalog": 0.0}
+# the delta_m rule: delete one of every close pair walking from the brightest ("thin", the paper's, on
+# both sides) or both stars of a close pair ("pairs")
+DELTA_M_RULES = ("thin", "pairs")
 CAP = 200  # catalog rows / groups kept in one step
 MAX_VERIFY = 8  # candidate sets verified per measured set
 DATABASE_VERSION = 1
@@ -159,6 +166,48 @@ def relative_magnitudes(brightness: np.ndarray) -> np.ndarray:
     if np.any(ok):
         m[ok] = -2.5 * np.log10(b[ok] / b[ok].max())
     return m
+
+
+def thinned_ranks(mag_sorted: np.ndarray, delta_m: float) -> np.ndarray:
+    """Stars of a magnitude-sorted list deleted by the paper's rule read as "choose the stars in ascending
+    order ... delete measured stars that are not separated by at least delta_m": walking from the
+    brightest, a star within delta_m of the last star kept is deleted (one of every close pair)."""
+    m = np.asarray(mag_sorted, dtype=np.float64)
+    out = np.zeros(len(m), dtype=bool)
+    if delta_m <= 0 or len(m) < 2:
+        return out
+    last = m[0]
+    for k in range(1, len(m)):
+        if m[k] - last < delta_m:
+            out[k] = True
+        else:
+            last = m[k]
+    return out
+
+
+def deleted_ranks(mag_sorted: np.ndarray, delta_m: float, rule: str) -> np.ndarray:
+    """The stars the delta_m rule deletes: rule "thin" (`thinned_ranks`) or "pairs" (`ambiguous_ranks`)."""
+    return thinned_ranks(mag_sorted, delta_m) if rule == "thin" else ambiguous_ranks(mag_sorted, delta_m)
+
+
+def _thin_groups(group: np.ndarray, mag: np.ndarray, delta_m: float) -> np.ndarray:
+    """`thinned_ranks` inside each group of a list sorted by (group, magnitude), vectorised over groups."""
+    n = len(group)
+    deleted = np.zeros(n, dtype=bool)
+    if n == 0:
+        return deleted
+    first = np.r_[True, group[1:] != group[:-1]]
+    starts = np.flatnonzero(first)
+    counts = np.diff(np.r_[starts, n])
+    last = mag[starts].copy()
+    for d in range(1, int(counts.max())):
+        live = counts > d
+        e = starts[live] + d
+        close = mag[e] - last[live] < delta_m
+        deleted[e[close]] = True
+        upd = np.flatnonzero(live)[~close]
+        last[upd] = mag[e[~close]]
+    return deleted
 
 
 def ambiguous_ranks(mag_sorted: np.ndarray, delta_m: float) -> np.ndarray:
@@ -305,7 +354,7 @@ def reference_mask(catalog: GuideCatalog, min_separation_rad: float) -> np.ndarr
 
 def build_svd_database(catalog: GuideCatalog, fov_radius_rad: float, N: int = 4, delta_m: float = 0.0,
                        mag_step: float = 0.01, min_separation_rad: float = 0.0,
-                       kvector_fit: str = "line") -> dict[str, np.ndarray]:
+                       kvector_fit: str = "line", delta_m_rule: str = "thin") -> dict[str, np.ndarray]:
     """The paper's mission catalog: L sets of N catalog rows (brightest first), their singular values.
 
     delta_m > 0 deletes, in every boresight's sorted list, the stars within delta_m of their neighbour
@@ -332,7 +381,10 @@ def build_svd_database(catalog: GuideCatalog, fov_radius_rad: float, N: int = 4,
     bo, nb = bo[o], nb[o]
 
     # the ranking-ambiguity rule inside each boresight's list
-    if delta_m > 0 and len(bo) > 1:
+    if delta_m > 0 and len(bo) > 1 and delta_m_rule == "thin":
+        keep = ~_thin_groups(bo, m_ref[nb], delta_m)
+        bo, nb = bo[keep], nb[keep]
+    elif delta_m > 0 and len(bo) > 1:
         same = bo[1:] == bo[:-1]
         close = same & (np.diff(m_ref[nb]) < delta_m)
         amb = np.zeros(len(bo), dtype=bool)
@@ -405,6 +457,7 @@ class _Attempt:
     survivors: int = 0
     verified: int = 0
     matches: dict[int, int] = field(default_factory=dict)  # the paper's answer (unique survivor)
+    verification: dict = field(default_factory=dict)  # the figures of its last verification
 
 
 class SVDMethod(Identifier):
@@ -415,7 +468,7 @@ class SVDMethod(Identifier):
 
     def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *, N: int = 4,
                  fov_radius_rad: float | None = None, fov_radius_factor: float = 1.0, delta_m: float = 0.2,
-                 delta_m_catalog: float = 0.0,
+                 delta_m_catalog: float = 0.2, delta_m_rule: str = "thin",
                  mag_step: float = 0.01, min_separation_rad: float | None = None, beta: float = 3.0,
                  sign_rule: str = "max", boresight_order: str = "brightness", max_boresights: int | None = None,
                  rank_swaps: bool = False, max_sets: int = 8, statistic: str = CALIBRATED,
@@ -436,6 +489,8 @@ class SVDMethod(Identifier):
             raise BadInput(f"delta_m_catalog must be >= 0, not {delta_m_catalog!r}")
         if not (np.isfinite(mag_step) and mag_step >= 0):
             raise BadInput(f"mag_step must be >= 0, not {mag_step!r}")
+        if delta_m_rule not in DELTA_M_RULES:
+            raise BadInput(f"unknown delta_m_rule {delta_m_rule!r}: choose from {', '.join(DELTA_M_RULES)}")
         if min_separation_rad is None:
             min_separation_rad = MIN_SEPARATION_PX * camera.pixel_scale_rad
         if not (np.isfinite(min_separation_rad) and min_separation_rad >= 0):
@@ -465,6 +520,7 @@ class SVDMethod(Identifier):
         self.fov_radius_rad = float(fov_radius_rad)
         self.delta_m = float(delta_m)
         self.delta_m_catalog = float(delta_m_catalog)
+        self.delta_m_rule = delta_m_rule
         self.mag_step = float(mag_step)
         self.min_separation_rad = float(min_separation_rad)
         self.beta = float(beta)
@@ -483,12 +539,14 @@ class SVDMethod(Identifier):
         params = {"N": self.N, "fov_radius_rad": self.fov_radius_rad, "delta_m": self.delta_m_catalog,
                   "mag_step": self.mag_step, "min_separation_rad": self.min_separation_rad,
                   "kvector_fit": kvector_fit, "version": DATABASE_VERSION}
+        if self.delta_m_catalog > 0:
+            params["delta_m_rule"] = delta_m_rule
         self.database_key = database.make_key(self.name, params, catalog, camera)
         # the neighbours of every star within the FOV radius (~32 bytes each, both ways) while built
         arrays, info = database.load_or_build(
             self.database_key,
             lambda: build_svd_database(catalog, self.fov_radius_rad, self.N, self.delta_m_catalog, self.mag_step,
-                                       self.min_separation_rad, kvector_fit),
+                                       self.min_separation_rad, kvector_fit, delta_m_rule),
             what=f"the svd database ({len(catalog):,} stars within {np.degrees(self.fov_radius_rad):.1f} deg)",
             estimate_bytes=64 * database.pairs_estimate(len(catalog), self.fov_radius_rad))
         self.reference = reference_mask(catalog, self.min_separation_rad)
@@ -521,7 +579,7 @@ class SVDMethod(Identifier):
         m = self.catalog.mag[near].astype(np.float64)
         near = near[np.lexsort((near, m))]
         m = self.catalog.mag[near].astype(np.float64)
-        near = near[~ambiguous_ranks(m, self.delta_m_catalog)]
+        near = near[~deleted_ranks(m, self.delta_m_catalog, self.delta_m_rule)]
         if len(near) < self.N:
             return []
         m = self.catalog.mag[near].astype(np.float64)
@@ -570,15 +628,15 @@ class SVDMethod(Identifier):
             if self.rank_swaps:
                 kept = near
             else:
-                kept = near[~ambiguous_ranks(m_near, self.delta_m)]
+                kept = near[~deleted_ranks(m_near, self.delta_m, self.delta_m_rule)]
             steps.append(Step("boresight", f"boresight star {b}: {len(near)} stars within "
                                            f"{np.degrees(self.fov_radius_rad):.2f} deg, {len(near) - len(kept)} "
                                            f"deleted by the {self.delta_m:g} mag rule, set {kept[:N].tolist()}",
                               observed=[b] + [i for i in kept[:N].tolist() if i != b],
                               numbers={"boresight": b, "stars_in_radius": len(near), "deleted": len(near) - len(kept),
                                        **{f"mag_{k + 1}": float(mag[s]) for k, s in enumerate(kept[:N + 1])}},
-                              extra={"within": near.tolist(),
-                                     "deleted": sorted(set(near.tolist()) - set(kept.tolist()))}))
+                              layers=(StarSets.of(within=near.tolist(),
+                                                  deleted=sorted(set(near.tolist()) - set(kept.tolist()))),)))
             changed = bool(len(kept) < len(near) and (len(kept) < N or np.any(
                 ~np.isin(near[mag[near] <= mag[kept[N - 1]]], kept))))
             if len(kept) < N:
@@ -625,9 +683,9 @@ class SVDMethod(Identifier):
                 reasons.append(f"boresight {a.boresight} set {a.stars}: {a.cause}")
             result.reason = ("no boresight star gave a verified set (" + "; ".join(reasons[:6])
                              + ("; ..." if len(reasons) > 6 else "") + ")") if reasons else "no boresight to try"
-            last_ver = [s for s in steps if s.kind == "verify"]
+            last_ver = [a.verification for a in attempts if a.verification]
             if last_ver:
-                result.verification = dict(last_ver[-1].extra.get("verification", {}))
+                result.verification = dict(last_ver[-1])
         first = next((a for a in attempts if a.survivors > 0), None)
         frame_cause = ""
         if result.status != IDENTIFIED:
@@ -754,14 +812,15 @@ class SVDMethod(Identifier):
                               observed=S.tolist(), catalog=rows.tolist(), groups=[tuple(rows.tolist())],
                               numbers={"set": c, "max_residual_arcsec": float(fit.max() * RAD_TO_ARCSEC),
                                        "L1": Ls[j, 0], "L2": Ls[j, 1], "L3": Ls[j, 2]},
-                              extra={"C": Cj.copy()}))
+                              layers=(Attitudes.of(Cj, name="eq. 24 attitude"),)))
             hyp = {int(o): int(r) for o, r in zip(S.tolist(), rows.tolist())}
             counter[0] += 1
             ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=counter[0],
                          n_patterns=len(self.sets), statistic=self.statistic, threshold=self.threshold,
                          radius_rad=match_radius(sigma, self.radius_sigmas))
             vd = ver.to_dict()
-            steps.append(verification_step(ver, hyp, cap=CAP, extra={"verification": vd}))
+            steps.append(verification_step(ver, hyp, cap=CAP))
+            a.verification = vd
             a.verified += 1
             untestable += ver.n_tested == 0
             if ver.passed:

@@ -17,8 +17,10 @@ on the area (parabola fit, as the paper) and one on the polar moment through a s
 paper's "two linked lists"), and each triangle's rank in polar-moment order. Cached with
 `skyview.identify.database` (41 MB, loaded in ~25 ms; built in ~15 s).
 
-Bounds (beta = 3). Area: beta sigma_A with sigma_A from eqs. 20-24 as printed (area_sigma="paper":
-sigma^2 H H^T, the three sides independent with the star's variance), or with the covariance of the
+Bounds (beta = 3). Area: beta sigma_A with sigma_A from eqs. 20-24 (area_sigma="paper": H H^T with
+the three sides independent, each with the variance of an angle between two stars, sigma_p^2 = 2 sigma^2
+(eq. 13): then 0.24 % of true triangles fall outside the 3 sigma bound, the paper's "0.3 %";
+"star-sigma": the star's sigma^2, 1.8 % outside; docs/methods.md), or with the covariance of the
 sides of noisy stars (area_sigma="stars"; see `spherical`: eq. 24 under-states sigma_A by a median
 factor 1.2 and up to 2, and over-states it for slivers). Polar moment: as the paper, a bound from
 simulation stored with the database: MOMENT_SIGMA_TRIANGLES = 1000 random catalog triangles x
@@ -35,8 +37,8 @@ triangles with their polar-moment ranks sorted inside each block (`_count`).
 
 Vertex order. Area and polar moment do not depend on the order of the vertices, so a candidate may
 map onto the observed triangle in 6 orders. vertex_order="paper" (default): as the paper, a candidate
-is a set of three catalog stars; the hypotheses keep all 6 orders, pivoting joins on the shared
-observed stars (which is the paper's "two stars in common"), and the chain ends when ONE SET of
+is a set of three catalog stars; the hypotheses keep all 6 orders, pivoting prunes (or joins) on the
+shared observed stars (the paper's "two stars in common"), and the chain ends when ONE SET of
 catalog stars is left; then its vertex order is taken from the sides and the handedness (below), and
 a set that fits in no order is rejected (the paper would have reported it: see first_chain).
 vertex_order="sides": every candidate is oriented at once, keeping the orders in which each observed
@@ -45,7 +47,18 @@ agrees: the sign of the triple product p.(q x r) is that of the catalog triangle
 rotation keeps it, a mirror flips it), tested where the observed sign is certain (beyond beta of its
 sigma); after each pivot every pair of stars of a hypothesis must match its observed angle.
 
-Pivoting. The first triangle is the one with the largest area (order="largest", default: the paper
+Pivoting as printed (pivoting="shared-star", the default; section III-E): each triangle's candidates
+form a list; the next triangle shares two observed stars with the current one, and a candidate of
+either list survives when two of its catalog stars sit, on those two observed stars, in some
+candidate of the other list ("any solution in each list that does not have two stars in common with
+at least one solution in the other lists is discarded"); the following triangle meets the pruned list
+of the one before it only. The chain ends when a list holds one star set, when no triangle shares two
+stars with the current one, or at the pivot limit; the answer is that triangle's three stars, every
+other star is left to verify with. pivoting="lists": two common stars anywhere (the print taken
+literally). pivoting="join" (beyond the paper, in IMPROVED_PARAMS; the former paper variant) is the
+chain below.
+
+Pivoting by joins. The first triangle is the one with the largest area (order="largest", default: the paper
 starts the angle method with the largest angle, "which typically offers the fewest solutions"), or the
 fewest candidates (order="fewest", the paper's "ideal" order: needs every triangle's candidates
 counted). Each pivot takes the next triangle in that order that shares two stars with the previous
@@ -58,8 +71,8 @@ when no triangle is left, or at the pivot limit (max_pivots = 3, the paper's); a
 than max_candidates = 10,000 candidates is skipped. The one hypothesis left then goes to the shared
 verification (`skyview.identify.verify`); only a verified one is reported.
 
-Options beyond the paper (`IMPROVED_PARAMS` = vertex_order="sides", area_sigma="stars",
-close_triangles, backtrack; the paper's method is the default):
+Options beyond the paper (`IMPROVED_PARAMS` = pivoting="join", vertex_order="sides", area_sigma="stars",
+close_triangles, backtrack, max_stars=12; the paper's method is the default):
 - close_triangles: a pivot first takes a triangle made only of stars already in the hypotheses (no
   new star, strong pruning), so the chain ends with few stars and leaves the others to verify with;
 - backtrack: when the hypotheses go to zero (a false star, a bound missed) or the one left fails
@@ -69,8 +82,9 @@ close_triangles, backtrack; the paper's method is the default):
   at most max_restarts restarts, max_dropped stars at once. Every verification counts in the
   Bonferroni factor of the verification statistic, so no wrong attitude gets an easier pass.
 
-Not in the paper: max_stars = 12 caps the stars that form triangles (the brightest; every star still
-takes part in verification): the paper's CPU time grew to 400 s with more than 20 stars in the FOV.
+Not in the paper, in IMPROVED_PARAMS: max_stars = 12 caps the stars that form triangles (the brightest;
+every star still takes part in verification): the paper's CPU time grew to 400 s with more than 20
+stars in the FOV. The paper variant forms triangles from every star (max_stars=None).
 """
 
 from __future__ import annotations
@@ -92,14 +106,21 @@ from skyview.identify import spherical as sph
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
 from skyview.identify.kvector import KVector
+from skyview.identify.layers import Hypotheses
 from skyview.identify.synthetic import add_noise
 from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius,
                                      verification_step, verify)
 
 ORDERS = ("largest", "fewest")
-AREA_SIGMAS = ("paper", "stars")
+# eq. 24 with the pair sigma sqrt(2) sigma ("paper": its 3 sigma bound then holds), with the star sigma
+# ("star-sigma", the print's other reading), or the full covariance of the sides ("stars")
+AREA_SIGMAS = ("paper", "star-sigma", "stars")
 VERTEX_ORDERS = ("paper", "sides")
-IMPROVED_PARAMS = {"vertex_order": "sides", "close_triangles": True, "backtrack": True, "area_sigma": "stars"}
+IMPROVED_PARAMS = {"vertex_order": "sides", "close_triangles": True, "backtrack": True, "area_sigma": "stars",
+                   "pivoting": "join", "max_stars": 12}
+# the paper's pairwise list pruning: two common stars anywhere ("lists") or on the two shared observed
+# stars ("shared-star"); beyond the paper: full assignments joined on the shared stars ("join")
+PIVOTINGS = ("shared-star", "lists", "join")
 CAP = 200  # catalog rows / groups kept in one step
 MAX_EQUIVALENT = 16  # at most this many hypotheses are compared for unresolved close pairs
 DATABASE_VERSION = 2
@@ -297,7 +318,7 @@ class TriangleMethod(Identifier):
     def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *, beta: float = 3.0,
                  max_pivots: int | None = 3, max_candidates: int = 10_000, order: str = "largest",
                  area_sigma: str = "paper", vertex_order: str = "paper", depth: int = sph.MOMENT_DEPTH,
-                 max_stars: int | None = 12,
+                 max_stars: int | None = None, pivoting: str = "shared-star",
                  close_triangles: bool = False, backtrack: bool = False, max_restarts: int = 10,
                  max_dropped: int = 1, statistic: str = CALIBRATED, threshold: float | None = None,
                  radius_sigmas: float = RADIUS_SIGMAS, kvector_fit: str = "parabola"):
@@ -313,6 +334,8 @@ class TriangleMethod(Identifier):
             raise BadInput(f"unknown order {order!r}: choose from {', '.join(ORDERS)}")
         if area_sigma not in AREA_SIGMAS:
             raise BadInput(f"unknown area_sigma {area_sigma!r}: choose from {', '.join(AREA_SIGMAS)}")
+        if pivoting not in PIVOTINGS:
+            raise BadInput(f"unknown pivoting {pivoting!r}: choose from {', '.join(PIVOTINGS)}")
         if vertex_order not in VERTEX_ORDERS:
             raise BadInput(f"unknown vertex_order {vertex_order!r}: choose from {', '.join(VERTEX_ORDERS)}")
         if not (0 <= int(depth) <= 8):
@@ -338,6 +361,7 @@ class TriangleMethod(Identifier):
         self.order = order
         self.area_sigma = area_sigma
         self.vertex_order = vertex_order
+        self.pivoting = pivoting
         self.depth = int(depth)
         self.max_stars = None if max_stars is None else int(max_stars)
         self.close_triangles = bool(close_triangles)
@@ -404,7 +428,9 @@ class TriangleMethod(Identifier):
         A, B, C = V[ti], V[tj], V[tk]
         a, b, c = sph.sides(A, B, C)
         area = sph.lhuilier(a, b, c)
-        if self.area_sigma == "paper":
+        if self.area_sigma == "paper":  # eq. 24 with each side's own sigma, sqrt(2) sigma (eq. 13)
+            s_area = sph.area_sigma_paper(a, b, c, SQ2 * sigma)
+        elif self.area_sigma == "star-sigma":
             s_area = sph.area_sigma_paper(a, b, c, sigma)
         else:
             s_area = sph.area_sigma_stars(A, B, C, sigma)
@@ -592,7 +618,7 @@ class TriangleMethod(Identifier):
             if excluded:
                 steps.append(Step("backtrack", f"restart without observed star(s) {sorted(excluded)}",
                                   observed=sorted(excluded), numbers={"restart": len(chains)}))
-            chain = self._chain(V, excluded, t, steps)
+            chain = (self._chain if self.pivoting == "join" else self._chain_lists)(V, excluded, t, steps)
             chains.append(chain)
             suspects: list[int] = []
             if chain.outcome == "unique":
@@ -703,7 +729,7 @@ class TriangleMethod(Identifier):
                                      if self.vertex_order == "sides" else ""),
                           observed=used.copy(), catalog=_distinct(H), groups=_groups(self.tri, rows, src),
                           numbers=self._numbers(t, k) | {"hypotheses": len(H), "sets": n_sets},
-                          extra={"used": used.copy(), "hypotheses": H[:CAP].copy()}))
+                          layers=(Hypotheses.sample(used, H),)))
         if len(H) == 0:
             return _Chain("empty", f"no catalog triangle matches the first triangle {used[0]}-{used[1]}-{used[2]}",
                           used, H, suspects=used[::-1], culprit=used.copy(), candidates=candidates, hypotheses=hyps)
@@ -759,7 +785,7 @@ class TriangleMethod(Identifier):
                                                              "sets_after": n_sets, "pivot": pivots,
                                                              "shared": len(shared),
                                                              "new_star": -1 if new is None else new},
-                              extra={"used": used.copy(), "shared": shared, "hypotheses": H[:CAP].copy()}))
+                              layers=(Hypotheses.sample(used, H, shared=shared),)))
             if len(H) == 0:
                 if new is not None:
                     first_suspect = new
@@ -784,6 +810,121 @@ class TriangleMethod(Identifier):
         return _Chain("unique", "one star set left" if n_final == 1 else
                       f"{n_final} star sets left that differ only by unresolved close pairs",
                       used, Hc, pivots=pivots, candidates=candidates, hypotheses=hyps)
+
+    def _chain_lists(self, V: np.ndarray, excluded: frozenset, t: dict, steps: list[Step]) -> _Chain:
+        """The paper's pivoting: candidate lists of consecutive triangles pruned against each other.
+
+        "Any solution in each list that does not have two stars in common with at least one solution in
+        the other lists is discarded"; the next triangle shares two observed stars with the current one
+        and meets its pruned list only. Ends when a list holds one star set; its vertex order is then
+        taken from the sides and the handedness, as in the join.
+        """
+        ti, tj, tk, counts, priority = t["ti"], t["tj"], t["tk"], t["counts"], t["priority"]
+        sigma, m = t["sigma"], t["stars"]
+        oriented = self.pivoting == "shared-star"
+        done = np.zeros(len(ti), dtype=bool)
+        if excluded:
+            ex = np.zeros(m, dtype=bool)
+            ex[list(excluded)] = True
+            done |= ex[ti] | ex[tj] | ex[tk]
+        candidates: list[int] = []
+        hyps: list[int] = []
+
+        def next_triangle(mask):
+            while True:
+                idx = np.flatnonzero(mask & ~done)
+                if not len(idx):
+                    return -1
+                k = int(idx[np.argmin(priority[idx])])
+                done[k] = True
+                if self.count_of(t, k) <= self.max_candidates:
+                    return k
+                steps.append(Step("skip", f"skipped {self._label(t, k)}: {counts[k]} candidates > "
+                                          f"{self.max_candidates}", observed=[int(ti[k]), int(tj[k]), int(tk[k])],
+                                  numbers=self._numbers(t, k) | {"max_candidates": self.max_candidates}))
+
+        def listed(k):
+            rows = self.candidates(t, k)
+            if oriented:  # rows over the observed stars (ti, tj, tk)[k], every vertex order that may fit
+                return rows, self.orient(t, k, rows, sigma)[0]
+            return rows, self.tri[rows].astype(np.int64)
+
+        k = next_triangle(np.ones(len(ti), dtype=bool))
+        if k < 0:
+            return _Chain("ambiguous", "no triangle with at most max_candidates candidates to start from", [],
+                          np.zeros((0, 0), dtype=np.int64))
+        cur_obs = [int(ti[k]), int(tj[k]), int(tk[k])]
+        rows, cur = listed(k)
+        used = cur_obs.copy()
+        candidates.append(int(counts[k]))
+        hyps.append(_n_sets(cur))
+        steps.append(Step("pick", f"picked {self._label(t, k)}: {counts[k]} candidates", observed=cur_obs.copy(),
+                          catalog=_distinct(cur), groups=_groups(self.tri, rows, rows),
+                          numbers=self._numbers(t, k) | {"sets": _n_sets(cur)},
+                          layers=(Hypotheses.sample(cur_obs, cur),)))
+        if len(cur) == 0:
+            return _Chain("empty", f"no catalog triangle matches the first triangle {'-'.join(map(str, cur_obs))}",
+                          used, cur, suspects=used[::-1], culprit=used.copy(), candidates=candidates, hypotheses=hyps)
+        prev, prev_obs = None, None
+        pivots = 0
+        while _n_sets(cur) != 1 and (prev is None or _n_sets(prev) != 1):
+            if self.max_pivots is not None and pivots >= self.max_pivots:
+                steps.append(Step("stop", f"pivot limit {self.max_pivots} reached with {_n_sets(cur)} candidate "
+                                          "star sets", observed=cur_obs.copy(), numbers={"sets": _n_sets(cur)}))
+                return _Chain("ambiguous", f"{_n_sets(cur)} star sets left after {pivots} pivots (the limit)", used,
+                              cur, pivots=pivots, candidates=candidates, hypotheses=hyps)
+            in_cur = np.zeros(m, dtype=bool)
+            in_cur[cur_obs] = True
+            k = next_triangle(in_cur[ti].astype(int) + in_cur[tj] + in_cur[tk] == 2)
+            if k < 0:
+                steps.append(Step("stop", f"no triangle sharing two stars with triangle {'-'.join(map(str, cur_obs))} "
+                                          f"is left; {_n_sets(cur)} candidate star sets", observed=cur_obs.copy(),
+                                  numbers={"sets": _n_sets(cur)}))
+                return _Chain("ambiguous", f"{_n_sets(cur)} star sets left and no triangle to pivot to", used, cur,
+                              pivots=pivots, candidates=candidates, hypotheses=hyps)
+            new_obs = [int(ti[k]), int(tj[k]), int(tk[k])]
+            rows, new = listed(k)
+            before = _n_sets(cur)
+            M = int(max(cur.max(initial=0), new.max(initial=0))) + 1
+            if oriented:  # the two common catalog stars sit on the two observed stars the triangles share
+                s1, s2 = [s for s in new_obs if s in cur_obs]
+                kc = cur[:, cur_obs.index(s1)] * M + cur[:, cur_obs.index(s2)]
+                kn = new[:, new_obs.index(s1)] * M + new[:, new_obs.index(s2)]
+                keep_cur, keep_new = np.isin(kc, kn), np.isin(kn, kc)
+            else:
+                pc, pn = _pair_keys(cur, M), _pair_keys(new, M)
+                keep_cur = np.isin(pc, pn).any(axis=1)
+                keep_new = np.isin(pn, pc).any(axis=1)
+            prev, prev_obs = cur[keep_cur], cur_obs
+            cur, cur_obs = new[keep_new], new_obs
+            added = [s for s in new_obs if s not in used]
+            used += added
+            pivots += 1
+            candidates.append(int(counts[k]))
+            hyps.append(_n_sets(cur))
+            steps.append(Step("pivot", f"pivoted to {self._label(t, k)}: {counts[k]} candidates, {_n_sets(cur)} share "
+                                       f"two stars with the previous list ({before} -> {_n_sets(prev)})",
+                              observed=new_obs.copy(), catalog=_distinct(cur), groups=_groups(self.tri, rows, rows),
+                              numbers=self._numbers(t, k) | {"sets": _n_sets(cur), "previous_before": before,
+                                                             "previous_after": _n_sets(prev), "pivot": pivots},
+                              layers=(Hypotheses.sample(new_obs, cur, shared=[s for s in new_obs if s in prev_obs]),)))
+            if len(cur) == 0:
+                rest = [s for s in used[::-1] if s not in added]
+                return _Chain("empty", f"no candidate of triangle {'-'.join(map(str, new_obs))} shares two stars "
+                                       "with the previous list", used, cur, suspects=added + rest,
+                              culprit=new_obs.copy(), pivots=pivots, candidates=candidates, hypotheses=hyps)
+        one, one_obs = (cur, cur_obs) if _n_sets(cur) == 1 else (prev, prev_obs)
+        H = one if oriented else one[:1][:, _PERMS].reshape(-1, 3)
+        Hc = self.consistent(V, one_obs, [one_obs], H, sigma)
+        if len(Hc) == 0:  # the paper would report this set; it fits in no vertex order, so it is wrong
+            steps.append(Step("stop", "the one star set left fits the observed stars in no vertex order (sides or "
+                                      "handedness)", observed=one_obs.copy(), catalog=_distinct(H)))
+            return _Chain("empty", "the remaining catalog stars fit the observed stars in no vertex order "
+                                   "(sides or handedness)", one_obs, Hc, suspects=used[::-1], culprit=one_obs.copy(),
+                          pivots=pivots, candidates=candidates, hypotheses=hyps,
+                          answer=self._best(V, one_obs, H, sigma))
+        return _Chain("unique", f"one star set left for triangle {'-'.join(map(str, one_obs))}", one_obs, Hc,
+                      pivots=pivots, candidates=candidates, hypotheses=hyps)
 
     def _settled(self, V: np.ndarray, used: list[int], triangles: list[list[int]], H: np.ndarray, n_sets: int,
                  sigma: float, tol: float) -> bool:
@@ -858,6 +999,12 @@ def join(H: np.ndarray, used: list[int], obs3: list[int], O: np.ndarray) -> tupl
     ok = ~np.any(Hn == newc[:, None], axis=1)
     new = obs3[c3]
     return np.concatenate([Hn[ok], newc[ok, None]], axis=1), used + [new], new
+
+
+def _pair_keys(S: np.ndarray, M: int) -> np.ndarray:
+    """(n, 3) keys of the three unordered star pairs of each star set."""
+    a = np.sort(S, axis=1)
+    return np.stack([a[:, 0] * M + a[:, 1], a[:, 0] * M + a[:, 2], a[:, 1] * M + a[:, 2]], axis=1)
 
 
 @lru_cache(maxsize=64)

@@ -61,6 +61,7 @@ threshold (tetra3's 1e-3) divided by the number of patterns in the method's data
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -112,6 +113,16 @@ def p_single(n_frame: int, frame_solid_angle_sr: float, radius_rad) -> float | n
     return float(p) if np.ndim(p) == 0 else p
 
 
+def _per_item(x, n: int) -> np.ndarray:
+    """x (one number or n of them) as n float64 values (np.broadcast_to's result, without its overhead)."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim == 0:
+        return np.full(n, float(a))
+    if a.shape != (n,):
+        return np.broadcast_to(a, (n,))
+    return a
+
+
 def poisson_binomial_sf(k: int, ps) -> float:
     """P[sum of independent Bernoulli(p_i) >= k] (exact; no cancellation for tiny tails)."""
     ps = np.asarray(ps, dtype=np.float64).ravel()
@@ -135,7 +146,7 @@ def p_false_calibrated(n_agree: int, n_tested: int, p, n_hypotheses: int = 1) ->
     """
     if n_tested <= 0 or n_agree <= 0:
         return 1.0
-    ps = np.broadcast_to(np.asarray(p, dtype=np.float64), (n_tested,))
+    ps = _per_item(p, n_tested)
     if np.all(ps == ps[0]):
         tail = float(bdtrc(n_agree - 1, n_tested, ps[0]))  # P[X >= n_agree]
     else:
@@ -158,11 +169,21 @@ def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     b = np.atleast_2d(np.asarray(vectors, dtype=np.float64))
     if len(b) == 0:
         return np.zeros(0)
-    K = np.zeros((len(b), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -b[:, 2], b[:, 1], -b[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = b[:, 2], -b[:, 1], b[:, 0]
-    C = K @ np.asarray(covariance) @ K.transpose(0, 2, 1)
-    return np.sqrt(np.maximum(np.linalg.eigvalsh(C)[:, -1], 0.0))
+    # In closed form (no batched eigensolver): [b]x P [b]x^T is |b|^2 times P restricted to the plane
+    # normal to the unit vector n = b / |b| (turned by 90 degrees in it; its third eigenvalue, along n,
+    # is 0). That 2x2 restriction has trace tr P - n^T P n and determinant n^T adj(P) n; its larger
+    # eigenvalue is t/2 + sqrt(t^2/4 - det).
+    P = np.asarray(covariance, dtype=np.float64)
+    P = 0.5 * (P + P.T)
+    (a, q, c), (_, d, e), (_, _, f) = P.tolist()  # symmetric: six numbers, as Python floats
+    a01, a02, a12 = c * e - q * f, q * e - c * d, q * c - a * e
+    adj = np.array([[d * f - e * e, a01, a02], [a01, a * f - c * c, a12], [a02, a12, a * d - q * q]])
+    s2 = np.einsum("ij,ij->i", b, b)
+    n = b / np.sqrt(np.where(s2 > 0, s2, 1.0))[:, None]
+    t = (a + d + f) - np.einsum("ij,ij->i", n @ P, n)
+    det = np.einsum("ij,ij->i", n @ adj, n)
+    lam = 0.5 * t + np.sqrt(np.maximum(0.25 * t * t - det, 0.0))
+    return np.sqrt(np.maximum(lam * s2, 0.0))
 
 
 def star_radii(vectors: np.ndarray, covariance: np.ndarray, sigma_rad: float, radius_rad: float) -> np.ndarray:
@@ -227,7 +248,7 @@ def match_one_to_one(query: np.ndarray, ref: np.ndarray, radius_rad
     e = np.zeros(0, dtype=np.int64)
     if len(query) == 0 or len(ref) == 0:
         return e, e, np.zeros(0), e
-    rq = np.broadcast_to(np.asarray(radius_rad, dtype=np.float64), (len(query),))
+    rq = _per_item(radius_rad, len(query))
     cq = chord(rq)
     tree = cKDTree(ref)
     k = 2 if len(ref) > 1 else 1
@@ -240,14 +261,21 @@ def match_one_to_one(query: np.ndarray, ref: np.ndarray, radius_rad
     dist = 2.0 * np.arcsin(np.clip(d[ok, 0] / 2.0, 0.0, 1.0))
     order = np.argsort(dist, kind="stable")
     qi, rj, dist = qi[order], rj[order], dist[order]
-    _, first = np.unique(rj, return_index=True)
-    first = np.sort(first)
+    by_ref = np.argsort(rj, kind="stable")  # the first (nearest) query of each ref star: = np.unique(rj,
+    rs = rj[by_ref]                          # return_index=True)[1], without its per-call overhead
+    first = np.sort(by_ref[np.r_[True, rs[1:] != rs[:-1]]]) if len(rs) else by_ref
     return qi[first], rj[first], dist[first], ambiguous
 
 
 def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
     """Catalog rows that land on the sensor for attitude R (the sensor grown by margin_rad)."""
     return _Frame(catalog, camera, R, margin_rad, margin_rad).rows
+
+
+@lru_cache(maxsize=64)
+def _half_diagonal_rad(camera: Camera) -> float:
+    """camera.half_diagonal_rad, computed once per camera (it unprojects the corners: ~0.1 ms a call)."""
+    return camera.half_diagonal_rad
 
 
 class _Frame:
@@ -257,7 +285,7 @@ class _Frame:
     def __init__(self, catalog: GuideCatalog, camera: Camera, R: np.ndarray, r: float, r_pool: float):
         R = np.asarray(R, dtype=np.float64)
         grow = max(float(r), float(r_pool), 0.0)
-        near = catalog.within(R[2], camera.half_diagonal_rad + grow + 1e-9)
+        near = catalog.within(R[2], _half_diagonal_rad(camera) + grow + 1e-9)
         v = catalog.xyz[near] @ R.T
         f = max(camera.fx, camera.fy)
         if len(near):
@@ -275,7 +303,7 @@ class _Frame:
         """Mask of observed vectors with two or more catalog stars within their radius."""
         if self._tree is None or len(q) == 0:
             return np.zeros(len(q), dtype=bool)
-        cq = chord(np.broadcast_to(np.asarray(radii, dtype=np.float64), (len(q),)))
+        cq = chord(_per_item(radii, len(q)))
         d, _ = self._tree.query(q, k=2, distance_upper_bound=float(cq.max()))
         return d[:, 1] <= cq
 
@@ -285,7 +313,8 @@ class _Frame:
         (one-to-one), and those with two or more catalog stars within it (ambiguous: not in the dict)."""
         if len(others) == 0:
             return {}, set()
-        keep = ~np.isin(self.rows, exclude_rows)
+        ex = np.asarray(exclude_rows).ravel()
+        keep = (self.rows[:, None] != ex[None, :]).all(axis=1) if ex.size <= 16 else ~np.isin(self.rows, ex)
         qi, rj, _, _ = match_one_to_one(vectors[others], self.v[keep], radii)
         pool = self.rows[keep]
         # ambiguity is judged against every catalog star, those of the hypothesis included
@@ -320,7 +349,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     h_cat = np.array([hypothesis[i] for i in h_obs], dtype=np.int64)
     if np.any(h_obs < 0) or np.any(h_obs >= n_obs):
         raise ValueError("hypothesis refers to an observed star that does not exist")
-    if len(np.unique(h_cat)) != len(h_cat):
+    if len(set(h_cat.tolist())) != len(h_cat):
         out.reason = "the hypothesis assigns one catalog star to two observed stars"
         return out
 
@@ -333,7 +362,9 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
                       f"exceeds the match radius {r * RAD_TO_ARCSEC:.1f}\"")
         return out
 
-    others = np.setdiff1d(np.arange(n_obs), h_obs)
+    rest = np.ones(n_obs, dtype=bool)
+    rest[h_obs] = False
+    others = np.flatnonzero(rest)  # = np.setdiff1d(np.arange(n_obs), h_obs)
     out.n_tested = int(len(others))
     radii = star_radii(vectors[others], est.covariance, sigma_rad, r)
     out.radius_max_rad = float(radii.max()) if len(radii) else r
@@ -369,20 +400,27 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     # accepted: extend to every observed star that agrees and re-estimate with all of them (twice,
     # re-matching with the better attitude), leaving out of the reported matches every star whose
     # identity is ambiguous
+    # (every step below is a deterministic function of the matches it starts from: when a round
+    # leaves the matches as they were, its estimate, frame and agreements are reused, not recomputed)
     hyp = dict(zip(h_obs.tolist(), h_cat.tolist()))
     current = {**hyp, **agree}
+    done = None  # (matches, their estimate) of the last round
     for _ in range(2):
+        if done is not None and done[0] == current:
+            break
         est = _estimate(vectors, current, catalog, sigma_rad)
         radii = star_radii(vectors[others], est.covariance, sigma_rad, r)
         frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r)
         agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii)
+        done = (current, est)
         current = {**hyp, **agree_i}
     h_amb = frame.ambiguous(vectors[h_obs], star_radii(vectors[h_obs], est.covariance, sigma_rad, r))
     final = {int(o): int(c) for o, c, a in zip(h_obs, h_cat, h_amb) if not a}
     final.update(agree_i)
     ambiguous = set(h_obs[h_amb].tolist()) | amb_i
     if len(final) >= 2:
-        est = _estimate(vectors, final, catalog, sigma_rad)
+        est = done[1] if final == done[0] else _estimate(vectors, final, catalog, sigma_rad)
+        done = (dict(final), est)
         f_obs = np.array(sorted(final), dtype=np.int64)
         f_cat = np.array([final[o] for o in f_obs], dtype=np.int64)
         rad = star_radii(vectors[f_obs], est.covariance, sigma_rad, r)
@@ -405,7 +443,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     if len(final) < 2:
         out.reason = "fewer than two observed stars have an unambiguous identity"
         return out
-    est = _estimate(vectors, final, catalog, sigma_rad)
+    est = done[1] if final == done[0] else _estimate(vectors, final, catalog, sigma_rad)
     out.passed = True
     out.reason = f"{out.n_agree} of {out.n_tested} other stars agree, P(false) = {out.p_false:.2e}"
     out.R = est.R

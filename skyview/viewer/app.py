@@ -7,6 +7,7 @@ its own session, so tabs do not fight over controls; solvers are shared.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import os
 import signal
@@ -67,8 +68,11 @@ class ViewerApp:
     """The viser server and its sessions (one per connected tab)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, *, initial: Source | None = None,
-                 config: SceneConfig | None = None):
+                 config: SceneConfig | None = None, method: str | None = None, variant: str | None = None,
+                 coverage=None):
         self.solvers = Solvers()
+        self.coverage = coverage  # a CoverageLayer read once; each tab draws its own copy
+        self.method, self.variant = method, variant
         self.initial = initial
         self.config = (config or SceneConfig()).checked()
         self.sessions: dict[int, Session] = {}
@@ -112,7 +116,9 @@ class ViewerApp:
         gui._websock_interface.register_handler(_messages.FileTransferStartUpload, check)
 
     def _connect(self, client: viser.ClientHandle) -> None:
-        session = Session(client, self.solvers, initial=self.initial, config=self.config)
+        layer = None if self.coverage is None else dataclasses.replace(self.coverage, handles=[])
+        session = Session(client, self.solvers, initial=self.initial, config=self.config, method=self.method,
+                          variant=self.variant, coverage=layer)
         with self._lock:
             self.sessions[client.client_id] = session
 
@@ -133,10 +139,20 @@ class ViewerApp:
 
 
 def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, fov_deg: float | None = None,
-          say: Callable[[str], None] = print) -> int:
-    """`skyview view`: run the viewer until Ctrl-C (or SIGTERM)."""
+          say: Callable[[str], None] = print, *, config: SceneConfig | None = None, method: str | None = None,
+          variant: str | None = None, coverage: str | Path | None = None) -> int:
+    """`skyview view` (and the end of `skyview demo`): run the viewer until Ctrl-C (or SIGTERM).
+
+    config / method / variant: the simulated scene and the method every tab starts on. coverage: the
+    folder of a `skyview coverage` sweep, drawn on the sphere as a layer ("Sky coverage" in View)."""
     initial = load_initial_image(image, fov_deg) if image is not None else None
-    config = SceneConfig(fov_deg=check_fov(fov_deg)) if fov_deg is not None and image is None else None
+    layer = None
+    if coverage is not None:
+        from skyview.viewer.coverage_layer import CoverageLayer
+
+        layer = CoverageLayer.from_folder(coverage)
+    if config is None:
+        config = SceneConfig(fov_deg=check_fov(fov_deg)) if fov_deg is not None and image is None else None
 
     def _terminate(_signum, _frame):
         raise KeyboardInterrupt
@@ -148,7 +164,7 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
         previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGINT, signal.SIGTERM)}
     app = None
     try:
-        app = ViewerApp(host, port, initial=initial, config=config)
+        app = ViewerApp(host, port, initial=initial, config=config, method=method, variant=variant, coverage=layer)
         # the address is announced inside the try: a Ctrl-C right after it still stops the server
         say(f"skyview viewer: {app.url}  (Ctrl-C stops it)")
         if host not in ("127.0.0.1", "localhost", "::1"):

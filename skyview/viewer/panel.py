@@ -12,11 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from skyview.attitude import radec_roll_from_R
-from skyview.viewer.picture import HIGHLIGHT_RGB, OUTCOME_RGB
+from skyview.present import LEGEND, OUTCOME_RGB, PALETTE, StepView, format_number, step_summary, why_not
 from skyview.viewer.run import FOV_RANGE_DEG, RESOLUTIONS, SEQUENCE_NOTE, Run, SceneConfig, needs_sequence
 from skyview.viewer.scene import STAR_NAMES
 from skyview.viewer.sequence_run import FRAMES_RANGE, STEP_RANGE_DEG, TURNS, SequenceConfig, SequenceRun
-from skyview.viewer.steps import StepDrawable, format_number
 
 PLOT_COLORS = ("#e848d2", "#ffd23c")
 # The plot across frames: stars above the prior, the leading star's and the true star's posterior, now.
@@ -60,7 +59,8 @@ class Panel:
     seed: object
     method: object
     variant: object
-    seq_controls: object  # folder shown when the method identifies over sequences
+    seq_controls: object  # folder shown when the method identifies over sequences (or tracks one)
+    track: object  # checkbox: track a sequence with a single-frame method
     n_frames: object
     turn: object
     turn_step: object
@@ -88,12 +88,14 @@ def _rgb(c) -> str:
 
 
 def legend_markdown() -> str:
+    """Every colour on screen: the centroid outcomes (at the last step) and the step roles (skyview.present)."""
     items = [f"<span style='color:{_rgb(c)}'>◯</span> {name}" for name, c in OUTCOME_RGB.items()]
-    items.append(f"<span style='color:{_rgb(HIGHLIGHT_RGB)}'>◎</span> used by this step")
+    items += [f"<span style='color:{_rgb(PALETTE[k])}'>■</span> {text}" for k, text in LEGEND.items()]
     return "<small>" + " &nbsp; ".join(items) + "</small>"
 
 
-def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig) -> Panel:
+def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
+                coverage_label: str | None = None) -> Panel:
     """Lay out the panel; returns the handles."""
     gui.add_markdown("**skyview** &nbsp;·&nbsp; where is the camera pointing?")
     status = gui.add_markdown("starting…")
@@ -116,7 +118,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig) 
         play = gui.add_button("Play the steps", icon="player-play")
         step_text = gui.add_markdown("")
         plot_key = gui.add_dropdown("Plot across steps", ("-",), initial_value="-")
-        plot_box = gui.add_folder("Candidates per step", expand_by_default=True)
+        plot_box = gui.add_folder("The chosen number across the steps", expand_by_default=True)
 
     with tabs.add_tab("Scenario", icon="adjustments"):
         ra = gui.add_slider("RA (deg)", min=0.0, max=360.0, step=0.1, initial_value=cfg.ra_deg)
@@ -136,6 +138,9 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig) 
         method = gui.add_dropdown("Method", tuple(methods), initial_value=methods[0])
         variant = gui.add_dropdown("Variant", tuple(variants), initial_value=variants[0],
                                    hint="the paper's parameters, or the method's improvements")
+        track = gui.add_checkbox("Track a sequence", initial_value=False,
+                                 hint="any single-frame method: frame 0 lost-in-space, then tracking "
+                                      "(skyview.track); the sequence is set below")
         seq_controls = gui.add_folder("Sequence", visible=needs_sequence(methods[0]))
         with seq_controls:
             gui.add_markdown("<small>This method identifies over a <b>sequence</b> of frames with a known turn "
@@ -178,6 +183,8 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig) 
             "matches": gui.add_checkbox("Matched triangles", initial_value=True),
             "track": gui.add_checkbox("Footprints of a sequence's frames", initial_value=True),
         }
+        if coverage_label is not None:  # `skyview view --coverage DIR`
+            checks["coverage"] = gui.add_checkbox(coverage_label, initial_value=True)
         picked = gui.add_markdown("Click a star on the sphere for its HIP number and magnitude.")
 
     return Panel(status=status, progress=progress, error=error, image=image, legend=legend, tabs=tabs,
@@ -186,7 +193,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig) 
                  plot_box=plot_box,
                  ra=ra, dec=dec, roll=roll, random=random, fov=fov, resolution=resolution, mag=mag, noise=noise,
                  false_stars=false_stars, dropped=dropped, seed=seed, method=method, variant=variant,
-                 seq_controls=seq_controls, n_frames=n_frames, turn=turn, turn_step=turn_step,
+                 seq_controls=seq_controls, track=track, n_frames=n_frames, turn=turn, turn_step=turn_step,
                  paper_camera=paper_camera, auto=auto,
                  solve=solve, compare=compare, upload_fov=upload_fov, upload=upload, back=back,
                  result=result, compare_table=compare_table, export=export, boresight=boresight, wide=wide,
@@ -236,6 +243,7 @@ def result_markdown(run: Run, viewer_ms: dict | None = None) -> str:
              f"image: {run.source.name}, FOV {_fov_text(run)} ({r.camera.width}×{r.camera.height})  "]
     if not r.solved:
         lines.append(f"reason: {r.reason}  ")
+        lines.append(f"**Why:** {why_not(r)}  ")
     rows = [("centroids", f"{len(r.centroids)} (brightest {run.n_used} used)"),
             ("matched", f"{len(r.matches)}")]
     if r.R is not None:
@@ -263,7 +271,7 @@ def result_markdown(run: Run, viewer_ms: dict | None = None) -> str:
     return "\n".join(lines)
 
 
-def step_markdown(run: Run, d: StepDrawable | None) -> str:
+def step_markdown(run: Run, d: StepView | None) -> str:
     n = len(run.drawables)
     if d is None:
         return "No steps: the method did not run (no stars, or too few)." if n == 0 else ""
@@ -272,19 +280,14 @@ def step_markdown(run: Run, d: StepDrawable | None) -> str:
         lines += ["| number | value |", "|---|---|"]
         lines += [f"| {k} | {format_number(v)} |" for k, v in d.numbers.items()]
         lines.append("")
-    obs = ", ".join(str(int(i)) for i in d.observed[:24]) + (" …" if len(d.observed) > 24 else "")
-    parts = [f"observed: {obs or '-'}", f"candidate stars: {len(d.candidates)}", f"groups drawn: {d.n_groups}"]
-    if d.weights is not None:
-        parts.append(f"candidates tinted by {d.weight_name} (magenta low, yellow high)")
-    if len(d.points):
-        parts.append(f"{len(d.points)} points on the sphere: {d.points_name}")
-    if d.attitudes:
-        parts.append(f"{len(d.attitudes)} attitude footprint(s)")
-    if d.outlines:
-        parts.append(f"outlined on the sphere (orange): {d.outline_names}")
-    lines.append(" · ".join(parts))
-    for e in d.extras:
+    lines.append(step_summary(d))
+    for e in d.text:
         lines.append(f"  \n{e}")
+    legend = " &nbsp; ".join(f"<span style='color:{_rgb(c)}'>■</span> {t}" for t, c in d.legend())
+    if legend:
+        lines.append(f"\n<small>{legend}</small>")
+    if d.final and not run.result.solved:
+        lines.append(f"\n**Not solved.** {why_not(run.result)}")
     return "\n".join(lines)
 
 

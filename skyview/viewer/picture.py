@@ -1,6 +1,6 @@
 """The sensor image for display: stretched to 8 bit, centroids marked, numbered and coloured.
 
-Pure OpenCV / numpy: the viewer puts the result in its side panel and on the camera frustum.
+The stretch and the colours are `skyview.present`'s (the recorder uses the same). Pure OpenCV / numpy: the viewer puts the result in its side panel and on the camera frustum.
 """
 
 from __future__ import annotations
@@ -12,53 +12,10 @@ import numpy as np
 
 from skyview.centroid import check_pixel_count, to_gray
 from skyview.errors import BadInput
+from skyview.present import OUTCOME_RGB, PALETTE, TEXTURE_FLOOR_SIGMAS, stretch  # noqa: F401  (one palette, one stretch)
 
-# RGB per centroid outcome (see steps.centroid_outcomes).
-OUTCOME_RGB = {
-    "identified": (90, 230, 130),
-    "unidentified": (120, 170, 255),
-    "false star": (255, 150, 40),
-    "wrong match": (255, 40, 90),
-    "not used": (110, 110, 120),
-}
-HIGHLIGHT_RGB = (255, 230, 60)
+HIGHLIGHT_RGB = PALETTE["observed"]
 MAX_UPLOAD_BYTES = 64 * 1024 * 1024
-
-
-def _levels(f: np.ndarray) -> tuple[float, float, float]:
-    """Background median, noise sigma (MAD) and maximum, from a subsample."""
-    sample = np.asarray(f[:: max(1, f.shape[0] // 256), :: max(1, f.shape[1] // 256)], dtype=np.float64)
-    bg = float(np.median(sample))
-    sigma = 1.4826 * float(np.median(np.abs(sample - bg)))
-    hi = float(np.max(f))
-    if sigma <= 0:
-        sigma = max((hi - bg) / 1000.0, 1e-6)
-    return bg, sigma, hi
-
-
-def _curve(x: np.ndarray, bg: float, sigma: float, hi: float, floor_sigmas: float) -> np.ndarray:
-    soft = 3.0 * sigma
-    top = max(min(hi - bg, 400.0 * sigma) + floor_sigmas * sigma, soft)  # the brightest stars may saturate
-    y = np.arcsinh(np.maximum(x - bg + floor_sigmas * sigma, 0.0) / soft) / np.arcsinh(top / soft)
-    return np.clip(y * 255.0 + 0.5, 0, 255).astype(np.uint8)
-
-
-def stretch(image: np.ndarray, floor_sigmas: float = 2.0) -> np.ndarray:
-    """8-bit display version of an 8- or 16-bit (or float) star image.
-
-    asinh stretch: the background sits just above black, noise stays visible, stars do not all
-    saturate; works the same for a 16-bit simulator frame and an 8-bit photograph. Integer images go
-    through a look-up table (a 1024x1024 16-bit frame takes a few milliseconds). floor_sigmas: how
-    many noise sigmas below the background map to black (negative: the background itself is black).
-    """
-    a = np.asarray(image)
-    if a.size == 0:
-        raise BadInput("the image is empty")
-    bg, sigma, hi = _levels(a)
-    if a.dtype in (np.uint8, np.uint16):
-        lut = _curve(np.arange(256 if a.dtype == np.uint8 else 65536, dtype=np.float64), bg, sigma, hi, floor_sigmas)
-        return lut[a]
-    return _curve(a.astype(np.float64), bg, sigma, hi, floor_sigmas)
 
 
 def decode_image_bytes(data: bytes, name: str = "upload") -> np.ndarray:
@@ -93,7 +50,7 @@ def texture(image: np.ndarray, max_side: int = 1024, floor: int = 14) -> np.ndar
     The background noise is cut (it would triple the JPEG for nothing at this scale): black below
     2.5 sigma above the background, lifted to a flat `floor` grey so that the sensor stays visible.
     """
-    g = np.maximum(stretch(image, floor_sigmas=-2.5), floor).astype(np.uint8)
+    g = np.maximum(stretch(image, floor_sigmas=TEXTURE_FLOOR_SIGMAS), floor).astype(np.uint8)
     h, w = g.shape
     shrink = min(1.0, max_side / max(h, w))
     # a star is a few pixels wide: widen it so that it survives the texture's shrink on screen

@@ -22,9 +22,11 @@ from skyview.camera import Camera, check_fov_deg
 from skyview.catalog import GuideCatalog, load_guide_catalog
 from skyview.errors import BadInput
 from skyview.identify import METHODS, VARIANTS
+from skyview.identify.base import is_sequence_method
 from skyview.pipeline import BlindSolver, DEFAULT_CENTROID_SIGMA_PX, SolveResult, Solver
+from skyview.present import StepView, match_groups, step_views
+from skyview.scoring import centroid_outcomes
 from skyview.simulate import SensorModel, simulate_image
-from skyview.viewer.steps import StepDrawable, centroid_outcomes, match_groups, step_drawables
 
 ARCSEC = math.pi / 180.0 / 3600.0
 RESOLUTIONS = ("512x512", "1024x1024", "1280x1024", "2048x2048")
@@ -151,7 +153,7 @@ class Run:
     catalog: GuideCatalog  # the solver's guide catalog: step rows index it
     n_used: int  # centroids given to the identifier (the brightest max_stars)
     outcomes: list[str]
-    drawables: list[StepDrawable]
+    drawables: list[StepView]  # one per step (skyview.present)
     matches: dict[int, int]  # observed index -> catalog row
     match_groups: list[tuple[int, ...]]
     error_arcsec: dict | None = None
@@ -297,7 +299,7 @@ def make_run(source: Source, result: SolveResult, catalog: GuideCatalog, max_sta
     n_used = min(len(uv), int(max_stars))
     matches = dict(ident.matches) if ident is not None and ident.identified else {}
     outcomes = centroid_outcomes(len(uv), n_used, matches, uv, catalog.hip, source.truth)
-    drawables = step_drawables(ident.steps if ident else [], catalog.xyz, n_used, catalog.hip)
+    drawables = step_views(ident.steps if ident else [], catalog.xyz, n_used, camera=result.camera, hip=catalog.hip)
     run = Run(source=source, result=result, catalog=catalog, n_used=n_used, outcomes=outcomes,
               drawables=drawables, matches=matches, match_groups=match_groups(matches, uv),
               time_ms=dict(result.time_ms) if time_ms is None else dict(time_ms))
@@ -308,9 +310,10 @@ def make_run(source: Source, result: SolveResult, catalog: GuideCatalog, max_sta
 
 
 def needs_sequence(method: str) -> bool:
-    """Whether `method` identifies over a sequence of frames (its identifier has `identify_sequence`):
-    one image alone is then only its first step."""
-    return hasattr(METHODS.get(method), "identify_sequence")
+    """Whether `method` identifies over a sequence of frames (a `SequenceIdentifier`): one image alone is
+    then only its first step."""
+    cls = METHODS.get(method)
+    return cls is not None and is_sequence_method(cls)
 
 
 SEQUENCE_NOTE = ("one frame only: this method identifies over a sequence of frames with known turns "

@@ -3,7 +3,10 @@
 `SkyScene` takes a viser `SceneApi` (a server's or one browser tab's) and draws `Run` objects; it
 holds no identification logic and no GUI. The celestial sphere has radius 1 and is seen from its
 centre: ICRS unit vectors are the world coordinates, with +z (north) up. Geometry comes from
-`skyview.sky_geometry` (shared with the Rerun recorder) and `skyview.viewer.steps`.
+`skyview.sky_geometry`; a step is drawn from its `skyview.present.StepView` (the drawables the Rerun
+recorder renders too): one node per role, `NODES[role]`, in the palette's colours. The identification
+(matched stars, their mesh, the green rings) shows only at the last step or when no step is selected:
+a step shows what the method knows at that step.
 """
 
 from __future__ import annotations
@@ -17,9 +20,9 @@ from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, radec_to_vec, vec_to_radec
 from skyview.sky_geometry import (group_segments, magnitude_bins, polylines_as_segments, radec_grid,
                                   sensor_footprint, star_color, star_radius)
-from skyview.viewer.picture import HIGHLIGHT_RGB, OUTCOME_RGB
+from skyview.present import (ARC_POINTS, IMAGE_ROLES, OUTCOME_RGB, PALETTE, SKY_ROLES, SkyLines, SkyPoints, StepView,
+                             place_labels)
 from skyview.viewer.run import Run
-from skyview.viewer.steps import ARC_POINTS, StepDrawable
 
 # Proper names of the brightest stars (HIP -> name), for the sky labels.
 STAR_NAMES = {
@@ -34,19 +37,17 @@ STAR_NAMES = {
     14576: "Algol", 9884: "Hamal",
 }
 NAME_MAG_LIMIT = 1.7  # stars at least this bright get a name label (named ones down to mag 2.4 too)
+NAME_CHAR_PX, NAME_HEIGHT_PX = 7.5, 16.0  # a name label's character width and height on screen
+VIEW_HEIGHT_PX = 860.0  # the 3-D view's height the label sizes assume
+REFERENCE_TAN = math.tan(math.radians(30.0))  # the view at zoom 1 (as the session's)
 
 # Colours (RGB).
-GRID_RGB = (48, 66, 98)
-GRID_MAIN_RGB = (78, 100, 140)
+GRID_RGB = PALETTE["grid"]
+GRID_MAIN_RGB = PALETTE["grid_main"]
 FINE_GRID_RGB = (40, 56, 84)
-EST_RGB = (255, 184, 48)
-TRUE_RGB = (70, 215, 255)
-CANDIDATE_RGB = (236, 72, 210)
-CANDIDATE_HI_RGB = (255, 236, 120)
-EXTRA_RGB = (175, 80, 255)
-EXTRA_HI_RGB = (120, 255, 230)
-OUTLINE_RGB = (255, 92, 28)  # a step's outlined region of the sky (a GA's search box), orange
-MATCH_RGB = (90, 240, 140)
+EST_RGB = PALETTE["estimated"]
+TRUE_RGB = PALETTE["true"]
+MATCH_RGB = PALETTE["identified"]
 TRACK_RGB = (60, 120, 150)  # the footprints of a sequence's frames
 BACKGROUND_TOP = (10, 13, 30)
 BACKGROUND_BOTTOM = (3, 4, 10)
@@ -69,17 +70,18 @@ NODES = {
     "frustum": "/camera/est/frustum",
     "centroids": "/camera/est/centroids",
     "numbers": "/camera/est/numbers",
-    "observed": "/camera/est/observed",
-    "pattern": "/camera/est/pattern",
+    "observed": "/camera/est/observed",  # the stars the step measured (rings in the image)
+    "pattern": "/camera/est/pattern",  # ... and their pattern
+    "known": "/camera/est/known",  # stars measured by earlier steps (faded rings)
     "footprint": "/footprint/est",
     "true_camera": "/camera/true",
     "true_frustum": "/camera/true/frustum",
     "true_footprint": "/footprint/true",
-    "candidates": "/steps/candidates",
+    "candidates": "/steps/candidates",  # the step roles of skyview.present, one node each
     "candidate_stars": "/steps/candidate_stars",
-    "extra_points": "/steps/extra_points",
+    "points": "/steps/points",
     "attitudes": "/steps/attitudes",
-    "outlines": "/steps/outlines",
+    "outline": "/steps/outline",
     "matches": "/matches/triangles",
     "match_stars": "/matches/stars",
     "match_labels": "/matches/labels",
@@ -206,6 +208,10 @@ class SkyScene:
         self._ring = 0.0
         self._tex: np.ndarray | None = None
         self.detail = True  # centroid numbers and fine-grid labels: only when the field fills the view
+        self.final = True  # the identification is on screen (last step, or no step selected)
+        self._names: tuple | None = None  # star names: (positions, magnitudes, lengths) for their placement
+        self._name_keep: np.ndarray | None = None
+        self._ring_colors: np.ndarray | None = None
 
     # ------------------------------------------------------------------ sky
     def setup(self) -> None:
@@ -263,12 +269,32 @@ class SkyScene:
         for hd in self.h.pop("names", []):
             hd.remove()
         names = []
-        for i in np.flatnonzero((catalog.mag <= NAME_MAG_LIMIT) | np.isin(catalog.hip, list(STAR_NAMES))):
+        rows = np.flatnonzero((catalog.mag <= NAME_MAG_LIMIT) | np.isin(catalog.hip, list(STAR_NAMES)))
+        texts = []
+        for i in rows:
             hip = int(catalog.hip[i])
-            text = f"{STAR_NAMES.get(hip, f'HIP {hip}')} {float(catalog.mag[i]):.1f}"
-            names.append(s.add_label(f"{NODES['names']}/{hip}", text, position=_f32(catalog.xyz[i] * 1.0),
-                                     font_screen_scale=0.85, anchor="top-left", visible=self.visible["names"]))
+            texts.append(f"{STAR_NAMES.get(hip, f'HIP {hip}')} {float(catalog.mag[i]):.1f}")
+            names.append(s.add_label(f"{NODES['names']}/{hip}", texts[-1], position=_f32(catalog.xyz[i] * 1.0),
+                                     font_screen_scale=0.85, anchor="top-left", visible=False))
         self.h["names"] = names
+        ra, dec = vec_to_radec(catalog.xyz[rows])
+        self._names = (np.stack([np.asarray(ra) * np.cos(dec), np.asarray(dec)], axis=1), catalog.mag[rows],
+                       np.array([len(t) for t in texts], dtype=np.float64))
+        self._place_names()
+
+    def _place_names(self) -> None:
+        """Show the star names that do not overlap a brighter one's at this zoom (`present.place_labels`)."""
+        hds = self.h.get("names", [])
+        if not hds or self._names is None:
+            return
+        xy, mag, n_chars = self._names
+        span = REFERENCE_TAN * self.zoom ** (1.0 / 0.85)  # half-height of the view at the sphere (Session zoom)
+        per_px = 2.0 * span / VIEW_HEIGHT_PX  # sphere units per screen pixel
+        sizes = np.stack([n_chars * NAME_CHAR_PX * per_px, np.full_like(n_chars, NAME_HEIGHT_PX * per_px)], axis=1)
+        keep = place_labels(xy, mag, sizes, gap=0.0)
+        for hd, k in zip(hds, keep):
+            hd.visible = bool(k) and self.visible["names"]
+        self._name_keep = keep
 
     def draw_fine_grid(self, b: np.ndarray, fov_deg: float, radius_rad: float) -> None:
         """A finer RA/Dec grid around the boresight, labelled in degrees."""
@@ -338,10 +364,11 @@ class SkyScene:
             rs = ring_segments(xy[i:i + 1], ring, depth * 0.9995)
             segs.append(rs)
             cols.append(np.broadcast_to(np.array(OUTCOME_RGB[o], np.uint8), rs.shape))
+        self._ring_colors = None
         if segs:
+            self._ring_colors = np.ascontiguousarray(np.concatenate(cols))  # at the end: coloured by outcome
             self.h["centroids"] = s.add_line_segments(NODES["centroids"], _f32(np.concatenate(segs)),
-                                                      np.ascontiguousarray(np.concatenate(cols)), thickness=1.5,
-                                                      thickness_units="screen")
+                                                      self._ring_colors, thickness=1.5, thickness_units="screen")
         self.h["numbers"] = [
             s.add_label(f"{NODES['numbers']}/{i}", str(i),
                         position=_f32([xy[i, 0] + ring * 0.8, xy[i, 1] - ring * 0.8, depth * 0.999]),
@@ -391,102 +418,86 @@ class SkyScene:
 
     # ------------------------------------------------------------------ steps
     def _ensure_step_nodes(self) -> None:
+        """One node per step role of skyview.present (hidden until a step draws it)."""
         s = self.scene
         empty_seg = np.zeros((1, 2, 3), dtype=np.float32)
         if "candidates" not in self.h:
-            self.h["candidates"] = s.add_line_segments(NODES["candidates"], empty_seg, CANDIDATE_RGB, thickness=1.4,
-                                                       thickness_units="screen", visible=False)
-            base = float(STAR_SIZE * star_radius(3.0))
-            self.h["candidate_stars"] = s.add_point_cloud(
-                NODES["candidate_stars"], np.zeros((1, 3), np.float32), np.array([CANDIDATE_RGB], np.uint8),
-                point_size=base * self.zoom, point_shape="circle", precision="float32", visible=False)
-            extra_base = float(STAR_SIZE * star_radius(0.5))  # a population / posterior stands out from the stars
-            self.h["extra_points"] = s.add_point_cloud(
-                NODES["extra_points"], np.zeros((1, 3), np.float32), np.array([EXTRA_RGB], np.uint8),
-                point_size=extra_base * self.zoom, point_shape="diamond", precision="float32", visible=False)
-            self.h["attitudes"] = s.add_line_segments(NODES["attitudes"], empty_seg, EXTRA_RGB, thickness=1.4,
-                                                      thickness_units="screen", visible=False)
-            self.h["outlines"] = s.add_line_segments(NODES["outlines"], empty_seg, OUTLINE_RGB, thickness=2.5,
-                                                     thickness_units="screen", visible=False)
-            self._sized["step"] = [(self.h["candidate_stars"], base), (self.h["extra_points"], extra_base)]
+            self._sized["step"] = []
+            for role in SKY_ROLES:
+                if role in ("candidate_stars", "points"):
+                    base = float(STAR_SIZE * star_radius(3.0 if role == "candidate_stars" else 0.5))
+                    self.h[role] = s.add_point_cloud(
+                        NODES[role], np.zeros((1, 3), np.float32), np.array([PALETTE["candidates"]], np.uint8),
+                        point_size=base * self.zoom, point_shape="circle" if role == "candidate_stars" else "diamond",
+                        precision="float32", visible=False)
+                    self._sized["step"].append((self.h[role], base))
+                else:
+                    self.h[role] = s.add_line_segments(NODES[role], empty_seg, PALETTE[role], visible=False,
+                                                       thickness=2.5 if role == "outline" else 1.4,
+                                                       thickness_units="screen")
         if "camera" in self.h and "observed" not in self.h:  # children of the camera frame
-            self.h["observed"] = s.add_line_segments(NODES["observed"], empty_seg, HIGHLIGHT_RGB, thickness=2.5,
-                                                     thickness_units="screen", visible=False)
-            self.h["pattern"] = s.add_line_segments(NODES["pattern"], empty_seg, HIGHLIGHT_RGB, thickness=2.0,
-                                                    thickness_units="screen", visible=False)
+            for role in IMAGE_ROLES:
+                self.h[role] = s.add_line_segments(NODES[role], empty_seg, PALETTE["observed"], visible=False,
+                                                   thickness=2.0 if role == "pattern" else 2.5,
+                                                   thickness_units="screen")
 
-    def show_step(self, run: Run | None, k: int | None) -> StepDrawable | None:
-        """Light the candidates and observed stars of step k (None: no step)."""
+    def show_step(self, run: Run | None, k: int | None) -> StepView | None:
+        """Draw step k (None: no step, the final state): its drawables, one node per role; the
+        identification only when the step is the last one or no step is selected."""
         self._ensure_step_nodes()
         d = run.drawables[k] if (run is not None and k is not None and 0 <= k < len(run.drawables)) else None
         on = self.visible["candidates"] and d is not None
-        arcs, stars = self.h["candidates"], self.h["candidate_stars"]
-        if on and len(d.segments):
-            arcs.points = d.segments
-            arcs.colors = np.broadcast_to(np.array(CANDIDATE_RGB, np.uint8), d.segments.shape).copy()
-            arcs.visible = True
-        else:
-            arcs.visible = False
-        if on and len(d.candidates):
-            stars.points = _f32(run.catalog.xyz[d.candidates])
-            if d.weights is not None:
-                w = d.weights[:, None]
-                col = (1 - w) * np.array(CANDIDATE_RGB) + w * np.array(CANDIDATE_HI_RGB)
+        for role in SKY_ROLES:
+            hd = self.h[role]
+            dr = d.drawables.get(role) if on else None
+            if isinstance(dr, SkyLines) and len(dr.segments):
+                hd.points = _f32(dr.segments)
+                hd.colors = np.broadcast_to(np.array(dr.color, np.uint8), dr.segments.shape).copy()
+                hd.visible = True
+            elif isinstance(dr, SkyPoints) and len(dr.xyz):
+                hd.points = _f32(dr.xyz)
+                hd.colors = np.ascontiguousarray(dr.colors.astype(np.uint8))
+                hd.visible = True
             else:
-                col = np.broadcast_to(np.array(CANDIDATE_RGB, np.float64), (len(d.candidates), 3))
-            stars.colors = np.ascontiguousarray(col.astype(np.uint8))
-            stars.visible = True
-        else:
-            stars.visible = False
-        pts, att = self.h["extra_points"], self.h["attitudes"]
-        if on and len(d.points):
-            pts.points = _f32(d.points)
-            if d.point_weights is not None:
-                w = d.point_weights[:, None]
-                col = (1 - w) * np.array(EXTRA_RGB) + w * np.array(EXTRA_HI_RGB)
-            else:
-                col = np.broadcast_to(np.array(EXTRA_RGB, np.float64), (len(d.points), 3))
-            pts.colors = np.ascontiguousarray(col.astype(np.uint8))
-            pts.visible = True
-        else:
-            pts.visible = False
-        if on and d.attitudes and run is not None:
-            cam = run.source.camera
-            seg = polylines_as_segments([sensor_footprint(cam, R) for R in d.attitudes])
-            att.points = _f32(seg)
-            att.colors = np.broadcast_to(np.array(EXTRA_RGB, np.uint8), seg.shape).copy()
-            att.visible = True
-        else:
-            att.visible = False
-        box = self.h["outlines"]
-        if on and len(d.outline_segments):
-            box.points = _f32(d.outline_segments)
-            box.colors = np.broadcast_to(np.array(OUTLINE_RGB, np.uint8), d.outline_segments.shape).copy()
-            box.visible = True
-        else:
-            box.visible = False
+                hd.visible = False
         if "observed" in self.h:
-            obs, pat = self.h["observed"], self.h["pattern"]
             xy = self._image_plane_xy
-            sel = d.observed[d.observed < len(xy)] if d is not None else np.zeros(0, np.int64)
-            if len(sel):
-                rs = ring_segments(xy[sel], self._ring * 1.7, IMAGE_DEPTH * 0.999)
-                obs.points = _f32(rs)
-                obs.colors = np.broadcast_to(np.array(HIGHLIGHT_RGB, np.uint8), rs.shape).copy()
-                obs.visible = True
-            else:
-                obs.visible = False
-            edges = d.pattern if d is not None else np.zeros((0, 2), np.int64)
-            edges = edges[(edges < len(xy)).all(axis=1)] if len(edges) else edges
-            if len(edges):
-                p3 = np.concatenate([xy, np.full((len(xy), 1), IMAGE_DEPTH * 0.999)], axis=1)
-                seg = np.stack([p3[edges[:, 0]], p3[edges[:, 1]]], axis=1)
-                pat.points = _f32(seg)
-                pat.colors = np.broadcast_to(np.array(HIGHLIGHT_RGB, np.uint8), seg.shape).copy()
-                pat.visible = True
-            else:
-                pat.visible = False
+            p3 = np.concatenate([xy, np.full((len(xy), 1), IMAGE_DEPTH * 0.999)], axis=1)
+            for role in IMAGE_ROLES:
+                hd = self.h[role]
+                dr = d.drawables.get(role) if d is not None else None
+                seg = np.zeros((0, 2, 3))
+                if dr is not None and role == "pattern":
+                    e = dr.edges[(dr.edges < len(xy)).all(axis=1)] if len(dr.edges) else dr.edges
+                    if len(e):
+                        seg = np.stack([p3[e[:, 0]], p3[e[:, 1]]], axis=1)
+                elif dr is not None:
+                    sel = dr.observed[dr.observed < len(xy)]
+                    if len(sel):
+                        seg = ring_segments(xy[sel], self._ring * (1.7 if role == "observed" else 1.35),
+                                            IMAGE_DEPTH * 0.999)
+                if len(seg):
+                    hd.points = _f32(seg)
+                    hd.colors = np.broadcast_to(np.array(dr.color, np.uint8), seg.shape).copy()
+                    hd.visible = True
+                else:
+                    hd.visible = False
+        self._show_identification(d is None or d.final)
         return d
+
+    def _show_identification(self, final: bool) -> None:
+        """The identification (matched stars and mesh, centroid rings by outcome) only once it is made."""
+        self.final = final
+        for key in ("matches", "match_stars"):
+            if key in self.h:
+                self.h[key].visible = final and self.visible["matches"]
+        for hd in self.h.get("match_labels", []):
+            hd.visible = final
+        rings = self.h.get("centroids")
+        if rings is not None and self._ring_colors is not None:
+            cols = self._ring_colors if final else np.broadcast_to(
+                np.array(OUTCOME_RGB["unidentified"], np.uint8), self._ring_colors.shape).copy()
+            rings.colors = cols
 
     # ------------------------------------------------------------------ a sequence
     def draw_track(self, camera: Camera | None, attitudes: list[np.ndarray] | None) -> None:
@@ -514,6 +525,7 @@ class SkyScene:
         for group in self._sized.values():
             for hd, base in group:
                 hd.point_size = base * self.zoom
+        self._place_names()
 
     def set_detail(self, on: bool) -> None:
         """Show the field's small labels (centroid numbers, fine grid) only when zoomed in on it."""
@@ -530,17 +542,18 @@ class SkyScene:
         if what == "image" and "frustum" in self.h:
             self.h["frustum"].image = self._tex if on else None
         if what == "candidates":
-            for key in ("candidates", "candidate_stars", "extra_points", "attitudes", "outlines"):
+            for key in SKY_ROLES:
                 if key in self.h and not on:
                     self.h[key].visible = False
         if what in ("hips", "matches"):
             self._draw_match_labels()
+        if what == "names":  # the names that do not collide at this zoom
+            self._place_names()
         groups = {
             "grid": ["grid", "grid_main", "grid_labels", "fine_grid", "fine_labels"],
-            "names": ["names"],
             "stars": ["stars"],
             "true": ["true_camera", "true_footprint"],
-            "matches": ["matches", "match_stars"],
+            "matches": ["matches", "match_stars"] if self.final else [],
             "numbers": ["numbers"],
             "track": ["track", "track_labels"],
         }

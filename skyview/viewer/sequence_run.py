@@ -1,4 +1,15 @@
-"""Sequences in the viewer: methods that identify over frames with known turns (the stochastic one).
+"""Sequences in the viewer: the stochastic method's multi-frame identification, and tracking for any method.
+
+Tracking (`track_sequence_run`, `TrackedSequenceRun`): for a single-image method the same simulated
+frames are solved by `skyview.track.Tracker` (the code of `skyview solve-sequence --method M`): frame
+0 lost-in-space, then tracked frames, back to lost-in-space when lock is lost. Every frame becomes a
+`Run` (its centroids: the windows' when tracked), and `TrackedSequenceRun.show(scene, k)` draws on a
+viser scene the footprints along the path coloured by each frame's mode (lost-in-space orange,
+tracking green, not solved red, at the estimated attitude, else the true one), the frame numbers with
+their mode, "lock lost" / "lock regained" where they happened, and frame k outlined in white;
+`frame_markdown(k)` and `markdown()` say the same in words.
+
+The stochastic method:
 
 The stochastic method (`skyview.identify.stochastic`) updates a posterior frame by frame; one frame
 alone is only its prior update. For such a method (`run.needs_sequence`) the viewer simulates N
@@ -21,8 +32,10 @@ import numpy as np
 
 from skyview.catalog import GuideCatalog
 from skyview.errors import BadInput
-from skyview.pipeline import SolveResult, result_from_identification
+from skyview.identify.base import FAILED, IDENTIFIED, Identification
+from skyview.pipeline import NOT_SOLVED, SOLVED, SolveResult, result_from_identification
 from skyview.sequence import SequenceResult, SequenceSolver, zero_point
+from skyview.sky_geometry import polylines_as_segments, sensor_footprint
 from skyview.simulate import SensorModel, Turn, simulate_sequence, turn_about_camera_axis, turn_along_ra
 from skyview.viewer.run import (ARCSEC, MAG_RANGE, Run, SceneConfig, Solvers, Source, _num, check_method,
                                 make_run, needs_sequence, sigma_for)
@@ -196,3 +209,207 @@ def solve_sequence_run(scene: SceneConfig, config: SequenceConfig, method: str, 
     total = {"simulate": (t1 - t0) * 1e3, "centroid": res.time_ms.get("centroid", float("nan")),
              "identify": res.time_ms.get("identify", float("nan")), "total": (t3 - t0) * 1e3}
     return SequenceRun(frames=frames, result=res, scene=scene, config=config, time_ms=total)
+
+
+# ============================================================================ tracking, any method
+
+MODE_RGB = {"lost_in_space": (255, 150, 40), "tracking": (90, 230, 130), "not solved": (230, 60, 60)}
+CURRENT_RGB = (255, 255, 255)
+TRACK_NODE = "/tracked_sequence"
+
+
+@dataclass
+class TrackedSequenceRun:
+    """A tracked sequence: one `Run` per frame and the tracker's `TrackFrame` of each."""
+
+    frames: list[Run]
+    tracked: list  # skyview.track.TrackFrame, one per frame
+    scene: SceneConfig
+    config: SequenceConfig
+    method: str
+    variant: str
+    gyros: bool  # the known turns were given to the tracker (else it predicts from its rate)
+    time_ms: dict[str, float] = field(default_factory=dict)
+    handles: list = field(default_factory=list)
+    current: object = None  # the outline of the frame shown
+    shown: int | None = None  # the frame outlined
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def modes(self) -> list[str]:
+        """Per frame: "lost_in_space", "tracking" or "not solved"."""
+        return [f.mode if f.solved else "not solved" for f in self.tracked]
+
+    def lock_events(self) -> list[tuple[int, str, str]]:
+        """(frame, "lost" | "regained", why): lock is lost where tracking gave up on a frame (or a frame
+        was not solved), regained at the next solved frame."""
+        out, locked = [], False
+        for f in self.tracked:
+            if f.lost_lock or (locked and not f.solved):
+                out.append((f.frame, "lost", f.lost_lock or f.reason))
+                locked = False
+            if f.solved and not locked:
+                if f.frame > 0:
+                    out.append((f.frame, "regained", f"by {f.mode.replace('_', '-')}"))
+                locked = True
+        return out
+
+    def attitudes(self) -> list[np.ndarray | None]:
+        """Per frame: the estimated attitude, else the true one, else None."""
+        return [f.R if f.R is not None else r.R_true for f, r in zip(self.tracked, self.frames)]
+
+    # ------------------------------------------------------------------ drawing
+    def show(self, scene, k: int | None = None) -> None:
+        """Draw the footprints along the path on a viser scene, coloured by mode, with frame labels and
+        the lock events; frame k (default the last) outlined."""
+        self.hide()
+        camera = self.frames[0].source.camera
+        Rs = self.attitudes()
+        lost = {e[0] for e in self.lock_events() if e[1] == "lost"}
+        regained = {e[0] for e in self.lock_events() if e[1] == "regained"}
+        for mode, rgb in MODE_RGB.items():
+            lines = [sensor_footprint(camera, R) for R, m in zip(Rs, self.modes) if m == mode and R is not None]
+            if lines:
+                self.handles.append(scene.add_line_segments(
+                    f"{TRACK_NODE}/{mode.replace(' ', '_')}", polylines_as_segments(lines).astype(np.float32), rgb,
+                    thickness=2.0, thickness_units="screen"))
+        top = np.array([0.0, -0.9 * camera.height / (2.0 * camera.fy), 1.0])
+        top /= np.linalg.norm(top)
+        for f, R, m in zip(self.tracked, Rs, self.modes):
+            if R is None:
+                continue
+            text = f"{f.frame} · {m.replace('_', '-')}"
+            if f.frame in lost:
+                text += " · lock lost"
+            if f.frame in regained:
+                text += " · lock regained"
+            self.handles.append(scene.add_label(f"{TRACK_NODE}/labels/{f.frame}", text,
+                                                position=tuple(float(x) for x in R.T @ top),
+                                                font_screen_scale=0.75, anchor="top-center"))
+        self.set_frame(scene, len(self) - 1 if k is None else k)
+
+    def set_frame(self, scene, k: int) -> None:
+        """Outline frame k (the frame being played)."""
+        if not 0 <= k < len(self):
+            raise BadInput(f"frame {k} is not in the sequence (frames 0-{len(self) - 1})")
+        if self.current is not None:
+            self.current.remove()
+            self.current = None
+        R = self.attitudes()[k]
+        if R is not None:
+            seg = polylines_as_segments([sensor_footprint(self.frames[0].source.camera, R)]).astype(np.float32)
+            self.current = scene.add_line_segments(f"{TRACK_NODE}/current", seg, CURRENT_RGB, thickness=4.0,
+                                                   thickness_units="screen")
+        self.shown = k
+
+    def play(self, scene, delay_s: float = 0.5, stop=None) -> None:
+        """Step the outline through the frames (stop(): return True to end early)."""
+        for k in range(len(self)):
+            if stop is not None and stop():
+                return
+            self.set_frame(scene, k)
+            time.sleep(delay_s)
+
+    def hide(self) -> None:
+        for h in self.handles:
+            h.remove()
+        self.handles = []
+        if self.current is not None:
+            self.current.remove()
+            self.current = None
+
+    # ------------------------------------------------------------------ words
+    def frame_markdown(self, k: int) -> str:
+        f, run = self.tracked[k], self.frames[k]
+        m = self.modes[k]
+        head = f"**Frame {k}** (frames 0–{len(self) - 1}) · {m.replace('_', '-')}"
+        if f.solved:
+            head += f", {len(f.matches)} stars matched, {f.time_ms.get('total', float('nan')):.2f} ms"
+            if run.error_arcsec:
+                head += f" · error vs truth {run.error_arcsec['total']:.1f}″, {run.wrong_matches} wrong"
+        else:
+            head += f": {f.reason}"
+        notes = [f"lock {e[1]}: {e[2]}" for e in self.lock_events() if e[0] == k]
+        if f.relative_rotvec_rad is not None:
+            notes.append(f"turned {np.degrees(np.linalg.norm(f.relative_rotvec_rad)):.4f}° since frame {f.relative_to}")
+        return head + ("\n\n" + " · ".join(notes) if notes else "")
+
+    def markdown(self) -> str:
+        n_trk = self.modes.count("tracking")
+        lines = [f"**Tracking** with **{self.method}** ({self.variant}) over a sequence of {self.config.describe()}"
+                 f" ({'turns given, as gyros would' if self.gyros else 'turns predicted from the rate'}): "
+                 f"{n_trk} tracked, {self.modes.count('lost_in_space')} lost-in-space, "
+                 f"{self.modes.count('not solved')} not solved", "",
+                 "| frame | mode | matches | ms | error (″) | lock |", "|---|---|---|---|---|---|"]
+        ev = {}
+        for k, what, _ in self.lock_events():
+            ev.setdefault(k, []).append(what)
+        for f, run, m in zip(self.tracked, self.frames, self.modes):
+            err = f"{run.error_arcsec['total']:.1f}" if run.error_arcsec else "-"
+            lines.append(f"| {f.frame} | {m.replace('_', '-')} | {len(f.matches)} | "
+                         f"{f.time_ms.get('total', float('nan')):.2f} | {err} | {', '.join(ev.get(f.frame, [])) or '-'} |")
+        return "\n".join(lines) + "\n"
+
+
+def _track_result(fr, tracker, method: str, variant: str, camera) -> SolveResult:
+    """A tracked frame as the `SolveResult` the viewer draws (matches as an identification)."""
+    from skyview.centroid import Centroids
+
+    cat = tracker.catalog
+    rows = {}
+    for m in fr.matches:
+        try:
+            rows[int(m["index"])] = cat.index_of(int(m["hip"]))
+        except KeyError:
+            continue
+    ident = Identification(method=method, status=IDENTIFIED if fr.solved else FAILED, matches=rows, steps=[],
+                           reason=fr.reason, R=fr.R, attitude_covariance=fr.covariance,
+                           verification={"p_false": fr.p_false})
+    cov = fr.covariance
+    sig = (None, None) if cov is None else (float(np.sqrt(0.5 * (cov[0, 0] + cov[1, 1])) / ARCSEC),
+                                            float(np.sqrt(cov[2, 2]) / ARCSEC))
+    return SolveResult(status=SOLVED if fr.solved else NOT_SOLVED, reason=fr.reason, method=method, variant=variant,
+                       camera=camera, centroids=fr.centroids if fr.centroids is not None else Centroids.empty(),
+                       identification=ident, R=fr.R, sigma_boresight_arcsec=sig[0], sigma_roll_arcsec=sig[1],
+                       matches=list(fr.matches), time_ms=dict(fr.time_ms), epoch=cat.epoch,
+                       sigma_rad=tracker.sigma_rad, mag_limit=tracker.mag_limit)
+
+
+def track_sequence_run(scene: SceneConfig, config: SequenceConfig, method: str, variant: str, solvers: Solvers,
+                       gyros: bool = True, label=None) -> TrackedSequenceRun:
+    """Simulate the sequence the controls describe and track it with `method` (`skyview.track.Tracker`):
+    frame 0 lost-in-space, then tracking; gyros: give the tracker the known turns (else it predicts
+    from the rate of its last attitudes). Every frame becomes a `Run`."""
+    from skyview.track import Tracker
+
+    say = label or (lambda _text: None)
+    method, variant = check_method(method, variant)
+    if needs_sequence(method):
+        raise BadInput(f"the {method} method identifies over the sequence itself (solve_sequence_run), "
+                       f"it does not track")
+    scene, config = scene.checked(), config.checked()
+    mag_limit = _num("magnitude limit", scene.mag_limit, *MAG_RANGE)
+    say(f"simulating {config.n_frames} frames")
+    t0 = time.perf_counter()
+    sources, turns = simulate_frames(scene, config, solvers.base_catalog)
+    t1 = time.perf_counter()
+    camera = sources[0].camera
+    sigma = sigma_for(sources[0])
+    key = ("track", camera, method, variant, round(mag_limit, 3), round(sigma, 12))
+    say(f"loading the {method} database for lost-in-space (built once per camera and catalog, then cached)")
+    tracker, lock = solvers.get_or_build(key, lambda catalog: Tracker(
+        camera, method, mag_limit=mag_limit, sigma_rad=sigma, variant=variant, catalog=catalog))
+    say(f"tracking {config.n_frames} frames with {method} ({variant}) for lost-in-space")
+    with lock:
+        tracker.reset()
+        tracked = [tracker.process(s.image, turns[k - 1] if (k and gyros) else None) for k, s in enumerate(sources)]
+    t2 = time.perf_counter()
+    frames = [make_run(src, _track_result(fr, tracker, method, variant, camera), tracker.catalog, tracker.max_stars,
+                       {"simulate": src.simulate_ms, **fr.time_ms})
+              for src, fr in zip(sources, tracked)]
+    return TrackedSequenceRun(frames=frames, tracked=tracked, scene=scene, config=config, method=method,
+                              variant=variant, gyros=bool(gyros),
+                              time_ms={"simulate": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3,
+                                       "total": (time.perf_counter() - t0) * 1e3})

@@ -24,13 +24,14 @@ from viser import uplot
 from skyview.camera import Camera
 from skyview.errors import BadInput
 from skyview.identify import VARIANTS
+from skyview.present import default_plot_key, numeric_keys, series
 from skyview.viewer import panel as P
 from skyview.viewer.picture import annotate, decode_image_bytes, panel_base, stretch, texture
 from skyview.viewer.run import (VIEWER_METHODS, Run, SceneConfig, Solvers, Source, check_fov, check_method, compare,
                                 needs_sequence, random_pointing, sigma_for, simulate, solve)
 from skyview.viewer.scene import STAR_NAMES, SkyScene, nearest_star, ray_to_sphere
-from skyview.viewer.sequence_run import SequenceConfig, SequenceRun, solve_sequence_run
-from skyview.viewer.steps import default_plot_key, numeric_keys, series
+from skyview.viewer.sequence_run import (SequenceConfig, SequenceRun, TrackedSequenceRun, solve_sequence_run,
+                                         track_sequence_run)
 from skyview.viewer.worker import Worker
 
 PLAY_INTERVAL_S = 0.7
@@ -43,23 +44,28 @@ class Session:
     """The panel, the 3-D scene and the state of one browser tab (or of the server, in tests).
 
     owner: a viser `ClientHandle` (one tab) or `ViserServer` (everything it draws goes to every tab).
-    initial: an image to start on (`skyview view --image`), else the default simulated scene.
+    initial: an image to start on (`skyview view --image`), else the default simulated scene (config).
+    method / variant: the method the panel starts on (default: the first in the list, paper).
     """
 
     def __init__(self, owner, solvers: Solvers, *, initial: Source | None = None,
-                 config: SceneConfig | None = None):
+                 config: SceneConfig | None = None, method: str | None = None, variant: str | None = None,
+                 coverage=None):
         self.owner = owner
+        self.coverage = coverage  # a viewer.coverage_layer.CoverageLayer (`skyview view --coverage DIR`)
         self.client = owner if isinstance(owner, viser.ClientHandle) else None
         self.solvers = solvers
         self.lock = threading.RLock()
         self.run: Run | None = None  # the image on screen (with a sequence: the frame shown)
         self.seq: SequenceRun | None = None  # the sequence on screen, if any
+        self.tracked: TrackedSequenceRun | None = None  # a tracked sequence on screen, if any
         self.frame_index: int | None = None
         self.upload: Source | None = initial
         self.step_index: int | None = None
         self.error: str = ""
         self.timings: dict[str, float] = {}
         self.compare_rows: list[dict] = []
+        self._compare_source = None  # the image the comparison table is of
         self._closed = False
         self._mute = False  # programmatic control changes do not trigger solves
         self._playing = False
@@ -79,17 +85,25 @@ class Session:
         owner.gui.main_panel.dock_right()
         owner.gui.main_panel.set_width(400)
         self.sky = SkyScene(owner.scene)
-        self.panel = P.build_panel(owner.gui, list(VIEWER_METHODS), list(VARIANTS), config or SceneConfig())
+        self.panel = P.build_panel(owner.gui, list(VIEWER_METHODS), list(VARIANTS), config or SceneConfig(),
+                                   coverage_label=None if coverage is None else
+                                   f"Sky coverage: {coverage.config.method}, {coverage.config.fov_deg:g}°")
         with self.atomic():
             self.sky.setup()
             # the sky before the first solve: the guide catalog at the scenario's limit
             self.sky.draw_catalog(solvers.base_catalog.brighter_than(float(self.panel.mag.value)))
+        if method is not None:  # the method to start with (`skyview demo --method`), before the first solve
+            self.panel.method.value = method
+        if variant is not None:
+            self.panel.variant.value = variant
         self._wire()
         self.panel.back.visible = initial is not None
         self.worker = Worker(self._show_exception)
         self._ticker = threading.Thread(target=self._tick, name="skyview-viewer-ticker", daemon=True)
         self._ticker.start()
         self.request_solve()
+        if coverage is not None:
+            self.show_coverage(True)
 
     # ------------------------------------------------------------------ plumbing
     def atomic(self):
@@ -144,8 +158,9 @@ class Session:
             h.on_update(self._guard(lambda _e: self._scenario_changed()))
         for h in (p.mag, p.variant):
             h.on_update(self._guard(lambda _e: self._solver_changed()))
-        for h in (p.n_frames, p.turn, p.turn_step):  # only a sequence method uses them
-            h.on_update(self._guard(lambda _e: self._solver_changed() if needs_sequence(p.method.value) else None))
+        for h in (p.n_frames, p.turn, p.turn_step):  # only a sequence (a sequence method, or tracking) uses them
+            h.on_update(self._guard(lambda _e: self._solver_changed() if self._sequence_wanted() else None))
+        p.track.on_update(self._guard(lambda _e: self._method_changed()))
         p.method.on_update(self._guard(lambda _e: self._method_changed()))
         p.paper_camera.on_click(self._guard(lambda _e: self.use_paper_camera()))
         p.frame.on_update(self._guard(lambda _e: self.set_frame(int(p.frame.value))))
@@ -180,8 +195,12 @@ class Session:
             self.request_solve()
 
     def _method_changed(self) -> None:
-        self.panel.seq_controls.visible = needs_sequence(self.panel.method.value)
+        self.panel.seq_controls.visible = self._sequence_wanted()
         self._solver_changed()
+
+    def _sequence_wanted(self) -> bool:
+        """A sequence is solved: the method identifies over sequences, or tracking is ticked."""
+        return needs_sequence(self.panel.method.value) or bool(self.panel.track.value)
 
     def sequence_config(self) -> SequenceConfig:
         """The sequence the controls describe (validated: BadInput names a bad control)."""
@@ -264,6 +283,14 @@ class Session:
             self._label("drawing")
             self.show_sequence(seq, t_request)
             return
+        if self.upload is None and self.panel.track.value:
+            tracked = track_sequence_run(self.config(), self.sequence_config(), method, variant, self.solvers,
+                                         label=self._label)
+            if self.worker.superseded:
+                return
+            self._label("drawing")
+            self.show_tracked(tracked, t_request)
+            return
         self._label("simulating" if self.upload is None else "loading the image")
         source = self._source()
         mag = float(self.panel.mag.value)
@@ -287,6 +314,7 @@ class Session:
 
         rows = compare(source, mag, self.solvers, progress, methods)
         self.compare_rows = rows
+        self._compare_source = source
         with self.atomic():
             self.panel.compare_table.content = P.compare_markdown(rows, source.name)
         if self.client is not None:
@@ -298,6 +326,7 @@ class Session:
         """Show one solved image (no sequence)."""
         with self.lock, self.atomic():
             self._playing_frames = False
+            self._drop_tracked()
             self.seq = None
             self.frame_index = None
             self.panel.seq_box.visible = False
@@ -312,6 +341,7 @@ class Session:
         n = len(seq)
         with self.lock, self.atomic():
             self._playing_frames = False
+            self._drop_tracked()
             self.seq = seq
             self.frame_index = n - 1
             p = self.panel
@@ -329,11 +359,57 @@ class Session:
             self._draw_frame_plot()
         self._draw_run(seq.frames[n - 1], t_request)
 
+    def show_tracked(self, seq: TrackedSequenceRun, t_request: float | None = None) -> None:
+        """Show a tracked sequence (any single-frame method) on its last frame: the footprints of its
+        frames coloured by mode, lock lost and regained, and the frame's own image, steps and result."""
+        n = len(seq)
+        with self.lock, self.atomic():
+            self._playing_frames = False
+            self._drop_tracked()
+            self.seq = None
+            self.tracked = seq
+            self.frame_index = n - 1
+            p = self.panel
+            self._mute = True
+            try:
+                p.frame.max = max(1, n - 1)
+                p.frame.value = n - 1
+                p.frame.disabled = n == 1
+            finally:
+                self._mute = False
+            p.play_frames.label = "Play the frames"
+            p.play_frames.disabled = n == 1
+            p.seq_box.visible = True
+            if self._frame_plot is not None:
+                self._frame_plot.remove()
+                self._frame_plot = None
+            self.sky.draw_track(None, None)
+            seq.show(self.owner.scene, n - 1)
+        self._draw_tracked_frame(n - 1, t_request)
+
+    def _draw_tracked_frame(self, k: int, t_request: float | None = None) -> None:
+        seq = self.tracked
+        self._draw_run(seq.frames[k], t_request)
+        with self.lock, self.atomic():
+            if self.tracked is seq:
+                self.panel.frame_text.content = seq.frame_markdown(k)
+                self.panel.result.content = f"{seq.markdown()}\n\n---\n\n**Frame {k}** (shown)  \n" \
+                                            f"{self.panel.result.content}"
+
+    def _drop_tracked(self) -> None:
+        if self.tracked is not None:
+            self.tracked.hide()
+            self.tracked = None
+
+    def _frames_on_screen(self):
+        """The sequence whose frames the slider shows: a sequence method's or a tracked one (or None)."""
+        return self.seq if self.seq is not None else self.tracked
+
     def set_frame(self, k: int) -> None:
         """Show frame k of the sequence: its image, centroids, camera, steps and result."""
-        if self._mute or self.seq is None:
+        if self._mute or self._frames_on_screen() is None:
             return
-        seq = self.seq
+        seq = self._frames_on_screen()
         if not 0 <= k < len(seq):
             self._mute = True
             try:
@@ -343,10 +419,14 @@ class Session:
             raise BadInput(f"frame {k} is outside 0..{len(seq) - 1}")
         t0 = time.perf_counter()
         with self.lock:
-            if self.seq is not seq:
+            if self._frames_on_screen() is not seq:
                 return
             self.frame_index = k
-            self._draw_run(seq.frames[k])
+            if seq is self.tracked:
+                seq.set_frame(self.owner.scene, k)
+                self._draw_tracked_frame(k)
+            else:
+                self._draw_run(seq.frames[k])
         self.timings["frame_ms"] = (time.perf_counter() - t0) * 1e3
 
     def _status_text(self) -> str:
@@ -363,6 +443,10 @@ class Session:
             self._playing = False
             self.run = run
             self._panel_base = base
+            if self._compare_source is not None and run.source is not self._compare_source:
+                # a comparison is of one image: it leaves the Result tab when another image is shown
+                self.compare_rows, self._compare_source = [], None
+                self.panel.compare_table.content = ""
             self.clear_error()
             self.sky.draw_catalog(run.catalog)
             self.sky.draw_run(run, tex)
@@ -427,7 +511,9 @@ class Session:
         p.step_text.content = P.step_markdown(run, d)
         hl = d.observed if d is not None else ()
         pat = d.pattern if d is not None else None
-        p.image.image = annotate(self._panel_base, run.source.image.shape, run.result.centroids.uv, run.outcomes,
+        # the outcomes (identified, wrong match, ...) only once the identification is made (the last step)
+        outcomes = run.outcomes if d is None or d.final else ["unidentified"] * len(run.outcomes)
+        p.image.image = annotate(self._panel_base, run.source.image.shape, run.result.centroids.uv, outcomes,
                                  highlight=hl, pattern=pat)
         if self._plot is not None and k is not None:
             self._plot.data = self._plot_data(k)
@@ -564,7 +650,7 @@ class Session:
             self._playing_frames = False
             p.play_frames.label = "Play the frames"
             return
-        seq = self.seq
+        seq = self._frames_on_screen()
         if seq is None or len(seq) < 2:
             return
         self._playing_frames = True
@@ -575,7 +661,8 @@ class Session:
         start = 0 if k0 is None or k0 >= len(seq) - 1 else k0 + 1
 
         def playing() -> bool:
-            return self._playing_frames and self._frame_play_id == me and self.seq is seq and not self._closed
+            return (self._playing_frames and self._frame_play_id == me and self._frames_on_screen() is seq
+                    and not self._closed)
 
         def play():
             k = start
@@ -584,7 +671,7 @@ class Session:
                 k += 1
                 if k < len(seq):
                     time.sleep(FRAME_INTERVAL_S)
-            if self._frame_play_id == me and self.seq is seq:
+            if self._frame_play_id == me and self._frames_on_screen() is seq:
                 self._playing_frames = False
                 p.play_frames.label = "Play the frames"
 
@@ -592,10 +679,25 @@ class Session:
 
     # ------------------------------------------------------------------ view
     def _toggle(self, what: str, on: bool) -> None:
+        if what == "coverage":
+            self.show_coverage(on)
+            return
         with self.lock, self.atomic():
             self.sky.set_visible(what, on)
             if what == "candidates" and on and self.run is not None:
                 self.sky.show_step(self.run, self.step_index)
+
+    def show_coverage(self, on: bool) -> None:
+        """The sky-coverage map on the sphere (or not), captioned for the FOV this tab is looking at."""
+        if self.coverage is None:
+            return
+        with self.lock:
+            if on:
+                run = self.run
+                fov = run.source.fov_deg if run is not None else float(self.panel.fov.value)
+                self.coverage.show(self.owner.scene, fov_deg=fov)
+            else:
+                self.coverage.hide()
 
     def point_view(self, mode: str) -> None:
         """Put this tab's camera at the sphere's centre, looking down the boresight ('boresight' fits

@@ -1,0 +1,477 @@
+"""Sky coverage: where on the celestial sphere does a method identify? Swept on Dask.
+
+`skyview coverage --method M --fov-deg F --mag-limit L [--variant paper|improved] [--nside N]
+[--rolls K] [--grid healpix|sun] [--scheduler ADDRESS] [--out DIR]`
+
+Orientations. `grid="healpix"`: the boresight at the centre of every pixel of an equal-area HEALPix
+grid (`astropy_healpix`, nested order; 12 nside^2 directions), each with `rolls` roll angles, roll
+r of direction p = 360 (r + u_p) / rolls deg with u_p uniform from the seed (every direction gets
+its own roll offset, so K rolls sample the roll evenly). `grid="sun"`: the boresight grid of Sun et
+al. 2017 (section 3.3; `skyview.identify.ellipticity_sweep.grid`): RA 0..360 deg inclusive by 1 deg x
+Dec -89..89 by 0.5 deg = 128,877 orientations, roll 0. `sample=N`: a seeded random N of the grid's
+orientations (kept in the grid's order), e.g. to measure a subset of Sun's grid.
+
+Frames are vector-level, as Sun et al.'s (`identify.synthetic.synthetic_frame`): the catalog stars
+(Hp <= mag_limit, as the sky shows them) on the sensor, Gaussian tangent-plane noise of
+`noise_rad` (default half a pixel), brightest first. Each identifier gets the same catalog. The
+outcome of an orientation: "solved" (identified, every match right), "wrong" (identified with a wrong
+match), "inconclusive" (not identified); with the stars in the field and the identification time.
+A sequence method (the stochastic one: a single frame is only its prior update) is swept with its own
+multi-frame identification: each orientation starts a sequence of `frames` (SEQUENCE_FRAMES) vector
+frames turning FOV/3 about the camera y axis, the turn given, identified together
+(`identify_sequence`); the orientation's outcome is that of the last frame identified.
+
+Engine. The orientations are cut into tasks of `chunk` orientations; each task runs on a Dask worker
+(`run_task`: the worker builds the catalog, camera and identifier once per configuration and keeps
+them) and its records are written to DIR/chunks/task-NNNNN.npz as it completes (atomic rename).
+Run again on the same DIR with the same configuration and only the missing tasks run: an
+interrupted sweep resumes. `scheduler=None` starts a `LocalCluster` on this machine (n_workers
+processes, one thread each, 127.0.0.1, no dashboard); an address ("tcp://host:8786") uses that
+cluster with no change in code (the workers need skyview installed); "inline" runs the tasks in
+this process (the single-process answer the tests compare with). The outputs (`coverage_map`):
+coverage.json (summary), coverage.md (table), coverage.png (Mollweide map), coverage.rrd.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from skyview.errors import BadInput, SkyviewError
+
+GRIDS = ("healpix", "sun")
+OUTCOMES = ("solved", "inconclusive", "wrong")
+SOLVED, INCONCLUSIVE, WRONG = 0, 1, 2
+INLINE = "inline"
+DEFAULT_CHUNK = 64
+MAX_NSIDE = 1024
+SEQUENCE_FRAMES = 5  # a sequence method (stochastic) identifies over this many frames per orientation
+DEFAULT_NOISE_PX = 0.5  # vector-level noise per axis, in pixels of the camera (as the centroider's default sigma)
+TASK_FIELDS = ("index", "ra_deg", "dec_deg", "roll_deg", "stars", "outcome", "time_ms")
+
+
+@dataclass(frozen=True)
+class CoverageConfig:
+    method: str
+    variant: str = "paper"
+    fov_deg: float = 20.0
+    mag_limit: float = 6.0
+    nside: int = 8
+    rolls: int = 2
+    grid: str = "healpix"
+    width: int = 1024
+    noise_urad: float | None = None  # None: DEFAULT_NOISE_PX pixels
+    seed: int = 0
+    chunk: int = DEFAULT_CHUNK
+    max_stars: int = 40  # the brightest stars of a field given to the identifier (as `Solver`'s default)
+    sample: int | None = None  # a seeded random subset of this many orientations of the grid (None: all)
+    frames: int | None = None  # frames per orientation (a sequence); None: 1, SEQUENCE_FRAMES for a sequence method
+
+    def checked(self) -> "CoverageConfig":
+        from skyview.identify import METHODS, VARIANTS
+
+        if self.method not in METHODS:
+            raise BadInput(f"unknown method {self.method!r}: choose from {', '.join(sorted(METHODS))}")
+        if self.variant not in VARIANTS:
+            raise BadInput(f"unknown variant {self.variant!r}: choose from {', '.join(VARIANTS)}")
+        if self.grid not in GRIDS:
+            raise BadInput(f"unknown grid {self.grid!r}: choose from {', '.join(GRIDS)}")
+        if not (math.isfinite(self.fov_deg) and 0.5 <= self.fov_deg <= 90):
+            raise BadInput(f"--fov-deg {self.fov_deg:g} must be between 0.5 and 90")
+        if not (math.isfinite(self.mag_limit) and -2 < self.mag_limit <= 9):
+            raise BadInput(f"--mag-limit {self.mag_limit:g} must be between -2 and 9 (the guide catalog's depth)")
+        if not (1 <= self.nside <= MAX_NSIDE and self.nside & (self.nside - 1) == 0):
+            raise BadInput(f"--nside {self.nside} must be a power of 2 between 1 and {MAX_NSIDE}")
+        if not (1 <= self.rolls <= 360):
+            raise BadInput(f"--rolls {self.rolls} must be between 1 and 360")
+        if not (1 <= self.chunk <= 100_000):
+            raise BadInput(f"--chunk {self.chunk} must be between 1 and 100000")
+        if self.noise_urad is not None and not (math.isfinite(self.noise_urad) and self.noise_urad >= 0):
+            raise BadInput("--noise-urad must be a non-negative number")
+        if not (3 <= self.max_stars <= 1000):
+            raise BadInput(f"--max-stars {self.max_stars} must be between 3 and 1000")
+        if not (16 <= self.width <= 16384):
+            raise BadInput(f"--width {self.width} must be between 16 and 16384 pixels")
+        if self.sample is not None and not (1 <= self.sample <= 100_000_000):
+            raise BadInput(f"--sample {self.sample} must be a positive number of orientations")
+        sequence = hasattr(METHODS[self.method], "identify_sequence")
+        frames = (SEQUENCE_FRAMES if sequence else 1) if self.frames is None else int(self.frames)
+        if not (1 <= frames <= 50):
+            raise BadInput(f"--frames {self.frames} must be between 1 and 50")
+        if frames > 1 and not sequence:
+            raise BadInput(f"the {self.method} method identifies single frames: leave out --frames")
+        return replace(self, frames=frames)
+
+    @property
+    def noise_rad(self) -> float:
+        if self.noise_urad is not None:
+            return float(self.noise_urad) * 1e-6
+        from skyview.camera import Camera
+
+        return DEFAULT_NOISE_PX * Camera.from_fov(self.fov_deg, self.width).pixel_scale_rad
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def describe(self) -> str:
+        where = (f"HEALPix nside {self.nside} ({12 * self.nside ** 2} directions) x {self.rolls} rolls"
+                 if self.grid == "healpix" else "Sun et al.'s grid (RA 1 deg x Dec 0.5 deg, roll 0)")
+        if self.sample is not None:
+            where += f", a random {self.sample} of them"
+        if self.frames and self.frames > 1:
+            where += (f"; each orientation a sequence of {self.frames} frames turning {self.fov_deg / 3:g} deg "
+                      f"about the camera y axis (its answer: the last verified frame)")
+        return (f"{self.method} ({self.variant}), {self.fov_deg:g} deg FOV, {self.width} px, Hp <= {self.mag_limit:g}, "
+                f"noise {self.noise_rad * 1e6:.1f} urad, {where}, seed {self.seed}")
+
+
+# ============================================================================ orientations
+
+def orientations(cfg: CoverageConfig) -> np.ndarray:
+    """(N, 3) RA, Dec, roll (degrees) of every orientation of the sweep, in task order (with `sample`:
+    a seeded random subset of the grid's, in the grid's order)."""
+    ori = _grid_orientations(cfg)
+    if cfg.sample is not None and cfg.sample < len(ori):
+        pick = np.random.default_rng([cfg.seed, 2]).choice(len(ori), size=int(cfg.sample), replace=False)
+        ori = ori[np.sort(pick)]
+    return ori
+
+
+def _grid_orientations(cfg: CoverageConfig) -> np.ndarray:
+    if cfg.grid == "sun":
+        from skyview.identify.ellipticity_sweep import grid
+
+        ra, dec = grid(1.0, 0.5)
+        R, D = np.meshgrid(ra, dec)
+        return np.stack([R.ravel(), D.ravel(), np.zeros(R.size)], axis=1)
+    from astropy_healpix import HEALPix
+
+    hp = HEALPix(nside=cfg.nside, order="nested")
+    lon, lat = hp.healpix_to_lonlat(np.arange(hp.npix))
+    ra, dec = np.asarray(lon.deg), np.asarray(lat.deg)
+    u = np.random.default_rng([cfg.seed, 1]).uniform(size=hp.npix)
+    roll = 360.0 * (np.arange(cfg.rolls)[None, :] + u[:, None]) / cfg.rolls
+    roll = (roll + 180.0) % 360.0 - 180.0
+    return np.stack([np.repeat(ra, cfg.rolls), np.repeat(dec, cfg.rolls), roll.ravel()], axis=1)
+
+
+def n_tasks(cfg: CoverageConfig, n: int | None = None) -> int:
+    n = len(orientations(cfg)) if n is None else n
+    return (n + cfg.chunk - 1) // cfg.chunk
+
+
+# ============================================================================ one task (on a worker)
+
+_WORKER: dict = {}
+
+
+def _worker_state(cfg: CoverageConfig):
+    key = json.dumps(cfg.to_dict(), sort_keys=True)
+    if _WORKER.get("key") != key:
+        from skyview.camera import Camera
+        from skyview.catalog import load_guide_catalog
+        from skyview.identify import make_identifier
+
+        cat = load_guide_catalog().brighter_than(cfg.mag_limit)
+        cam = Camera.from_fov(cfg.fov_deg, cfg.width)
+        params = {"mag_zero_point": 0.0} if (cfg.frames or 1) > 1 else {}  # vector frames: brightness 10^(-0.4 Hp)
+        ident = make_identifier(cfg.method, cat, cam, cfg.noise_rad if cfg.noise_rad > 0 else 1e-6,
+                                variant=cfg.variant, **params)
+        _WORKER.clear()
+        _WORKER.update(key=key, cat=cat, cam=cam, ident=ident)
+    return _WORKER["cat"], _WORKER["cam"], _WORKER["ident"]
+
+
+def _brightest(obs, k: int):
+    if len(obs) <= k:
+        return obs
+    return replace(obs, vectors=obs.vectors[:k], uv=obs.uv[:k], brightness=obs.brightness[:k])
+
+
+def _sequence_outcome(cfg: CoverageConfig, cat, cam, ident, R0: np.ndarray, first, rng) -> tuple[int, float]:
+    """A sequence method's outcome at one orientation: cfg.frames vector frames from R0 (frame 0 is
+    `first`), turning fov/3 about the camera y axis each (the turn given, as the method takes it),
+    identified together (`identify_sequence`); the answer is the last frame identified: solved when
+    its matches are all right. (outcome, identification time in ms for the whole sequence)"""
+    from skyview.identify.synthetic import synthetic_frame
+    from skyview.simulate import turn_about_camera_axis
+
+    turn = turn_about_camera_axis("y", math.radians(cfg.fov_deg / 3.0))
+    frames, Rk = [first], R0
+    for _ in range(cfg.frames - 1):
+        Rk = turn.apply(Rk)
+        frames.append(synthetic_frame(cat, cam, Rk, cfg.noise_rad, rng))
+    turns = [frames[k + 1].R @ frames[k].R.T for k in range(len(frames) - 1)]
+    t0 = time.perf_counter()
+    ids = ident.identify_sequence([_brightest(f.obs, cfg.max_stars) for f in frames], turns)
+    ms = (time.perf_counter() - t0) * 1e3
+    done = [k for k, r in enumerate(ids) if r.identified]
+    if not done:
+        return INCONCLUSIVE, ms
+    k = done[-1]
+    return (SOLVED if all(frames[k].truth[o] == c for o, c in ids[k].matches.items()) else WRONG), ms
+
+
+def run_task(cfg_dict: dict, task: int) -> dict[str, np.ndarray]:
+    """Identify the orientations of task `task`: arrays of TASK_FIELDS (one entry per orientation).
+    Orientation i's noise comes from the seed and i alone: any split into tasks gives the same answer."""
+    from skyview.attitude import R_from_radec_roll
+    from skyview.identify.synthetic import synthetic_frame
+
+    t_task = time.perf_counter()
+    cfg = CoverageConfig(**cfg_dict)
+    cat, cam, ident = _worker_state(cfg)
+    ori = orientations(cfg)
+    idx = np.arange(task * cfg.chunk, min((task + 1) * cfg.chunk, len(ori)))
+    stars = np.zeros(len(idx), dtype=np.int32)
+    outcome = np.zeros(len(idx), dtype=np.int8)
+    times = np.zeros(len(idx))
+    for n, i in enumerate(idx):
+        ra, dec, roll = ori[i]
+        R = R_from_radec_roll(math.radians(ra), math.radians(dec), math.radians(roll))
+        rng = np.random.default_rng([cfg.seed, int(i)])
+        f = synthetic_frame(cat, cam, R, cfg.noise_rad, rng)
+        stars[n] = len(f.obs)
+        if (cfg.frames or 1) > 1:
+            outcome[n], times[n] = _sequence_outcome(cfg, cat, cam, ident, R, f, rng)
+            continue
+        obs = _brightest(f.obs, cfg.max_stars)
+        t0 = time.perf_counter()
+        r = ident.identify(obs)
+        times[n] = (time.perf_counter() - t0) * 1e3
+        if not r.identified:
+            outcome[n] = INCONCLUSIVE
+        else:
+            outcome[n] = SOLVED if all(f.truth[o] == c for o, c in r.matches.items()) else WRONG
+    return {"index": idx, "ra_deg": ori[idx, 0], "dec_deg": ori[idx, 1], "roll_deg": ori[idx, 2], "stars": stars,
+            "outcome": outcome, "time_ms": times, "task_s": np.float64(time.perf_counter() - t_task)}
+
+
+# ============================================================================ the sweep
+
+def _task_path(out: Path, task: int) -> Path:
+    return out / "chunks" / f"task-{task:06d}.npz"
+
+
+def _save_task(out: Path, task: int, rec: dict) -> None:
+    path = _task_path(out, task)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **rec)
+    os.replace(tmp, path)
+
+
+def _prepare(cfg: CoverageConfig, out: Path) -> None:
+    """DIR/config.json: written on the first run; a later run must have the same configuration."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "chunks").mkdir(exist_ok=True)
+    path = out / "config.json"
+    if path.exists():
+        try:
+            old = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise BadInput(f"{path} is not a coverage configuration ({exc}): use another --out") from None
+        if old != cfg.to_dict():
+            diff = sorted(k for k in set(old) | set(cfg.to_dict()) if old.get(k) != cfg.to_dict().get(k))
+            raise BadInput(f"{out} holds a sweep with another configuration ({', '.join(diff)} differ): "
+                           f"use another --out, or the same options to resume it")
+    else:
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(cfg.to_dict(), indent=1))
+        os.replace(tmp, path)
+
+
+def done_tasks(out: Path) -> set[int]:
+    return {int(p.stem.split("-")[1]) for p in (out / "chunks").glob("task-*.npz") if not p.stem.endswith(".tmp")}
+
+
+class _Bar:
+    def __init__(self, total: int, done: int, label: str, enabled: bool):
+        self.total, self.done, self.label, self.enabled = total, done, label, enabled
+        self.t0 = time.perf_counter()
+        self.start = done
+
+    def update(self, n_orient: int) -> None:
+        self.done += 1
+        if not self.enabled:
+            return
+        dt = time.perf_counter() - self.t0
+        rate = (self.done - self.start) / dt if dt > 0 else 0.0
+        eta = (self.total - self.done) / rate if rate > 0 else float("nan")
+        end = "\n" if self.done == self.total else ""
+        sys.stderr.write(f"\r{self.label}: {self.done}/{self.total} tasks, {rate * n_orient:.0f} orientations/s, "
+                         f"eta {eta:.0f} s   {end}")
+        sys.stderr.flush()
+
+
+def run_tasks(fn: Callable, args: Iterable[tuple], *, scheduler: str | None = None, n_workers: int = 2,
+              processes: bool = True, on_result: Callable | None = None) -> None:
+    """The engine: fn(*a) for every a in args, on Dask (a LocalCluster of n_workers when scheduler is
+    None, the cluster at `scheduler` otherwise) or in this process (scheduler="inline");
+    on_result(a, result) in this process as each completes (any order). Shared by the coverage sweep
+    and `skyview bench --scheduler`."""
+    args = list(args)
+    if not args:
+        return
+    if scheduler == INLINE:
+        for a in args:
+            r = fn(*a)
+            if on_result:
+                on_result(a, r)
+        return
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    try:
+        if scheduler is None:
+            where = {"host": "127.0.0.1"} if processes else {}  # thread workers talk in-process
+            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
+                                   dashboard_address=None, **where)
+            client = Client(cluster)
+        else:
+            try:
+                client = Client(scheduler, timeout="10s")
+            except (OSError, TimeoutError) as exc:
+                raise SkyviewError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+        with client:
+            futures = {client.submit(fn, *a, pure=False): a for a in args}
+            for fut in as_completed(futures):
+                r = fut.result()
+                if on_result:
+                    on_result(futures[fut], r)
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def run_coverage(cfg: CoverageConfig, out: str | Path, *, scheduler: str | None = None, n_workers: int = 2,
+                 processes: bool = True, progress: bool = True, max_tasks: int | None = None) -> dict:
+    """Sweep (or resume) the configuration into DIR `out`; the summary once every task is done, else
+    (max_tasks cut the run short) {"complete": False, ...}. See the module docstring."""
+    cfg = cfg.checked()
+    out = Path(out)
+    _prepare(cfg, out)
+    n = len(orientations(cfg))
+    total = n_tasks(cfg, n)
+    have = done_tasks(out)
+    todo = [t for t in range(total) if t not in have]
+    if max_tasks is not None:
+        todo = todo[:max(0, int(max_tasks))]
+    bar = _Bar(total, len(have), f"coverage {cfg.method}({cfg.variant}) {cfg.fov_deg:g} deg", progress)
+    t0 = time.perf_counter()
+
+    def save(a, rec):
+        _save_task(out, a[1], rec)
+        bar.update(cfg.chunk)
+
+    run_tasks(run_task, [(cfg.to_dict(), t) for t in todo], scheduler=scheduler, n_workers=n_workers,
+              processes=processes, on_result=save)
+    wall = time.perf_counter() - t0
+    if len(done_tasks(out)) < total:
+        return {"complete": False, "tasks_done": len(done_tasks(out)), "tasks": total}
+    from skyview.coverage_map import write_outputs
+
+    res = load_results(out)
+    workers = 1 if scheduler == INLINE else n_workers
+    return write_outputs(cfg, res, out, run={"wall_s": wall, "tasks_run": len(todo), "workers": workers,
+                                             "scheduler": scheduler or "LocalCluster"})
+
+
+def load_results(out: str | Path) -> dict[str, np.ndarray]:
+    """Every task's records, concatenated in orientation order."""
+    files = sorted((Path(out) / "chunks").glob("task-*.npz"))
+    files = [p for p in files if not p.stem.endswith(".tmp")]
+    if not files:
+        raise BadInput(f"{out} holds no coverage results")
+    parts, busy = [], 0.0
+    for p in files:
+        with np.load(p) as z:
+            parts.append({k: z[k] for k in TASK_FIELDS})
+            busy += float(z["task_s"]) if "task_s" in z.files else 0.0
+    res = {k: np.concatenate([p[k] for p in parts]) for k in TASK_FIELDS}
+    order = np.argsort(res["index"], kind="stable")
+    out = {k: v[order] for k, v in res.items()}
+    out["worker_s"] = np.float64(busy)  # seconds the workers spent on the tasks (one core each)
+    return out
+
+
+def load_config(out: str | Path) -> CoverageConfig:
+    path = Path(out) / "config.json"
+    try:
+        return CoverageConfig(**json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError) as exc:
+        raise BadInput(f"{out} is not a coverage folder (no readable config.json: {exc})") from None
+
+
+# ============================================================================ the command
+
+def add_coverage_parser(sub, float_type=float) -> None:
+    """`skyview coverage` (registered by skyview.cli)."""
+    from skyview.identify import METHODS, VARIANTS
+
+    c = sub.add_parser("coverage", help="sky coverage map of a method: sweep boresights on an equal-area grid "
+                                        "(Dask; resumable)",
+                       description="Sweeps boresight directions on an equal-area HEALPix grid (or Sun et al.'s "
+                                   "grid), several rolls each, at vector level; records stars in the field and "
+                                   "solved / inconclusive / wrong per orientation. Runs on a local Dask cluster "
+                                   "(or --scheduler ADDRESS); results stream to DIR/chunks, so running the same "
+                                   "command again resumes. Writes coverage.json, .md, .png (Mollweide) and .rrd.")
+    c.add_argument("--method", required=True, choices=sorted(METHODS), metavar="METHOD",
+                   help=f"identification method: {', '.join(sorted(METHODS))}")
+    c.add_argument("--variant", choices=VARIANTS, default="paper", help="paper (default) or improved")
+    c.add_argument("--fov-deg", type=float_type, required=True, help="horizontal full field of view, deg")
+    c.add_argument("--mag-limit", type=float_type, required=True, help="faintest catalog star seen, Hp")
+    c.add_argument("--nside", type=int, default=8, help="HEALPix nside: 12 nside^2 directions (default 8: 768)")
+    c.add_argument("--rolls", type=int, default=2, help="roll angles per direction (default 2)")
+    c.add_argument("--grid", choices=GRIDS, default="healpix",
+                   help="healpix (default) or sun: Sun et al.'s RA 1 deg x Dec 0.5 deg grid, roll 0 (128,877)")
+    c.add_argument("--width", type=int, default=1024, help="sensor width in pixels (square sensor; default 1024)")
+    c.add_argument("--noise-urad", type=float_type, default=None,
+                   help=f"direction noise per axis, microradians (default {DEFAULT_NOISE_PX} pixel)")
+    c.add_argument("--max-stars", type=int, default=40, help="brightest stars given to the identifier (default 40)")
+    c.add_argument("--seed", type=int, default=0, help="random seed (rolls, noise, --sample; default 0)")
+    c.add_argument("--sample", type=int, default=None, metavar="N",
+                   help="sweep a seeded random N of the grid's orientations (e.g. of Sun et al.'s 128,877)")
+    c.add_argument("--frames", type=int, default=None,
+                   help=f"frames per orientation for a sequence method (stochastic; default {SEQUENCE_FRAMES}): "
+                        "a sequence turning FOV/3 per frame about the camera y axis")
+    c.add_argument("--chunk", type=int, default=DEFAULT_CHUNK,
+                   help=f"orientations per Dask task (default {DEFAULT_CHUNK})")
+    c.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="Dask scheduler address (tcp://host:8786); default: a local cluster on this machine; "
+                        "'inline': this process only")
+    c.add_argument("--workers", type=int, default=2, help="local cluster: worker processes (default 2)")
+    c.add_argument("--threads", action="store_true", help="local cluster: thread workers instead of processes")
+    c.add_argument("--out", default=None, metavar="DIR",
+                   help="folder for the results (default coverage-results/METHOD-VARIANT-FOV-MAG-GRID)")
+    c.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    c.add_argument("--quiet", action="store_true", help="no progress line")
+    c.set_defaults(func=cmd_coverage)
+
+
+def cmd_coverage(a) -> int:
+    cfg = CoverageConfig(a.method, a.variant, fov_deg=a.fov_deg, mag_limit=a.mag_limit, nside=a.nside,
+                         rolls=a.rolls, grid=a.grid, width=a.width, noise_urad=a.noise_urad, seed=a.seed,
+                         chunk=a.chunk, max_stars=a.max_stars, sample=a.sample, frames=a.frames).checked()
+    if not (1 <= a.workers <= 256):
+        raise BadInput("--workers must be between 1 and 256")
+    out = a.out or (f"coverage-results/{cfg.method}-{cfg.variant}-{cfg.fov_deg:g}deg-hp{cfg.mag_limit:g}-"
+                    + (f"nside{cfg.nside}x{cfg.rolls}" if cfg.grid == "healpix" else "sun")
+                    + (f"-sample{cfg.sample}" if cfg.sample is not None else ""))
+    s = run_coverage(cfg, out, scheduler=a.scheduler, n_workers=a.workers, processes=not a.threads,
+                     progress=not a.quiet)
+    if a.json:
+        print(json.dumps(s))
+    else:
+        from skyview.coverage_map import format_markdown
+
+        print(format_markdown(s), end="")
+        print(f"wrote {out}/coverage.json, coverage.md, coverage.png, coverage.rrd")
+    return 0

@@ -1,0 +1,183 @@
+"""Typed layers of a step: what a method knows after one step, in data the sinks can draw.
+
+A `Step` (skyview.identify.base) carries a tuple of these frozen records instead of a free-form dict.
+Each says one kind of thing in the method's own terms; `skyview.present` is the one module that turns
+them into drawables, so the viewer and the recorder show a new layer in the same way or not at all.
+
+    Hypotheses      the correspondence hypotheses that survive: observed stars used and, per
+                    hypothesis, the catalog rows assigned to them (a sample, with the total)
+    Population      directions on the sky with a cost each (a GA population; lower is better)
+    Posterior       a probability over catalog stars (hypothesis weights and the star each designates)
+    Attitudes       candidate attitudes (3x3 rotations, v_cam = R @ v_icrs)
+    SearchRegion    a region of the sky being searched (a GA's box: a square, a roll circle, the sky)
+    StarSets        named sets of observed stars (the stars within a radius, the ones a rule deleted)
+
+Nothing here imports a viewer or a recorder; arrays are numpy, angles in radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+HYPOTHESES_SAMPLE = 500  # hypotheses kept in a step: an even sample of the survivors when there are more
+
+
+def even_sample(n: int, cap: int) -> np.ndarray:
+    """Indices of at most `cap` of `n` items spread evenly over them (first and last included)."""
+    if n <= cap:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, cap).round().astype(np.int64))
+
+
+@dataclass(frozen=True)
+class Hypotheses:
+    """Surviving correspondence hypotheses.
+
+    used: the observed stars the hypotheses assign (brightness ranks), in order; rows: (H, len(used))
+    catalog rows, rows[h, j] is the catalog star of observed star used[j] under hypothesis h (an even
+    sample of the survivors); total: how many survive in all (>= len(rows)); shared: the observed stars
+    the step's pattern shares with the one before (a triangle pivot).
+    """
+
+    used: tuple[int, ...]
+    rows: np.ndarray
+    total: int
+    shared: tuple[int, ...] = ()
+
+    @classmethod
+    def sample(cls, used, H, cap: int = HYPOTHESES_SAMPLE, shared=()) -> Hypotheses:
+        """The survivors H ((n, len(used)) catalog rows) as a layer: an even sample of `cap`, the total."""
+        H = np.asarray(H, dtype=np.int64).reshape(-1, len(used)) if len(used) else np.zeros((0, 0), np.int64)
+        keep = even_sample(len(H), cap)
+        return cls(tuple(int(u) for u in used), H[keep].copy(), int(len(H)), tuple(int(s) for s in shared))
+
+    @classmethod
+    def single(cls, hypothesis: dict[int, int]) -> Hypotheses:
+        """One hypothesis (observed index -> catalog row) as a layer."""
+        used = sorted(int(k) for k in hypothesis)
+        return cls(tuple(used), np.array([[int(hypothesis[u]) for u in used]], dtype=np.int64).reshape(1, -1), 1)
+
+
+@dataclass(frozen=True)
+class Population:
+    """Directions on the sky with a cost each, lower is better (a GA population, best first).
+
+    xyz: (P, 3) ICRS unit vectors (float32); costs: (P,) (+inf: an invalid individual); roll_rad: for a
+    roll population the roll of each chromosome (skyview's convention), else None.
+    """
+
+    xyz: np.ndarray
+    costs: np.ndarray
+    roll_rad: np.ndarray | None = None
+    name: str = "population"
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """A probability over catalog stars.
+
+    weights: (H,) the posterior of each hypothesis; rows: (H,) the catalog row each hypothesis designates
+    now (several may designate one star: the star's probability is their sum); top_rows / top_mass: the
+    leading stars and their summed probability, best first; top_xi: the catalog statistics of those
+    stars (the method's own figures, (T, k)) or None.
+    """
+
+    weights: np.ndarray
+    rows: np.ndarray
+    top_rows: np.ndarray
+    top_mass: np.ndarray
+    top_xi: np.ndarray | None = None
+
+    def per_star(self, n_catalog: int) -> np.ndarray:
+        """(n_catalog,) the probability of each catalog star: the hypotheses' weights summed per star."""
+        w = np.nan_to_num(np.asarray(self.weights, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+        return np.bincount(np.asarray(self.rows, dtype=np.int64), weights=w, minlength=n_catalog)
+
+
+@dataclass(frozen=True)
+class Attitudes:
+    """Candidate attitudes: 3x3 rotations with v_cam = R @ v_icrs (their sensor footprints are drawn)."""
+
+    R: tuple[np.ndarray, ...]
+    name: str = "attitude"
+
+    @classmethod
+    def of(cls, *R: np.ndarray, name: str = "attitude") -> Attitudes:
+        return cls(tuple(np.array(r, dtype=np.float64) for r in R), name)
+
+
+@dataclass(frozen=True)
+class SearchRegion:
+    """A region of the sky being searched.
+
+    kind: "sky" (everywhere: no outline), "square" (corners: (4, 3) ICRS unit vectors in order around
+    it, edges along great circles) or "roll" (the small circle of radius_rad around center: the image-up
+    directions of roll chromosomes); center: unit 3-vector or None; half_width_rad: the box half width.
+    """
+
+    kind: str
+    center: np.ndarray | None
+    half_width_rad: float
+    corners: np.ndarray | None = None
+    radius_rad: float | None = None
+
+    @classmethod
+    def from_box(cls, box: dict) -> SearchRegion:
+        """From a GA box dict {"kind", "center", "half_width_rad", "corners"?, "radius_rad"?}."""
+        c = box.get("center")
+        corners = box.get("corners")
+        return cls(str(box["kind"]), None if c is None else np.array(c, dtype=np.float64),
+                   float(box["half_width_rad"]),
+                   None if corners is None else np.array(corners, dtype=np.float64),
+                   None if box.get("radius_rad") is None else float(box["radius_rad"]))
+
+    def as_dict(self) -> dict:
+        d = {"kind": self.kind, "center": self.center, "half_width_rad": self.half_width_rad}
+        if self.corners is not None:
+            d["corners"] = self.corners
+        if self.radius_rad is not None:
+            d["radius_rad"] = self.radius_rad
+        return d
+
+
+@dataclass(frozen=True)
+class StarSets:
+    """Named sets of observed stars (brightness ranks): e.g. {"within": (...), "deleted": (...)}."""
+
+    sets: dict[str, tuple[int, ...]] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, **sets) -> StarSets:
+        return cls({k: tuple(int(i) for i in v) for k, v in sets.items()})
+
+
+Layer = Hypotheses | Population | Posterior | Attitudes | SearchRegion | StarSets
+
+
+def legacy_dict(layers) -> dict:
+    """The layers as the old `Step.extra` dict (read-only view for code not yet moved to layers)."""
+    out: dict = {}
+    for la in layers:
+        if isinstance(la, Hypotheses):
+            out["used"] = list(la.used)
+            out["hypotheses"] = la.rows
+            if la.shared:
+                out["shared"] = list(la.shared)
+        elif isinstance(la, Population):
+            out["population"] = la.xyz
+            out["costs"] = la.costs
+            if la.roll_rad is not None:
+                out["roll_rad"] = la.roll_rad
+        elif isinstance(la, Posterior):
+            out.update(posterior=la.weights, rows=la.rows, posterior_top=la.top_mass, top_rows=la.top_rows)
+            if la.top_xi is not None:
+                out["xi_top"] = la.top_xi
+        elif isinstance(la, Attitudes):
+            out[la.name] = la.R[0] if len(la.R) == 1 else np.stack(la.R)
+        elif isinstance(la, SearchRegion):
+            out["box"] = la.as_dict()
+        elif isinstance(la, StarSets):
+            out.update({k: list(v) for k, v in la.sets.items()})
+    return out

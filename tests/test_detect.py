@@ -1,0 +1,118 @@
+"""Stars of any image: wide stars are binned to the centroider's scale, trails are taken out."""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from skyview.attitude import attitude_error_arcsec, random_attitudes
+from skyview.catalog import load_guide_catalog
+from skyview.centroid import detect_centroids, load_image
+from skyview.detect import bin_image, detect_stars, psf_sigma_from_moments
+from skyview.errors import BadInput
+from skyview.pipeline import BlindSolver
+from skyview.scenarios import get_scenario
+from skyview.simulate import SensorModel, simulate_image
+from skyview.trails import trail_members
+
+REAL = Path(__file__).parent / "data" / "real-images"
+REFERENCE = json.loads((REAL / "reference.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def catalog():
+    return load_guide_catalog()
+
+
+def _frame(catalog, name="blind8", seed=3, **sensor):
+    sc = get_scenario(name)
+    R = random_attitudes(1, np.random.default_rng(seed))[0]
+    return simulate_image(catalog, sc.camera(), R, SensorModel(**sensor), seed=seed, **sc.render_kwargs())
+
+
+def test_trail_members_finds_a_dashed_line_and_not_a_cluster():
+    rng = np.random.default_rng(0)
+    stars = rng.uniform(0, 1000, (150, 2))
+    t = np.linspace(0, 1, 12)[:, None]
+    trail = np.array([100.0, 200.0]) + t * np.array([300.0, 90.0]) + rng.normal(0, 0.4, (12, 2))
+    cluster = np.array([500.0, 500.0]) + rng.normal(0, 4.0, (6, 2))  # a tight group is not a line
+    # brightest first: the trail's dashes and the cluster among the 20 brightest stars
+    m = trail_members(np.vstack([stars[:20], trail, cluster, stars[20:]]), max_gap_px=35.0)
+    assert m[20:32].all()
+    assert not m[32:38].any()
+    assert m[:20].sum() + m[38:].sum() <= 1  # a star that happens to lie on the trail at most
+    assert not trail_members(stars).any()
+
+
+def test_a_broken_satellite_trail_is_taken_out_and_the_stars_kept(catalog):
+    frame = _frame(catalog, seed=11)
+    img = frame.image.copy()
+    peak = float(np.percentile(img, 99.99))
+    # a bright trail broken into dashes (an aircraft's lights, a trail cut up by JPEG blocks)
+    for k in range(10):
+        p0 = (120 + 40 * k, 600 - 25 * k)
+        cv2.line(img, p0, (p0[0] + 8, p0[1] - 5), peak, 2)
+    plain = detect_centroids(img)
+    stars = detect_stars(img)
+    assert stars.params["n_trail_rejected"] >= 8
+    truth = cKDTree(frame.rendered_uv)
+    near_truth = lambda uv: truth.query(uv)[0] < 2.0  # noqa: E731
+    # the dashes sat among the brightest detections; now the brightest ten are all stars
+    assert not near_truth(plain.uv[:10]).all()
+    assert near_truth(stars.uv[:10]).all()
+    # no star was lost with the trail
+    assert near_truth(stars.uv).sum() >= near_truth(plain.uv).sum() - 1
+
+
+def test_compact_stars_pass_unchanged(catalog):
+    frame = _frame(catalog, seed=4)
+    plain, stars = detect_centroids(frame.image), detect_stars(frame.image)
+    assert stars.params["binning"] == 1 and stars.params["n_trail_rejected"] == 0
+    np.testing.assert_array_equal(stars.uv, plain.uv)
+
+
+def test_wide_stars_are_binned_and_measured_in_full_resolution_pixels(catalog):
+    frame = _frame(catalog, seed=5, psf_sigma_px=4.5, exposure_s=1.6)  # a defocused lens
+    plain, stars = detect_centroids(frame.image), detect_stars(frame.image)
+    assert psf_sigma_from_moments(frame.image, plain) > 2.5
+    assert stars.params["binning"] >= 2 and stars.image_shape == frame.image.shape
+    d, i = cKDTree(frame.rendered_uv).query(stars.uv[:20])
+    assert np.median(d) < 0.5  # positions in the full image's pixels
+    # brightest first, as the truth (the simulator's truth lists the stars brightest first)
+    assert np.median(i[:10]) < 15
+
+
+def test_bin_image_averages_blocks_and_binning_is_checked():
+    img = np.arange(36, dtype=np.uint16).reshape(6, 6)
+    b = bin_image(img, 2)
+    assert b.shape == (3, 3) and b[0, 0] == pytest.approx((0 + 1 + 6 + 7) / 4)
+    with pytest.raises(BadInput):
+        detect_stars(img, binning=0)
+
+
+def test_an_upscaled_colour_jpeg_of_a_real_photograph_solves_blind(catalog):
+    """Exported at 4x the size with stars saturated into disks (as a phone or a raw converter may)."""
+    name = sorted(REFERENCE)[3]
+    img = load_image(REAL / name)
+    g8 = cv2.convertScaleAbs(img, alpha=255.0 / float(np.percentile(img, 99.9)))
+    big = cv2.resize(g8, None, fx=4, fy=4, interpolation=cv2.INTER_CUBIC)
+    ok, buf = cv2.imencode(".jpg", cv2.merge([big, big, big]), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    res = BlindSolver(catalog=catalog).solve_array(cv2.imdecode(buf, cv2.IMREAD_COLOR))
+    assert res.solved, res.reason
+    assert attitude_error_arcsec(res.R, np.array(REFERENCE[name]["R"]))["boresight"] < 120.0
+    assert res.camera.fov_deg == pytest.approx(REFERENCE[name]["fov_deg"], rel=0.01)
+
+
+def test_saturated_stars_only_at_the_border_are_kept_as_they_are():
+    img = np.full((200, 300), 100, np.uint16)
+    rng = np.random.default_rng(2)
+    img = (img + rng.normal(0, 3, img.shape)).astype(np.uint16)
+    for u, v in ((3, 100), (150, 2), (296, 190)):  # saturated disks within 24 px of the border
+        cv2.circle(img, (u, v), 3, 65535, -1)
+    for u, v in ((60, 60), (120, 140), (200, 80), (250, 150)):
+        cv2.circle(img, (u, v), 1, 3000, -1)
+    c = detect_stars(img)
+    assert len(c) == 7 and c.saturated.sum() == 3

@@ -1,0 +1,124 @@
+"""One presentation, two sinks: the viewer and the recorder draw the same drawables for the same step.
+
+A real solve (the triangle method on the default Orion scene, and the genetic method with its search
+box), each step turned into a `present.StepView`; the viser scene (a real server on 127.0.0.1) and the
+Rerun archetypes of `record_draw` must hold, role by role, the same geometry in the same colours.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+import viser
+
+from skyview import present
+from skyview.record_draw import step_archetypes, step_path
+from skyview.viewer.run import SceneConfig, Solvers, simulate, solve
+from skyview.viewer.scene import NODES, SkyScene
+
+
+def _rgb(batch) -> np.ndarray:
+    """(N, 3) uint8 colours of a Rerun color batch (packed 0xRRGGBBAA)."""
+    packed = np.asarray(batch.as_arrow_array().to_numpy(zero_copy_only=False), dtype=np.uint32)
+    return np.stack([(packed >> 24) & 255, (packed >> 16) & 255, (packed >> 8) & 255], axis=1).astype(np.uint8)
+
+
+def _xyz(batch, width: int) -> np.ndarray:
+    """The coordinates of a Rerun position / strip batch as (N, width) floats (nested lists flattened)."""
+    arr = batch.as_arrow_array()
+    while hasattr(arr, "flatten") and (pa.types.is_list(arr.type) or pa.types.is_fixed_size_list(arr.type)
+                                       or pa.types.is_large_list(arr.type)):
+        arr = arr.flatten()
+    return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64).reshape(-1, width)
+
+
+@pytest.fixture(scope="module")
+def solvers():
+    return Solvers()
+
+
+@pytest.fixture(scope="module")
+def server():
+    s = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    yield s
+    s.stop()
+
+
+@pytest.mark.parametrize("method, variant, cfg", [
+    ("triangle", "improved", SceneConfig()),
+    ("genetic", "improved", SceneConfig(ra_deg=107.9, dec_deg=-8.9, roll_deg=-170.0, fov_deg=20.0)),
+])
+def test_viewer_and_recorder_draw_the_same_drawables(method, variant, cfg, solvers, server):
+    run = solve(simulate(cfg, solvers.base_catalog), method, variant, cfg.mag_limit, solvers)
+    assert run.result.solved, run.result.reason
+    sky = SkyScene(server.scene)
+    sky.setup()
+    sky.draw_run(run, None)
+    uv = run.result.centroids.uv
+    roles_seen: set[str] = set()
+    checked = 0
+    for k, view in enumerate(run.drawables):
+        if k % max(1, len(run.drawables) // 12) and k != len(run.drawables) - 1:
+            continue  # a dozen steps spread over the solve, and the last
+        sky.show_step(run, k)
+        rr_arch = step_archetypes(view, uv)
+        assert set(rr_arch) == {step_path(r) for r in view.drawables}  # the same roles, no more, no fewer
+        for role in present.SKY_ROLES + present.IMAGE_ROLES:
+            node = sky.h.get(role)
+            d = view.drawables.get(role)
+            if d is None:
+                assert node is None or not node.visible, (k, role)  # drawn by neither
+                continue
+            roles_seen.add(role)
+            arch = rr_arch[step_path(role)]
+            assert node.visible, (k, role)
+            if isinstance(d, present.SkyPoints):
+                np.testing.assert_allclose(node.points, _xyz(arch.positions, 3), atol=1e-6)
+                np.testing.assert_array_equal(node.colors, _rgb(arch.colors))
+            elif isinstance(d, present.SkyLines):
+                strips = _xyz(arch.strips, 3).reshape(-1, 2, 3)
+                np.testing.assert_allclose(node.points, strips, atol=1e-6)
+                assert np.all(node.colors == np.array(d.color, np.uint8)) and np.all(_rgb(arch.colors) == d.color)
+            else:  # image roles: the same stars (rings in the viewer, points in the recording), one colour
+                assert np.all(node.colors == np.array(d.color, np.uint8)) and np.all(_rgb(arch.colors) == d.color)
+                if isinstance(d, present.ImageMarks):
+                    assert len(_xyz(arch.positions, 2)) == len(d.observed)
+                    assert len(node.points) % len(d.observed) == 0
+            checked += 1
+        # the identification: only at the last step
+        assert sky.h["match_stars"].visible == view.final, k
+    assert checked >= 6
+    want = {"triangle": {"candidates", "candidate_stars", "observed", "pattern"},
+            "genetic": {"points", "outline", "observed"}}[method]
+    assert want <= roles_seen, roles_seen
+    assert NODES["points"] == "/steps/points"
+
+
+def test_star_names_that_would_collide_hide_the_fainter(server):
+    """Orion's belt (Alnitak 1.7, Alnilam 1.6, Mintaka 2.1, ~1.4 deg apart): all named when zoomed on
+    it, only the brightest, Alnilam, in a wide view where the labels would overlap."""
+    from skyview.catalog import load_guide_catalog
+
+    sky = SkyScene(server.scene)
+    sky.setup()
+    sky.draw_catalog(load_guide_catalog().brighter_than(6.0))
+    names = {int(h.name.rsplit("/", 1)[1]): h for h in sky.h["names"]}
+    belt = {"Alnitak": 26727, "Alnilam": 26311, "Mintaka": 25930}
+    sky.set_zoom(0.12)  # an 8-degree field filling the view
+    assert all(names[h].visible for h in belt.values())
+    sky.set_zoom(2.0)  # the wide sky
+    assert names[belt["Alnilam"]].visible and not names[belt["Alnitak"]].visible
+    assert not names[belt["Mintaka"]].visible
+    shown = sum(h.visible for h in names.values())
+    assert 5 < shown < len(names)  # elsewhere names stay
+    sky.set_visible("names", False)
+    assert not any(h.visible for h in names.values())
+
+
+def test_sequence_methods_are_found_by_their_interface_not_an_attribute():
+    from skyview.identify import METHODS
+    from skyview.identify.base import SequenceIdentifier, is_sequence_method
+
+    assert [m for m in METHODS if is_sequence_method(METHODS[m])] == ["stochastic"]
+    assert issubclass(METHODS["stochastic"], SequenceIdentifier)

@@ -1,0 +1,59 @@
+"""`skyview bench --speed` (skyview.speed_bench): what it scores and reports; the times themselves are
+benchmark figures, not tested."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from skyview.attitude import R_from_radec_roll
+from skyview.cli import main
+from skyview.scenarios import get_scenario
+from skyview.speed_bench import STAGES, _peer_trials, boresight_error_px, format_markdown, run_speed_bench
+
+
+def test_speed_bench_scores_and_times_every_stage(tmp_path):
+    s = run_speed_bench(get_scenario("cole8"), 3, seed=0, blind=False, peers=False, work_dir=tmp_path,
+                        rounds=2, progress=False)
+    r = s["results"]["angle (improved)"]
+    assert r["n"] == 3 and sum(r["outcomes"].values()) == 3
+    assert r["outcomes"]["incorrect"] == 0 and r["outcomes"]["correct"] >= 1  # seed 0: trials 0 and 2 solve
+    assert set(STAGES) <= set(r["stages_ms"])
+    st = r["stages_ms"]
+    assert st["total"]["median"] >= st["centroid"]["median"] > 0
+    assert st["total+decode"]["median"] > st["total"]["median"]
+    assert "tetra3rs" not in s["results"] and s["ratio_to_tetra3rs"] == {}
+    assert len(list(tmp_path.glob("trial*.png"))) == 3  # the images the peers would read
+    md = format_markdown(s)
+    assert "| angle (improved) |" in md and "load average" in md
+
+
+def test_tetra3rs_answers_are_scored_by_the_boresight():
+    ra, dec, roll = math.radians(83.0), math.radians(-5.0), math.radians(30.0)
+    R = R_from_radec_roll(ra, dec, roll)
+    scale = math.radians(8.0) / 1024
+    off = R_from_radec_roll(ra, dec + 10 * scale, roll)  # the boresight 10 px north
+    images = [{"name": f"t{k}", "R": R} for k in range(3)]
+    answer = {"results": {"tetra3rs-fov": [
+        {"name": "t0", "solved": True, "R": R.tolist(), "time_ms": 2.0},
+        {"name": "t1", "solved": True, "R": off.tolist(), "time_ms": 4.0},
+        {"name": "t2", "solved": False, "time_ms": 3.0}]}}
+    assert boresight_error_px(off, R, scale) == pytest.approx(10.0, rel=1e-3)
+    trials = _peer_trials(answer, images, scale, max_error_px=5.0)["trials"]
+    assert [t["outcome"] for t in trials] == ["correct", "incorrect", "inconclusive"]
+    assert np.median([t["total"] for t in trials]) == 3.0
+
+
+def test_cli_speed_bench(tmp_path, capsys):
+    assert main(["bench", "--speed", "--no-peers", "-n", "1", "--rounds", "1", "--quiet", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "| angle (improved) |" in out and "| blind |" in out
+    saved = json.loads(next(tmp_path.glob("speed-cole8-n1-seed0*.json")).read_text())
+    assert saved["kind"] == "speed" and saved["results"]["blind"]["n"] == 1
+
+
+def test_cli_speed_bench_refuses_other_modes(capsys):
+    assert main(["bench", "--speed", "--blind", "-n", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "--speed" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
