@@ -958,6 +958,7 @@ def cmd_view(a) -> int:
     if not 0 <= a.port <= 65535:
         raise BadInput(f"--port {a.port} is not a TCP port (0-65535)")
     return serve(host=a.host, port=a.port, image=a.image, fov_deg=a.fov_deg, coverage=a.coverage,
+                 compare=a.compare,
                  say=lambda line: print(line, flush=True))
 
 
@@ -1335,6 +1336,9 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--port", type=int, default=8080, help="HTTP port (the next free one if it is taken; default 8080)")
     w.add_argument("--coverage", metavar="DIR", default=None,
                    help="draw this sky-coverage map (the folder of `skyview coverage --out DIR`) on the sphere")
+    w.add_argument("--compare", metavar="FILE.json", default=None,
+                   help="show this comparison of every method (the JSON of `skyview bench --compare`) in the "
+                        "Result tab")
     w.set_defaults(func=cmd_view)
     return p
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import platform
+import re
 import time
 from pathlib import Path
 
@@ -87,9 +88,11 @@ def _row(summary: dict) -> dict:
 
 
 def _short(reason: str) -> str:
-    """A failure reason without its numbers, to count alike reasons together."""
-    words = [w for w in reason.split(";")[0].split() if not any(c.isdigit() for c in w)]
-    return " ".join(words[:8]) or "none"
+    """A failure reason with its numbers as N, to count alike reasons together ("9 pivots" and "3 pivots"
+    are one reason): the first clause, at most 14 words."""
+    clause = re.sub(r"[-+]?\d[\d.,]*(e[-+]?\d+)?", "N", reason.split(";")[0]).strip()
+    words = clause.split()
+    return (" ".join(words[:14]) + (" ..." if len(words) > 14 else "")) or "none"
 
 
 def run_simulated(scenario: Scenario, n: int, seed: int, *, n_slow: int, methods=METHOD_ORDER,
@@ -235,6 +238,19 @@ def format_markdown(report: dict) -> str:
     m = report.get("machine", {})
     lines += ["", f"Machine: Python {m.get('python')}, {m.get('cores')} cores; whole run {report.get('wall_s', 0):.0f} s."]
     return "\n".join(lines) + "\n"
+
+
+def load_compare(path: str | Path) -> dict:
+    """A report written by `skyview bench --compare` (its JSON), checked; BadInput with one line otherwise."""
+    p = Path(path)
+    try:
+        report = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BadInput(f"{p} is not a comparison written by skyview bench --compare ({type(exc).__name__})") from None
+    if not (isinstance(report, dict) and report.get("kind") == "compare" and report.get("version") == 1
+            and isinstance(report.get("simulated"), dict) and "rows" in report["simulated"]):
+        raise BadInput(f"{p} is not a comparison written by skyview bench --compare (kind 'compare', version 1)")
+    return report
 
 
 def compare_json(report: dict) -> str:

@@ -8,8 +8,9 @@ every pattern search starts from.
 
 `trail_members` finds such rows geometrically. Among the brightest detections, every pair defines
 a line; a line that `min_members` or more of them lie on (within `max_width_px`), without a gap
-longer than `max_gap_px` between neighbours along it and over at least 15 widths, is a trail. Its line is refitted, and every
-detection on it within the trail's extent — bright or faint — is a trail member.
+longer than `max_gap_px` between neighbours along it and over at least 15 widths, is a trail. Its
+line is refitted, and every detection on it within the trail's extent — bright or faint — is a
+trail member.
 
 Stars of the sky almost never do this. Among the 40 brightest detections of a 1-megapixel frame
 (about 4e-5 per square pixel), a run of five on one line to 1.5 px with gaps under 130 px is expected

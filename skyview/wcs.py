@@ -1,6 +1,6 @@
 """A solution as a FITS WCS (TAN, with SIP terms for the fitted radial distortion), through astropy.
 
-The header opens in DS9, astropy and the astrometry.net tools. Conventions (DESIGN.md, NOTES.md):
+The header opens in DS9, astropy and the astrometry.net tools. Conventions (docs/conventions.md):
 CRVAL is the boresight RA/Dec (degrees); CRPIX the principal point + 1 (FITS pixels are 1-based);
 CD the 2x2 linear part in degrees per pixel, with the roll and the parity of the camera frame (x
 right, y down); the radial distortion x_d = x (1 + k1 r^2 + k2 r^4) becomes the SIP polynomials A, B

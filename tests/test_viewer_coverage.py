@@ -51,3 +51,31 @@ def test_a_folder_that_is_not_a_sweep_is_bad_input(tmp_path):
 
     with pytest.raises(BadInput, match="not a coverage folder"):
         serve(port=0, coverage=tmp_path, say=lambda line: None)
+
+
+def test_a_bench_comparison_is_shown_in_every_tab(tmp_path):
+    """`skyview view --compare FILE`: the six-method table of `skyview bench --compare` in the Result tab."""
+    from skyview.compare import load_compare, run_simulated, save_compare
+    from skyview.scenarios import SCENARIOS
+    from skyview.viewer.app import ViewerApp
+    from skyview.viewer.session import Session
+
+    sim = run_simulated(SCENARIOS["cole8"], 2, 3, n_slow=1, methods=("angle",), variants=("paper", "improved"))
+    path, _ = save_compare({"kind": "compare", "version": 1, "simulated": sim, "machine": {}, "wall_s": 1.0},
+                           tmp_path, "cmp")
+    report = load_compare(path)
+    with contextlib.redirect_stdout(io.StringIO()):
+        app = ViewerApp("127.0.0.1", 0, bench_report=report)
+    try:
+        session = Session(app.server, app.solvers, bench_report=app.bench_report)
+        assert session.wait_idle(120)
+        table = session.panel.bench_table.content
+        assert "skyview bench --compare" in table and "| angle | improved | 2 |" in table
+        session.close()
+    finally:
+        with contextlib.redirect_stdout(io.StringIO()):
+            app.stop()
+    for bad in ('{"kind": "coverage"}', "not json"):
+        (tmp_path / "bad.json").write_text(bad)
+        with pytest.raises(BadInput, match="bench --compare"):
+            load_compare(tmp_path / "bad.json")

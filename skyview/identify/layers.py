@@ -28,7 +28,8 @@ def even_sample(n: int, cap: int) -> np.ndarray:
     """Indices of at most `cap` of `n` items spread evenly over them (first and last included)."""
     if n <= cap:
         return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, cap).round().astype(np.int64))
+    idx = np.linspace(0, n - 1, cap).round().astype(np.int64)  # non-decreasing: drop the repeats
+    return idx[np.r_[True, idx[1:] != idx[:-1]]]
 
 
 @dataclass(frozen=True)
@@ -51,7 +52,7 @@ class Hypotheses:
         """The survivors H ((n, len(used)) catalog rows) as a layer: an even sample of `cap`, the total."""
         H = np.asarray(H, dtype=np.int64).reshape(-1, len(used)) if len(used) else np.zeros((0, 0), np.int64)
         keep = even_sample(len(H), cap)
-        return cls(tuple(int(u) for u in used), H[keep].copy(), int(len(H)), tuple(int(s) for s in shared))
+        return cls(tuple(int(u) for u in used), H[keep], int(len(H)), tuple(int(s) for s in shared))
 
     @classmethod
     def single(cls, hypothesis: dict[int, int]) -> Hypotheses:

@@ -28,7 +28,7 @@ r_i = r sqrt(1 + lambda_i / sigma^2), lambda_i the largest eigenvalue of [b_i]x 
 predicted position's covariance), capped at MAX_RADIUS_RAD. Without this a hypothesis made of three
 stars 2' apart in the Pleiades "verified" with two cluster stars that happened to land near others.
 
-Statistic "calibrated" (default; see NOTES.md "Verification statistic"). A random (unrelated)
+Statistic "calibrated" (default; docs/methods.md "Shared verification"). A random (unrelated)
 observed direction lands within r_i of a catalog star with probability p_i = rho_i pi r_i^2: the
 catalog density times the match area. rho_i is the frame's density n_frame / Omega_frame (n_frame
 counts the stars on the sensor grown by r, Omega_frame is the sensor's solid angle: slightly
@@ -465,7 +465,7 @@ VERIFY_NUMBERS = ("n_agree", "n_tested", "p_false", "threshold_effective", "radi
 def verification_step(ver: Verification, hypothesis: dict[int, int], *, cap: int = 200,
                       numbers: dict | None = None, **fields):
     """The 'verify' step every method records: the matches (or the rejected hypothesis), the figures
-    of the verification, plus the method's own `numbers` and Step fields (groups, extra)."""
+    of the verification, plus the method's own `numbers` and Step fields (groups, layers)."""
     from skyview.identify.base import Step
 
     shown = ver.matches or hypothesis

@@ -69,8 +69,9 @@ class ViewerApp:
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, *, initial: Source | None = None,
                  config: SceneConfig | None = None, method: str | None = None, variant: str | None = None,
-                 coverage=None):
+                 coverage=None, bench_report: dict | None = None):
         self.solvers = Solvers()
+        self.bench_report = bench_report  # a `skyview bench --compare` report shown in every tab's Result
         self.coverage = coverage  # a CoverageLayer read once; each tab draws its own copy
         self.method, self.variant = method, variant
         self.initial = initial
@@ -118,7 +119,7 @@ class ViewerApp:
     def _connect(self, client: viser.ClientHandle) -> None:
         layer = None if self.coverage is None else dataclasses.replace(self.coverage, handles=[])
         session = Session(client, self.solvers, initial=self.initial, config=self.config, method=self.method,
-                          variant=self.variant, coverage=layer)
+                          variant=self.variant, coverage=layer, bench_report=self.bench_report)
         with self._lock:
             self.sessions[client.client_id] = session
 
@@ -140,17 +141,24 @@ class ViewerApp:
 
 def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, fov_deg: float | None = None,
           say: Callable[[str], None] = print, *, config: SceneConfig | None = None, method: str | None = None,
-          variant: str | None = None, coverage: str | Path | None = None) -> int:
+          variant: str | None = None, coverage: str | Path | None = None,
+          compare: str | Path | None = None) -> int:
     """`skyview view` (and the end of `skyview demo`): run the viewer until Ctrl-C (or SIGTERM).
 
     config / method / variant: the simulated scene and the method every tab starts on. coverage: the
-    folder of a `skyview coverage` sweep, drawn on the sphere as a layer ("Sky coverage" in View)."""
+    folder of a `skyview coverage` sweep, drawn on the sphere as a layer ("Sky coverage" in View).
+    compare: a `skyview bench --compare` JSON, its tables shown in every tab's Result tab."""
     initial = load_initial_image(image, fov_deg) if image is not None else None
     layer = None
     if coverage is not None:
         from skyview.viewer.coverage_layer import CoverageLayer
 
         layer = CoverageLayer.from_folder(coverage)
+    report = None
+    if compare is not None:
+        from skyview.compare import load_compare
+
+        report = load_compare(compare)
     if config is None:
         config = SceneConfig(fov_deg=check_fov(fov_deg)) if fov_deg is not None and image is None else None
 
@@ -164,7 +172,8 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
         previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGINT, signal.SIGTERM)}
     app = None
     try:
-        app = ViewerApp(host, port, initial=initial, config=config, method=method, variant=variant, coverage=layer)
+        app = ViewerApp(host, port, initial=initial, config=config, method=method, variant=variant, coverage=layer,
+                        bench_report=report)
         # the address is announced inside the try: a Ctrl-C right after it still stops the server
         say(f"skyview viewer: {app.url}  (Ctrl-C stops it)")
         if host not in ("127.0.0.1", "localhost", "::1"):

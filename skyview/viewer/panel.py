@@ -61,6 +61,7 @@ class Panel:
     variant: object
     seq_controls: object  # folder shown when the method identifies over sequences (or tracks one)
     track: object  # checkbox: track a sequence with a single-frame method
+    bench_table: object  # markdown: a `skyview bench --compare` report (view --compare FILE)
     n_frames: object
     turn: object
     turn_step: object
@@ -166,6 +167,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
         result = gui.add_markdown("")
         export = gui.add_button("Export this run as .rrd", icon="download")
         compare_table = gui.add_markdown("")
+        bench_table = gui.add_markdown("")  # `skyview view --compare FILE`: a bench --compare report
 
     with tabs.add_tab("View", icon="eye"):
         boresight = gui.add_button("Look down the boresight", icon="focus-2")
@@ -196,7 +198,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
                  seq_controls=seq_controls, track=track, n_frames=n_frames, turn=turn, turn_step=turn_step,
                  paper_camera=paper_camera, auto=auto,
                  solve=solve, compare=compare, upload_fov=upload_fov, upload=upload, back=back,
-                 result=result, compare_table=compare_table, export=export, boresight=boresight, wide=wide,
+                 result=result, compare_table=compare_table, bench_table=bench_table, export=export, boresight=boresight, wide=wide,
                  follow=follow, checks=checks, picked=picked)
 
 

@@ -50,7 +50,7 @@ class Session:
 
     def __init__(self, owner, solvers: Solvers, *, initial: Source | None = None,
                  config: SceneConfig | None = None, method: str | None = None, variant: str | None = None,
-                 coverage=None):
+                 coverage=None, bench_report: dict | None = None):
         self.owner = owner
         self.coverage = coverage  # a viewer.coverage_layer.CoverageLayer (`skyview view --coverage DIR`)
         self.client = owner if isinstance(owner, viser.ClientHandle) else None
@@ -104,6 +104,11 @@ class Session:
         self.request_solve()
         if coverage is not None:
             self.show_coverage(True)
+        if bench_report is not None:  # the six methods compared on a bench's images, beside this image's
+            from skyview.compare import format_markdown
+
+            self.panel.bench_table.content = ("---\n\n## Every method on the same images (`skyview bench "
+                                              "--compare`)\n\n" + format_markdown(bench_report))
 
     # ------------------------------------------------------------------ plumbing
     def atomic(self):
@@ -343,18 +348,7 @@ class Session:
             self._playing_frames = False
             self._drop_tracked()
             self.seq = seq
-            self.frame_index = n - 1
-            p = self.panel
-            self._mute = True
-            try:
-                p.frame.max = max(1, n - 1)
-                p.frame.value = n - 1
-                p.frame.disabled = n == 1
-            finally:
-                self._mute = False
-            p.play_frames.label = "Play the frames"
-            p.play_frames.disabled = n == 1
-            p.seq_box.visible = True
+            self._frames_controls(n)
             self.sky.draw_track(seq.frames[0].source.camera, [f.R_true for f in seq.frames])
             self._draw_frame_plot()
         self._draw_run(seq.frames[n - 1], t_request)
@@ -368,24 +362,28 @@ class Session:
             self._drop_tracked()
             self.seq = None
             self.tracked = seq
-            self.frame_index = n - 1
-            p = self.panel
-            self._mute = True
-            try:
-                p.frame.max = max(1, n - 1)
-                p.frame.value = n - 1
-                p.frame.disabled = n == 1
-            finally:
-                self._mute = False
-            p.play_frames.label = "Play the frames"
-            p.play_frames.disabled = n == 1
-            p.seq_box.visible = True
+            self._frames_controls(n)
             if self._frame_plot is not None:
                 self._frame_plot.remove()
                 self._frame_plot = None
             self.sky.draw_track(None, None)
             seq.show(self.owner.scene, n - 1)
         self._draw_tracked_frame(n - 1, t_request)
+
+    def _frames_controls(self, n: int) -> None:
+        """The frame slider and player for a sequence of n frames, on its last frame."""
+        self.frame_index = n - 1
+        p = self.panel
+        self._mute = True
+        try:
+            p.frame.max = max(1, n - 1)
+            p.frame.value = n - 1
+            p.frame.disabled = n == 1
+        finally:
+            self._mute = False
+        p.play_frames.label = "Play the frames"
+        p.play_frames.disabled = n == 1
+        p.seq_box.visible = True
 
     def _draw_tracked_frame(self, k: int, t_request: float | None = None) -> None:
         seq = self.tracked
