@@ -17,6 +17,7 @@ from skyview.identify.genetic import (IMPROVED_PARAMS, PAPER_FIRST, GeneSpace, G
                                       reference_magnitude, ring_seeds,
                                       roll_threshold, run_ga, tangent_basis, wrap_angle)
 from skyview.identify.genetic_map import MapField, make_map, main as map_main, solve_map
+from skyview.identify.layers import Population, SearchRegion
 from skyview.identify.synthetic import synthetic_frame
 from skyview.identify.verify import angular_distance
 
@@ -276,14 +277,14 @@ def test_identifies_a_synthetic_frame_and_records_its_steps(improved20, cat, cam
     gens = [s for s in r.steps if s.kind == "generation"]
     assert gens and {"best_cost", "threshold", "stage", "generation", "box_half_width_deg"} <= set(gens[0].numbers)
     for s in gens[:3] + gens[-3:]:
-        pop = s.extra["population"]
+        pop = s.layer(Population).xyz
         assert pop.ndim == 2 and pop.shape[1] == 3
         np.testing.assert_allclose(np.linalg.norm(pop, axis=1), 1.0, atol=1e-6)
-        assert s.extra["box"]["kind"] in ("sky", "square", "roll")
-    kinds = [s.extra["box"]["kind"] for s in gens]
+        assert s.layer(SearchRegion).kind in ("sky", "square", "roll")
+    kinds = [s.layer(SearchRegion).kind for s in gens]
     assert kinds[0] == "sky" and "square" in kinds and kinds[-1] == "roll"
-    sq = next(s for s in gens if s.extra["box"]["kind"] == "square")
-    assert sq.extra["box"]["corners"].shape == (4, 3)
+    sq = next(s for s in gens if s.layer(SearchRegion).kind == "square")
+    assert sq.layer(SearchRegion).corners.shape == (4, 3)
     ver = [s for s in r.steps if s.kind == "verify"]
     assert ver[-1].numbers["passed"] == 1.0 and r.verification["p_false"] < 1e-3
     assert r.stats["first_chain"]["outcome"] == "answer" and r.stats["attempts"] >= 1

@@ -11,7 +11,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from skyview.identify.layers import Layer, legacy_dict
+from skyview.identify.layers import Layer
 
 L = TypeVar("L")
 
@@ -63,11 +63,6 @@ class Step:
     def layer(self, kind: type[L]) -> L | None:
         """The step's first layer of type `kind`, or None."""
         return next((la for la in self.layers if isinstance(la, kind)), None)
-
-    @property
-    def extra(self) -> dict[str, Any]:
-        """Read-only: the layers as the former `extra` dict, for code not yet moved to `layer()`."""
-        return legacy_dict(self.layers)
 
     def to_dict(self) -> dict:
         return {

@@ -134,14 +134,6 @@ class SearchRegion:
                    None if corners is None else np.array(corners, dtype=np.float64),
                    None if box.get("radius_rad") is None else float(box["radius_rad"]))
 
-    def as_dict(self) -> dict:
-        d = {"kind": self.kind, "center": self.center, "half_width_rad": self.half_width_rad}
-        if self.corners is not None:
-            d["corners"] = self.corners
-        if self.radius_rad is not None:
-            d["radius_rad"] = self.radius_rad
-        return d
-
 
 @dataclass(frozen=True)
 class StarSets:
@@ -155,30 +147,3 @@ class StarSets:
 
 
 Layer = Hypotheses | Population | Posterior | Attitudes | SearchRegion | StarSets
-
-
-def legacy_dict(layers) -> dict:
-    """The layers as the old `Step.extra` dict (read-only view for code not yet moved to layers)."""
-    out: dict = {}
-    for la in layers:
-        if isinstance(la, Hypotheses):
-            out["used"] = list(la.used)
-            out["hypotheses"] = la.rows
-            if la.shared:
-                out["shared"] = list(la.shared)
-        elif isinstance(la, Population):
-            out["population"] = la.xyz
-            out["costs"] = la.costs
-            if la.roll_rad is not None:
-                out["roll_rad"] = la.roll_rad
-        elif isinstance(la, Posterior):
-            out.update(posterior=la.weights, rows=la.rows, posterior_top=la.top_mass, top_rows=la.top_rows)
-            if la.top_xi is not None:
-                out["xi_top"] = la.top_xi
-        elif isinstance(la, Attitudes):
-            out[la.name] = la.R[0] if len(la.R) == 1 else np.stack(la.R)
-        elif isinstance(la, SearchRegion):
-            out["box"] = la.as_dict()
-        elif isinstance(la, StarSets):
-            out.update({k: list(v) for k, v in la.sets.items()})
-    return out
