@@ -213,11 +213,12 @@ def _print_human(out: dict, file=sys.stdout) -> None:
 
 def cmd_solve(a) -> int:
     from skyview.centroid import load_image
-    from skyview.fits_image import undeclared_row_order
+    from skyview.fits_image import row_order
     from skyview.pipeline import solve_image
 
     path = Path(a.image)
     image = load_image(path)
+    order = row_order(path)  # a FITS file's ROWORDER ("" if it has none), None for other files
     if int(image.max()) == int(image.min()):
         raise BadInput(f"{path} is blank (every pixel is {int(image.min())}): there is no sky to solve")
     params = {}
@@ -238,7 +239,7 @@ def cmd_solve(a) -> int:
                          estimator=a.estimator, max_stars=a.max_stars, k_sigma=a.k_sigma,
                          distortion=tuple(a.distortion), method_params=method_params or None,
                          variant=a.variant, memory_mb=a.memory_mb, progress=_progress_line,
-                         try_flipped_rows=undeclared_row_order(path), **params)
+                         try_flipped_rows=order == "", **params)
     truth = None
     if a.truth:
         truth = Path(a.truth)
@@ -256,11 +257,10 @@ def cmd_solve(a) -> int:
     if a.wcs and result.solved:
         from skyview.wcs import write_wcs
 
-        from skyview.fits_image import rows_reversed_on_read
-
         # for the file's own pixel grid: a FITS file read bottom row first, unless solved the other way up
+        rows_reversed_on_read = order not in (None, "TOP-DOWN")
         write_wcs(a.wcs, result.R, result.camera, force=a.force,
-                  rows_reversed=rows_reversed_on_read(path) != result.rows_reversed)
+                  rows_reversed=rows_reversed_on_read != result.rows_reversed)
         out["wcs"] = str(a.wcs)
     text = json.dumps(out, indent=1 if a.json else None, allow_nan=False)
     if output is not None:

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from .centroid import Centroids, detect_centroids, to_gray
+from .errors import BadInput
 from .trails import trail_members
 
 TARGET_SIGMA_PX = 1.1  # the PSF sigma the centroider is made for: bin by floor(sigma / this)
@@ -120,7 +121,6 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     of trail fragments taken out are in `params["binning"]` and `params["n_trail_rejected"]`.
     """
     if binning is not None and (int(binning) != binning or binning < 1):
-        from .errors import BadInput
         raise BadInput(f"binning={binning} must be a positive integer")
     c = detect_centroids(image, k_sigma=k_sigma, **kwargs)
     H, W = np.shape(image)[:2]

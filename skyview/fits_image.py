@@ -99,19 +99,15 @@ def _to_grey(data: np.ndarray, bayer: str) -> np.ndarray:
     return data.astype(np.float32)
 
 
-def rows_reversed_on_read(path: str | os.PathLike) -> bool:
-    """True when `read_fits` turns the file's rows over (a FITS file not declared TOP-DOWN)."""
-    return _row_order(path) not in (None, "TOP-DOWN")
-
-
 def undeclared_row_order(path: str | os.PathLike) -> bool:
     """True for a FITS file whose header does not say its row order (no ROWORDER keyword): its rows
     may be either way up. False for any other file."""
-    return _row_order(path) == ""
+    return row_order(path) == ""
 
 
-def _row_order(path: str | os.PathLike) -> str | None:
-    """The ROWORDER of a FITS file's image ("" when the header has none); None for any other file."""
+def row_order(path: str | os.PathLike) -> str | None:
+    """The ROWORDER of a FITS file's image ("" when the header has none); None for any other file.
+    `read_fits` turns the rows over unless it is "TOP-DOWN"."""
     p = Path(path)
     try:
         with open(p, "rb") as fh:

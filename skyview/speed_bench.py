@@ -73,10 +73,8 @@ def boresight_error_px(R_est, R_true, pixel_scale_rad: float) -> float:
 def render_images(scenario, n: int, seed: int, work: Path, catalog) -> list[dict]:
     """n frames of `scenario` rendered as `skyview bench` renders them, written to `work`:
     [{name, path, width, height, R (true), truth}]."""
-    import cv2
-
     from skyview.attitude import random_attitudes
-    from skyview.simulate import SensorModel, simulate_image
+    from skyview.simulate import SensorModel, save_frame, simulate_image
 
     work.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -87,13 +85,8 @@ def render_images(scenario, n: int, seed: int, work: Path, catalog) -> list[dict
     for k in range(n):
         frame = simulate_image(catalog, camera, attitudes[k], SensorModel(), seed=int(seeds[k]),
                                **scenario.render_kwargs())
-        if frame.jpeg is not None:
-            path = work / f"trial{k:04d}.jpg"
-            path.write_bytes(frame.jpeg)
-        else:
-            path = work / f"trial{k:04d}.png"
-            if not cv2.imwrite(str(path), frame.image):
-                raise BadInput(f"cannot write {path}")
+        path = work / f"trial{k:04d}{'.jpg' if frame.jpeg is not None else '.png'}"
+        save_frame(frame, path, force=True)  # the simulator's own JPEG bytes, or a lossless PNG
         images.append({"name": path.stem, "path": str(path), "width": camera.width, "height": camera.height,
                        "R": attitudes[k], "truth": frame.truth})
     return images

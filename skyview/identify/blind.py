@@ -116,7 +116,6 @@ class _Search:
     out_of_budget: bool = False
     timed_out: bool = False
     gave_up: str = ""  # how many checks and how long, when the budget ran out
-    checks_before: int = 0  # checks of the other FOV section (see identify)
     reason: str = ""
 
     def __post_init__(self):
@@ -204,9 +203,8 @@ class BlindIdentifier:
                                   groups=[tuple(int(r) for r in g) for g in shown],
                                   numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
                                            "fov_min_deg": s_lo, "fov_max_deg": s_hi}))
-                state.checks_before = state.checks - spent[k]  # _check counts this section's checks only
                 before = state.checks
-                res = self._check(uv, quads, cands, state, steps, t0)
+                res = self._check(uv, quads, cands, state, steps, t0, max_checks=p.max_checks - spent[k])
                 spent[k] += state.checks - before
                 if res is not None or state.timed_out:
                     break
@@ -268,13 +266,15 @@ class BlindIdentifier:
         return {"quad": q[order], "pattern": pr[order], "fov": f[order], "err": er[order]}
 
     # ------------------------------------------------------------------ hypotheses
-    def _check(self, uv, quads, cands, state: "_Search", steps, t0) -> BlindResult | None:
-        """Check candidates in order; the first verified one is the result, None if none is."""
+    def _check(self, uv, quads, cands, state: "_Search", steps, t0, max_checks: int) -> BlindResult | None:
+        """Check candidates in order, at most max_checks of them; the first verified one is the result,
+        None if none is."""
+        first = state.checks
         p = self.params
         width, height, n_obs = state.width, state.height, state.n_obs
         for q, pr, fov in zip(cands["quad"], cands["pattern"], cands["fov"]):
             state.timed_out = time.perf_counter() - t0 > p.time_budget_s
-            if state.checks - state.checks_before >= p.max_checks or state.timed_out:
+            if state.checks - first >= max_checks or state.timed_out:
                 state.out_of_budget = True
                 state.gave_up = f"gave up after {state.checks} hypotheses ({time.perf_counter() - t0:.1f} s)"
                 return None

@@ -368,7 +368,7 @@ class Session:
                 self._frame_plot = None
             self.sky.draw_track(None, None)
             seq.show(self.owner.scene, n - 1)
-        self._draw_tracked_frame(n - 1, t_request)
+        self._draw_run(seq.frames[n - 1], t_request)
 
     def _frames_controls(self, n: int) -> None:
         """The frame slider and player for a sequence of n frames, on its last frame."""
@@ -384,15 +384,6 @@ class Session:
         p.play_frames.label = "Play the frames"
         p.play_frames.disabled = n == 1
         p.seq_box.visible = True
-
-    def _draw_tracked_frame(self, k: int, t_request: float | None = None) -> None:
-        seq = self.tracked
-        self._draw_run(seq.frames[k], t_request)
-        with self.lock, self.atomic():
-            if self.tracked is seq:
-                self.panel.frame_text.content = seq.frame_markdown(k)
-                self.panel.result.content = f"{seq.markdown()}\n\n---\n\n**Frame {k}** (shown)  \n" \
-                                            f"{self.panel.result.content}"
 
     def _drop_tracked(self) -> None:
         if self.tracked is not None:
@@ -421,10 +412,8 @@ class Session:
                 return
             self.frame_index = k
             if seq is self.tracked:
-                seq.set_frame(self.owner.scene, k)
-                self._draw_tracked_frame(k)
-            else:
-                self._draw_run(seq.frames[k])
+                seq.set_frame(self.owner.scene, k)  # the footprint of the frame shown
+            self._draw_run(seq.frames[k])
         self.timings["frame_ms"] = (time.perf_counter() - t0) * 1e3
 
     def _status_text(self) -> str:
@@ -464,9 +453,9 @@ class Session:
             self.step_index = None
             self._show_step(n - 1 if n else None)
             self._draw_plot()
-            seq, k = self.seq, self.frame_index
+            seq, k = self._frames_on_screen(), self.frame_index
             if seq is not None and k is not None:
-                p.frame_text.content = P.frame_markdown(seq, k)
+                p.frame_text.content = P.frame_markdown(seq, k) if seq is self.seq else seq.frame_markdown(k)
                 if self._frame_plot is not None:
                     self._frame_plot.data = self._frame_plot_data(k)
             p.status.content = self._status_text()
@@ -477,7 +466,8 @@ class Session:
                      "drawing": self.timings["draw_ms"]}
         text = P.result_markdown(run, viewer_ms)
         if seq is not None and k is not None:
-            text = f"{P.sequence_markdown(seq)}\n\n---\n\n**Frame {k}** (shown)  \n{text}"
+            whole = P.sequence_markdown(seq) if seq is self.seq else seq.markdown()
+            text = f"{whole}\n\n---\n\n**Frame {k}** (shown)  \n{text}"
         self.panel.result.content = text
         R = run.R_shown
         if R is not None and self.panel.follow.value:
