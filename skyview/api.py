@@ -62,8 +62,9 @@ class NotSolvedError(SkyviewError, ValueError):
 @dataclass(frozen=True)
 class Match:
     """One identified star: centroid ``index`` (in the centroid list, brightest first) at pixel
-    ``(u, v)``, matched to Hipparcos ``hip`` of catalog magnitude ``mag`` (Hp); ``residual_arcsec``
-    is the angle between the observed direction and the catalog star under the solved attitude."""
+    ``(u, v)``, matched to Hipparcos ``hip`` of catalog magnitude ``mag`` (Hp) at ``ra_deg``, ``dec_deg``
+    (ICRS, at the solution's epoch: the catalog row itself, no catalog to open); ``residual_arcsec`` is
+    the angle between the observed direction and the catalog star under the solved attitude."""
 
     index: int
     u: float
@@ -71,10 +72,12 @@ class Match:
     hip: int
     mag: float
     residual_arcsec: float
+    ra_deg: float
+    dec_deg: float
 
     def to_dict(self) -> dict[str, Any]:
-        return {"index": self.index, "u": self.u, "v": self.v, "hip": self.hip, "mag": self.mag,
-                "residual_arcsec": _finite(self.residual_arcsec)}
+        return {"index": self.index, "u": self.u, "v": self.v, "hip": self.hip, "ra_deg": self.ra_deg,
+                "dec_deg": self.dec_deg, "mag": self.mag, "residual_arcsec": _finite(self.residual_arcsec)}
 
 
 def _finite(x: float | None) -> float | None:
@@ -169,7 +172,8 @@ class Solution:
         if solved and ident is not None:
             p_false = _finite(ident.verification.get("p_false")) if isinstance(ident.verification, dict) else None
         matches = tuple(Match(index=int(m["index"]), u=float(m["u"]), v=float(m["v"]), hip=int(m["hip"]),
-                              mag=float(m["mag"]), residual_arcsec=float(m.get("residual_arcsec", float("nan"))))
+                              mag=float(m["mag"]), residual_arcsec=float(m.get("residual_arcsec", float("nan"))),
+                              ra_deg=float(m["ra_deg"]), dec_deg=float(m["dec_deg"]))
                         for m in result.matches)
         return cls(
             status="solved" if solved else "failed",

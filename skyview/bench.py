@@ -1,5 +1,9 @@
 """Monte Carlo evaluation of a method on a scenario: simulate -> solve -> score against truth.
 
+Long (over 900 lines) because it holds the three Monte Carlo benches, calibrated methods, the blind
+pipeline and slews (tracking), in one section each, sharing one trial runner, one fault-tolerant process
+pool and one result format.
+
 Every trial renders a full sensor image with the simulator (random attitude, uniform on SO(3)),
 runs the same `Solver` that `skyview solve` uses, and scores the result against the truth sidecar:
 

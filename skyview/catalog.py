@@ -18,7 +18,6 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from skyview.errors import BadInput, SkyviewError
 
@@ -105,7 +104,11 @@ class GuideCatalog:
         return vec_to_radec(self.xyz)
 
     @cached_property
-    def tree(self) -> cKDTree:
+    def tree(self):
+        """A scipy cKDTree on the unit vectors (imported here: scipy.spatial costs ~0.25 s to import, and a
+        solve that never asks for neighbours does not pay it)."""
+        from scipy.spatial import cKDTree
+
         return cKDTree(self.xyz)
 
     @cached_property

@@ -1,7 +1,8 @@
 """Image -> star centroids with OpenCV: background, noise, detection, sub-pixel position, flags.
 
-(Longer than skyview's other modules: the fast path below and the shared estimators are one algorithm
-that is timed per stage; the former, simpler implementation it is tested against is in
+(Longer than skyview's other modules, ~1000 lines: the image loading, the fast path below and the
+estimators it shares with `skyview.centroid_reference` are one algorithm timed per stage (issue 11:
+<= 1.5 ms a 1024 x 1024 frame); the former, simpler implementation it is tested against is in
 `skyview.centroid_reference`.)
 
 Pixel convention (DESIGN.md): pixel centres at integer coordinates, (0, 0) the centre of the
@@ -9,7 +10,9 @@ top-left pixel; u = column (x, right), v = row (y, down).
 
 Steps of `detect_centroids`:
 
-1. Background: median of 64 px blocks (sampled every 4th pixel), bilinear map between block centres
+1. Background: median of 64 px blocks (sampled every 4th pixel of every 4th row; of every 8th row on
+   frames of 512 px or more a side: 128 samples a block, and the noise below from half of those),
+   bilinear map between block centres
    extrapolated linearly to the borders; a single level when no block departs from it by more than
    0.5 sigma or than the blocks' own noise (the usual case, and the fast one). Noise sigma: 1.4826 x MAD of the
    background-subtracted samples, refined by a 3.5-sigma clipped standard deviation (which stays
@@ -18,12 +21,16 @@ Steps of `detect_centroids`:
    stay near the background (below max(3 sigma, 15 % of it)) is a hot pixel: counted, removed
    from the mask and repaired with its neighbours' median, so it neither becomes a star nor pulls
    the centroid of a faint star it touches (this assumes a PSF sigma of at least ~0.5 px, as star
-   trackers defocus to get). Then 8-connected components (cv2.connectedComponentsWithStats); blobs
-   smaller than min_pixels are dropped; a blob with several separated peaks is split (deblend).
+   trackers defocus to get). Then 8-connected components of the pixels above it (cv2 on an image
+   compacted to the rows and columns that hold one); blobs smaller than min_pixels are dropped; a blob
+   with several separated peaks is split (deblend).
 3. Position in a window around each blob's brightest pixel (side 2*ceil(2.5 sigma_eff) + 1, 7 px for
    the default PSF), background subtracted. Estimators (`estimator=`):
    "fit" (default): least-squares fit of a pixel-integrated Gaussian PSF (amplitude and position,
-   width fixed to the PSF sigma measured from the image), Gauss-Newton from the iwcog position;
+   width fixed to the PSF sigma measured from the image), Gauss-Newton until its step, or the error
+   its last two steps say is left, is below 1e-4 px, from the "gauss3" position for a star whose
+   three-point fit gives the PSF's width to 30 %, from the iwcog position for the others (saturated,
+   blended, odd shapes);
    saturated pixels and pixels off the image are left out, so saturated and edge stars keep an
    unbiased centre;
    "iwcog": iteratively Gaussian-weighted centre of gravity, each step scaled by
@@ -43,6 +50,7 @@ Steps of `detect_centroids`:
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -307,25 +315,34 @@ def _median_abs_dev_sorted(rs: np.ndarray, med) -> np.ndarray:
 
 
 def _background_stats(f: np.ndarray, block: int = 64):
-    """(grid, block height, block width, sample step, level, sigma, flat) of a 2-D image of any real
-    dtype: the statistics of `_estimate_background_reference` computed from the sub-sampled pixels
-    only (converted to float32, as the reference sees them) with sorts instead of np.median
-    (SIMD sorts are several times faster than the partitions np.median does); the same numbers."""
+    """(grid, block height, block width, level, sigma, flat) of a 2-D image of any real dtype (its
+    float32 values), from a sub-sample: every `sx`-th pixel of every `sy`-th row, sx = 4 and sy = 8 on
+    an image of 512 px or more a side (32,768 samples of a 1024 x 1024 frame, 128 per 64 px block),
+    sx = sy = 4 / 2 / 1 on smaller ones (the reference's sample, `_estimate_background_reference`).
+
+    grid: the median of each block's samples; level: the median of the grid; sigma: 1.4826 x the MAD
+    of the samples less the bilinear map of the grid, refined by their 3.5-sigma clipped standard
+    deviation (the clipped samples are a slice of the sorted ones: one sort); on the large images
+    sigma comes from half the samples, a checkerboard of them (16,384 on 1024 x 1024: ~0.6 % noise on
+    sigma; both pixel phases of the column step kept, as JPEG's 8 x 8 blocks want); flat: no block departs
+    from the level by more than max(0.5 sigma, 4.5 x the scatter of a median of its samples, 1 on
+    integer data). Sorts replace np.median (SIMD sorts are several times faster than its partitions)."""
     H, W = f.shape
     step = 4 if min(H, W) >= 256 else (2 if min(H, W) >= 64 else 1)
-    off = step // 2
-    sub = f[off::step, off::step].astype(np.float32)
+    sy, sx = (2 * step if min(H, W) >= 512 else step), step
+    sub = f[sy // 2::sy, sx // 2::sx].astype(np.float32)
     sh, sw = sub.shape
-    bs = max(4, block // step)
-    gh, gw = max(1, sh // bs), max(1, sw // bs)
+    bsy, bsx = max(4, block // sy), max(4, block // sx)  # samples per block side
+    gh, gw = max(1, sh // bsy), max(1, sw // bsx)
     by, bx = sh // gh, sw // gw
     cells = sub[: gh * by, : gw * bx].reshape(gh, by, gw, bx).transpose(0, 2, 1, 3).reshape(gh, gw, by * bx)
     grid = _median_sorted(np.sort(cells, axis=2)).astype(np.float32)
     level = float(_median_sorted(np.sort(grid, axis=None)))  # = np.median(grid), without its overhead
-    if gh * gw > 1:
-        r = (sub - _upsample(grid, by, bx, sh, sw)).ravel()
-    else:
-        r = (sub - level).ravel()
+    d = sub - (_upsample(grid, by, bx, sh, sw, contiguous=False) if gh * gw > 1 else np.float32(level))
+    # on large frames the noise comes from half the samples (16,384 of a 1024 x 1024 frame), in a
+    # checkerboard: every other sample of the even sample rows, the others of the odd ones (both
+    # phases of the 4-pixel column step, as the reference's sample has them: JPEG's 8 x 8 blocks)
+    r = np.concatenate([d[0::2, 0::2].ravel(), d[1::2, 1::2].ravel()]) if sy > sx else d.ravel()
     rs = np.sort(r)
     med = _median_sorted(rs)
     mad = float(_median_abs_dev_sorted(rs, med))
@@ -333,12 +350,13 @@ def _background_stats(f: np.ndarray, block: int = 64):
     is_int = f.dtype.kind in "ui" or bool(np.all(np.floor(sub) == sub))
     floor = 1.0 if is_int else max(1e-12, 1e-9 * float(np.abs(sub).max()))
     clip = _CLIP_K * max(s0, floor)
-    rc = r[np.abs(r) <= clip]
+    c32 = np.float32(clip)  # |r| <= clip in float32, as the reference compares
+    rc = rs[int(rs.searchsorted(-c32, side="left")):int(rs.searchsorted(c32, side="right"))]
     sigma = float(rc.std()) / _CLIP_STD if rc.size > 10 else s0
     sigma = max(sigma, 0.5 if is_int else floor)
     tol = max(0.5 * sigma, 4.5 * 1.2533 * sigma / math.sqrt(by * bx), 1.0 if is_int else 0.0)
     flat = gh * gw == 1 or float(np.abs(grid - level).max()) <= tol
-    return grid, by * step, bx * step, level, sigma, flat
+    return grid, by * sy, bx * sx, level, sigma, flat
 
 
 def estimate_background(f: np.ndarray, block: int = 64) -> tuple[np.ndarray | float, float, float]:
@@ -354,21 +372,21 @@ def estimate_background(f: np.ndarray, block: int = 64) -> tuple[np.ndarray | fl
     return _upsample(grid, by, bx, f.shape[0], f.shape[1]), level, sigma
 
 
-def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int) -> np.ndarray:
+def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int, contiguous: bool = True) -> np.ndarray:
     """(H, W) map from block values at block centres ((i + 0.5) * by - 0.5, (j + 0.5) * bx - 0.5):
     bilinear between centres, linear extrapolation beyond the outer ones (one extra ring of blocks
-    extrapolated from the outer two, then cv2.resize and crop)."""
+    extrapolated from the outer two, then cv2.resize and crop; contiguous=False: the crop as a view)."""
     g = grid.astype(np.float32)
-    if g.shape[0] > 1:
-        g = np.vstack([2 * g[:1] - g[1:2], g, 2 * g[-1:] - g[-2:-1]])
-    else:
-        g = np.vstack([g, g, g])
-    if g.shape[1] > 1:
-        g = np.hstack([2 * g[:, :1] - g[:, 1:2], g, 2 * g[:, -1:] - g[:, -2:-1]])
-    else:
-        g = np.hstack([g, g, g])
-    big = cv2.resize(g, (g.shape[1] * bx, g.shape[0] * by), interpolation=cv2.INTER_LINEAR)
-    return np.ascontiguousarray(big[by: by + H, bx: bx + W])
+    gh, gw = g.shape
+    p = np.empty((gh + 2, gw + 2), dtype=np.float32)
+    p[1:-1, 1:-1] = g
+    p[0, 1:-1] = 2 * g[0] - g[1] if gh > 1 else g[0]
+    p[-1, 1:-1] = 2 * g[-1] - g[-2] if gh > 1 else g[0]
+    p[:, 0] = 2 * p[:, 1] - p[:, 2] if gw > 1 else p[:, 1]
+    p[:, -1] = 2 * p[:, -2] - p[:, -3] if gw > 1 else p[:, 1]
+    big = cv2.resize(p, ((gw + 2) * bx, (gh + 2) * by), interpolation=cv2.INTER_LINEAR)
+    crop = big[by: by + H, bx: bx + W]
+    return np.ascontiguousarray(crop) if contiguous else crop
 
 
 # ============================================================================ detection
@@ -377,7 +395,6 @@ def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int) -> np.ndarray:
 # ============================================================================ detection (fast path)
 
 _NATIVE_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int16))  # exact in float32, cv2-native
-_SPARSE_LABEL_MAX = 4000  # above-threshold pixels labelled as a graph; more: cv2.connectedComponents
 _GATHER_HOT_MAX = 20000  # above: hot-pixel test with a ring max filter (as the reference)
 
 
@@ -392,8 +409,9 @@ class _Pixels:
         self.hp = None  # sorted flat indices of repaired pixels
         self.hv = None  # their float32 values
 
-    def take(self, fi: np.ndarray) -> np.ndarray:
-        v = self.flat[fi].astype(np.float32)
+    def take(self, fi: np.ndarray, dtype=np.float32) -> np.ndarray:
+        """The values at flat indices fi as `dtype` (float32, or float64: the same values)."""
+        v = self.flat[fi].astype(dtype)
         if self.hp is not None:
             pos = np.searchsorted(self.hp, fi)
             np.minimum(pos, len(self.hp) - 1, out=pos)
@@ -411,14 +429,14 @@ def _gather_px(px, H, W, bkg, resid, pi, pj, h):
         # every window inside the image (the usual case): no clipping, no masking
         valid = np.ones((n, 2 * h + 1, 2 * h + 1), dtype=bool)
         fi = (pi * W + pj)[:, None, None] + (d[:, None] * W + d[None, :])[None]
-        raw = px.take(fi).astype(np.float64)
+        raw = px.take(fi, np.float64)
         vals = resid.reshape(-1)[fi].astype(np.float64) if resid is not None else raw - bkg
         return vals, valid, raw
     rows = pi[:, None, None] + d[None, :, None]
     cols = pj[:, None, None] + d[None, None, :]
     valid = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)
-    fi = np.clip(rows, 0, H - 1) * W + np.clip(cols, 0, W - 1)
-    raw = px.take(fi).astype(np.float64)
+    fi = np.minimum(np.maximum(rows, 0), H - 1) * W + np.minimum(np.maximum(cols, 0), W - 1)
+    raw = px.take(fi, np.float64)
     vals = resid.reshape(-1)[fi].astype(np.float64) if resid is not None else raw - bkg
     vals[~valid] = 0.0
     return vals, valid, raw
@@ -447,63 +465,72 @@ def _neighbour_max(px, H, W, bkg, resid, fi: np.ndarray) -> np.ndarray:
 
 
 def _label_sparse(idx: np.ndarray, W: int) -> tuple[np.ndarray, int]:
-    """8-connected labels (1..n) of the pixels at sorted flat indices idx of a width-W image, numbered
-    in raster order of each component's first pixel; (labels, n + 1) like cv2's count."""
-    n = idx.size
-    col = idx % W
-    heads, tails = [], []
-    for off, side in ((1, 1), (W - 1, -1), (W, 0), (W + 1, 1)):  # right, below-left, below, below-right
-        tgt = idx + off
-        pos = np.searchsorted(idx, tgt)
-        np.minimum(pos, n - 1, out=pos)
-        ok = idx[pos] == tgt
-        if side > 0:
-            ok &= col < W - 1
-        elif side < 0:
-            ok &= col > 0
-        heads.append(np.flatnonzero(ok))
-        tails.append(pos[ok])
-    a = np.concatenate(heads).astype(np.int64)
-    b = np.concatenate(tails).astype(np.int64)
-    # union-find by label propagation with pointer jumping: each link pulls both ends down to the
-    # smaller root until no link joins two roots (a few rounds for star-sized blobs)
-    root = np.arange(n, dtype=np.int64)
-    while a.size:
-        ra, rb = root[a], root[b]
-        diff = ra != rb
-        if not diff.any():
-            break
-        ra, rb = ra[diff], rb[diff]
-        lo, hi = np.minimum(ra, rb), np.maximum(ra, rb)
-        np.minimum.at(root, hi, lo)
-        while True:  # compress: every pixel points at its root
-            nxt = root[root]
-            if np.array_equal(nxt, root):
-                break
-            root = nxt
-    _, labels = np.unique(root, return_inverse=True)
-    k = int(labels.max()) + 1 if n else 0
-    # number the components as cv2 does (provisional labels per 2x2 block, in raster order of the
-    # blocks: rows in pairs, columns in pairs), so that ties in brightness keep the reference order
-    key = (idx // W // 2) * W + col // 2
-    first = np.full(k, np.iinfo(np.int64).max)
-    np.minimum.at(first, labels, key)
-    rank = np.empty(k, dtype=np.int64)
-    rank[np.argsort(first, kind="stable")] = np.arange(1, k + 1)
-    return rank[labels], int(k) + 1
+    """8-connected labels (1..n) of the pixels at sorted flat indices idx of a width-W image, and n + 1
+    (cv2's count): cv2.connectedComponents on a compacted image that keeps only the rows and the columns
+    holding a pixel, in order, with one blank row (column) wherever rows (columns) were skipped, so that
+    two pixels touch there exactly when they touch in the image. Components are numbered as cv2
+    numbers them in the compacted image (which can differ from its numbering of the full mask: only the
+    order of stars of equal brightness depends on it)."""
+    r = idx // W
+    c = idx - r * W
+    step = np.empty(r.size, dtype=np.int64)
+    step[0] = 1
+    np.minimum(r[1:] - r[:-1], 2, out=step[1:])  # idx is sorted: rows ascend
+    cr = np.cumsum(step)
+    used = np.zeros(W, dtype=bool)
+    used[c] = True
+    uc = np.flatnonzero(used)
+    cstep = np.empty(uc.size, dtype=np.int64)
+    cstep[0] = 1
+    np.minimum(uc[1:] - uc[:-1], 2, out=cstep[1:])
+    col_map = np.empty(W, dtype=np.int64)
+    col_map[uc] = np.cumsum(cstep)
+    cc = col_map[c]
+    img = np.zeros((int(cr[-1]) + 2, int(cc.max()) + 2), dtype=np.uint8)
+    img[cr, cc] = 1
+    n, lab = cv2.connectedComponents(img, connectivity=8, ltype=cv2.CV_32S)
+    return lab[cr, cc].astype(np.int64), int(n)
+
+
+@functools.lru_cache(maxsize=None)
+def _int_range(dtype: np.dtype) -> tuple[int, int]:
+    """(min, max) of an integer dtype (np.iinfo, which costs tens of microseconds a call)."""
+    info = np.iinfo(dtype)
+    return int(info.min), int(info.max)
 
 
 def _above(f: np.ndarray, t32: np.float32) -> np.ndarray:
     """f > t32 (f as float32), on the native array: an integer image is compared with floor(t32)."""
     if f.dtype.kind in "ui" and math.isfinite(float(t32)):
-        info = np.iinfo(f.dtype)
+        lo, hi = _int_range(f.dtype)
         ti = math.floor(float(t32))
-        if ti >= info.max:
+        if ti >= hi:
             return np.zeros(f.shape, dtype=bool)
-        if ti < info.min:
+        if ti < lo:
             return np.ones(f.shape, dtype=bool)
         return f > f.dtype.type(ti)
     return f > t32 if f.dtype == np.float32 else f.astype(np.float32) > t32
+
+
+def _above_idx(f: np.ndarray, t32: np.float32, row_max: np.ndarray | None = None) -> np.ndarray:
+    """np.flatnonzero(_above(f, t32)): when the rows' maxima (one SIMD pass; `row_max` if given) leave
+    at most half the rows above the threshold, only those rows are compared."""
+    H, W = f.shape
+    t = None
+    if f.dtype == np.float32:
+        t = t32
+    elif f.dtype.kind in "ui" and math.isfinite(float(t32)):
+        ti = math.floor(float(t32))
+        lo, hi = _int_range(f.dtype)
+        if lo <= ti < hi:
+            t = f.dtype.type(ti)
+    if t is None:
+        return np.flatnonzero(_above(f, t32))
+    rows = np.flatnonzero((f.max(axis=1) if row_max is None else row_max) > t)
+    if rows.size > H // 2:
+        return np.flatnonzero(f > t)
+    q = np.flatnonzero(f[rows] > t)
+    return rows[q // W] * W + q % W
 
 
 def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | None = None, min_pixels: int = 2,
@@ -521,13 +548,18 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
     least 20 % and 3 sigma between them) into one centroid per peak, flagged `blended`; with the
     "fit" estimator each one is refitted after subtracting its neighbours' fitted PSFs.
 
-    Same detections, flags and statistics as `_detect_centroids_reference` (the former
-    implementation), positions within 1e-4 px (the PSF fit of a star stops once its steps are below
-    that), computed without a float copy of a uint8/uint16/int16 frame: background statistics from
-    the sub-sampled pixels (one sort; the MAD read from the two sorted runs of deviations), a scalar
-    threshold on the native image when the background is flat, only the above-threshold pixels
-    labelled (union-find over their 8-neighbour links; a full-frame cv2.connectedComponents when
-    there are many), hot pixels patched on read instead of in a copy.
+    The former implementation, `skyview.centroid_reference._detect_centroids_reference`, is what this
+    one is tested against (tests/test_centroid.py states the tolerances): the same noise sigma to ~2 %
+    (from a half and a quarter of its sub-sample on frames of 512 px or more), the same stars above
+    12.5 sigma with the same flags and peaks, positions within 2e-3 px on a flat sky (observed <= 1.5e-4
+    px but for unresolved pairs) and 0.02 px under a background map. Computed without a float copy of
+    a uint8/uint16/int16 frame: background statistics from the sub-sampled pixels (one sort; the MAD
+    read from the two sorted runs of deviations; the clipped samples a slice of the sorted ones), a
+    scalar threshold on the native image when the background is flat (only the rows whose maximum
+    crosses it compared), only the above-threshold pixels labelled, each one's 3 x 3 neighbourhood read
+    once for the hot-pixel test, its repair and the deblender, hot pixels patched on read instead of in
+    a copy, one window gather for the PSF width and the estimators when the 7 px window is the one
+    wanted, the PSF fits of all stars batched (3 x 3 normal equations solved by their adjugates).
     """
     if estimator not in ESTIMATORS:
         raise BadInput(f"unknown centroid estimator {estimator!r}: choose one of {', '.join(ESTIMATORS)}")
@@ -551,20 +583,20 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         f = img.astype(np.float32, copy=False)
         if img.dtype.kind == "f" and not np.all(np.isfinite(f)):
             f = np.where(np.isfinite(f), f, np.float32(np.nanmedian(np.where(np.isfinite(f), f, np.nan))))
-    dtype_max = float(np.iinfo(img.dtype).max) if img.dtype.kind in "ui" else math.inf
+    dtype_max = float(_int_range(img.dtype)[1]) if img.dtype.kind in "ui" else math.inf
 
+    row_max = f.max(axis=1)  # first: the one full pass brings the frame into the cache for what follows
     grid, gby, gbx, level, sigma, flat = _background_stats(f, background_block)
     thr = float(k_sigma) * sigma
     if flat:
         bkg, resid = level, None
-        mask = _above(f, np.float32(bkg + thr))
+        idx = _above_idx(f, np.float32(bkg + thr), row_max)
     else:
         bkg = _upsample(grid, gby, gbx, H, W)
         resid = np.subtract(f, bkg, dtype=np.float32)
-        mask = resid > np.float32(thr)
+        idx = _above_idx(resid, np.float32(thr))
     empty = dict(background_level=level, noise_sigma=sigma, threshold=thr, estimator=estimator,
                  image_shape=(H, W), params=params)
-    idx = np.flatnonzero(mask)
     if idx.size == 0:
         # a constant image has no pixel above the threshold: told apart here, not by a full-frame pass first
         fmin, fmax, _, _ = cv2.minMaxLoc(f)  # f: uint8 / uint16 / int16 or float32
@@ -574,10 +606,16 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         return Centroids.empty(**empty)
     px = _Pixels(f)
     # hot pixels (see the reference): counted, taken out of the mask, repaired on read
+    nb_raw = None
     if idx.size <= _GATHER_HOT_MAX:
-        nb_max = _neighbour_max(px, H, W, bkg, resid, idx)
-        centre = (px.take(idx).astype(np.float64) - bkg if resid is None
-                  else resid.reshape(-1)[idx].astype(np.float64))
+        # each pixel's 3 x 3 neighbourhood, once: the hot-pixel test, the repair and the deblender's
+        # local-maximum test read it
+        nb_vals, _, nb_raw = _gather_px(px, H, W, bkg, resid, idx // W, idx % W, 1)
+        nb = nb_vals.reshape(idx.size, 9)
+        nb_raw = nb_raw.reshape(idx.size, 9)
+        centre = nb[:, 4].copy()
+        nb[:, 4] = -np.inf
+        nb_max = nb.max(axis=1)
     else:
         src = f if resid is None else resid
         ring = np.ones((3, 3), np.uint8)
@@ -589,29 +627,30 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
             centre -= bkg
     hotpix = nb_max < np.maximum(3.0 * sigma, 0.15 * centre)
     n_hot = int(hotpix.sum())
+    hp = None
     if n_hot:
         hp = idx[hotpix]
-        nb_raw = _gather_px(px, H, W, bkg, resid, hp // W, hp % W, 1)[2]
-        ring = np.delete(nb_raw.reshape(n_hot, 9), 4, axis=1)
-        repaired = np.median(ring, axis=1).astype(np.float32)
+        hot_raw = nb_raw[hotpix] if nb_raw is not None else _gather_px(px, H, W, bkg, resid, hp // W, hp % W, 1)[2]
+        ring = np.delete(hot_raw.reshape(n_hot, 9), 4, axis=1)
+        repaired = _median_sorted(np.sort(ring, axis=1)).astype(np.float32)  # = np.median(ring, axis=1)
         px.hp, px.hv = hp, repaired
         if resid is not None:
             resid.reshape(-1)[hp] = repaired - bkg.reshape(-1)[hp]
-        mask.reshape(-1)[hp] = False
-        idx = idx[~hotpix]
+        idx, nb_max = idx[~hotpix], nb_max[~hotpix]
+        if nb_raw is not None:
+            nb_raw = nb_raw[~hotpix]
     empty["n_hot_pixels_rejected"] = n_hot
     if idx.size == 0:
         return Centroids.empty(**empty)
-    if idx.size <= _SPARSE_LABEL_MAX:
-        lab, n_lab = _label_sparse(idx, W)
-    else:
-        n_lab, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
-        lab = labels.reshape(-1)[idx].astype(np.int64)
-    raw = px.take(idx)
+    lab, n_lab = _label_sparse(idx, W)
+    raw = px.take(idx) if nb_raw is None else nb_raw[:, 4].astype(np.float32)  # the same values
     val = raw - bkg if resid is None else resid.reshape(-1)[idx]
     order = np.lexsort((val, lab))
     lab_s = lab[order]
-    last = np.flatnonzero(np.r_[lab_s[1:] != lab_s[:-1], True])  # index of each label's maximum
+    ends = np.empty(lab_s.size, dtype=bool)
+    ends[-1] = True
+    np.not_equal(lab_s[1:], lab_s[:-1], out=ends[:-1])
+    last = np.flatnonzero(ends)  # index of each label's maximum
     peak_flat = idx[order[last]]
     peak_val = val[order[last]]
     area = np.bincount(lab, minlength=n_lab)[1:].astype(np.int64)
@@ -622,8 +661,11 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
     n_top = int(np.count_nonzero(raw == top))
     if top < sat and top > 0 and ((n_top >= 2 and _is_adc_max(top)) or n_top >= 5):
         sat = top
-    blob_max = np.full(n_lab - 1, -np.inf)
-    np.maximum.at(blob_max, lab - 1, raw)
+    if resid is None:  # raw - level: the highest value is the highest raw value
+        blob_max = raw[order[last]].astype(np.float64)
+    else:
+        blob_max = np.full(n_lab - 1, -np.inf)
+        np.maximum.at(blob_max, lab - 1, raw)
     saturated_all = blob_max >= sat
 
     small = area < int(min_pixels)
@@ -636,7 +678,7 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
     peak_raw = blob_max[keep]
     comp = keep + 1
     if deblend:
-        extra = _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, pj, sigma, sat)
+        extra = _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, pj, sigma, sat, nb_max, hp)
         if extra is not None:
             e_comp, e_pi, e_pj, e_val, e_raw = extra
             e_area = area[np.searchsorted(comp, e_comp)]
@@ -660,26 +702,31 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
              n_small, H, W, *, estimator, psf_sigma_px, window, iterations, max_axis_ratio, params) -> Centroids:
     """Steps 3-4 of detect_centroids on the detected peaks (as in the reference): PSF width, window,
     positions, brightness, flags, extended-blob rejection, brightest-first order."""
-    v3, valid3, _ = gather(1)
-    g_ok, g_uv, g_s2 = _gauss3(v3, 1, pi, pj)
+    # one gather of the window the PSF usually asks for (7 x 7 for sigma 1.1 px, or the given window);
+    # a second one only when the measured PSF wants another size
+    h0 = int(window) // 2 if window is not None else 3
+    vals, valid, rawv = gather(h0)
+    g_ok, g_uv, g_s2 = _gauss3(vals, h0, pi, pj)
     if psf_sigma_px is None:
-        good = g_ok & ~saturated & valid3.all(axis=(1, 2)) & (peak_val > 20.0 * sigma)
-        s_eff = float(np.sqrt(np.median(g_s2[good]))) if good.any() else math.sqrt(1.2 ** 2 + 1.0 / 12.0)
-        s_eff = float(np.clip(s_eff, 0.4, 5.0))
-        psf_used = float(np.sqrt(max(s_eff ** 2 - 1.0 / 12.0, 0.04)))
+        good = g_ok & ~saturated & valid[:, h0 - 1:h0 + 2, h0 - 1:h0 + 2].all(axis=(1, 2)) & (peak_val > 20.0 * sigma)
+        g = np.sort(g_s2[good])  # _median_sorted of the sorted values = np.median
+        s_eff = math.sqrt(float(_median_sorted(g))) if g.size else math.sqrt(1.2 ** 2 + 1.0 / 12.0)
+        s_eff = min(max(s_eff, 0.4), 5.0)
+        psf_used = math.sqrt(max(s_eff ** 2 - 1.0 / 12.0, 0.04))
     else:
         psf_used = float(psf_sigma_px)
         s_eff = math.sqrt(psf_used ** 2 + 1.0 / 12.0)
-    h = int(window) // 2 if window is not None else int(np.clip(math.ceil(2.5 * s_eff), 2, 8))
+    h = int(window) // 2 if window is not None else min(max(math.ceil(2.5 * s_eff), 2), 8)
     params["window_used"] = 2 * h + 1
 
-    vals, valid, rawv = gather(h)
+    if h != h0:
+        vals, valid, rawv = gather(h)
     edge = ~valid.all(axis=(1, 2))
     d = np.arange(-h, h + 1, dtype=np.float64)
     X = pj[:, None, None] + d[None, None, :]
     Y = pi[:, None, None] + d[None, :, None]
 
-    uv_cog = _cog(vals, X, Y, pi, pj)
+    uv_cog = _cog(vals, X, Y, pi, pj) if estimator != "fit" else None
     if estimator == "cog":
         uv = uv_cog
     elif estimator == "gauss3":
@@ -688,9 +735,23 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     elif estimator == "iwcog":
         uv = _iwcog_sep(vals, X, Y, uv_cog, s_eff, h, pi, pj, iterations)
     else:
-        uv_iw = _iwcog_sep(vals, X, Y, uv_cog, s_eff, h, pi, pj, iterations)
+        # the fit of a star that looks like the PSF (its three-point fit worked and gave the PSF's width
+        # to 30 %) starts from the three-point fit: it converges on the least-squares position the
+        # reference reaches from its iwcog start, without the iwcog iterations; the others (saturated,
+        # blended, JPEG blocks, noise) start from the iwcog position, as in the reference
+        psf_like = g_ok & ~saturated & (np.abs(g_s2 - s_eff * s_eff) < 0.3 * s_eff * s_eff)
+        iw = np.flatnonzero(~psf_like)
+        start = g_uv.copy()
+        if iw.size:
+            uv_cog = _cog(vals, X, Y, pi, pj)
+            start[iw] = _iwcog_sep(vals[iw], X[iw], Y[iw], uv_cog[iw], s_eff, h, pi[iw], pj[iw], iterations)
         use = valid & (rawv < sat)
-        uv, amp = _psf_fit_sep(vals, use, X, Y, uv_iw, psf_used, h, pi, pj, iterations)
+        uv, amp = _psf_fit_sep(vals, use, X, Y, start, psf_used, h, pi, pj, iterations)
+        failed = np.flatnonzero((amp <= 0) & psf_like)
+        if failed.size:  # no fit: the iwcog position, as the reference gives
+            uv_cog = _cog(vals, X, Y, pi, pj) if uv_cog is None else uv_cog
+            uv[failed] = _iwcog_sep(vals[failed], X[failed], Y[failed], uv_cog[failed], s_eff, h, pi[failed],
+                                    pj[failed], iterations)
         if blended.any():
             b = np.flatnonzero(blended)
             uv_b = np.where(g_ok[b, None], g_uv[b], np.stack([pj[b], pi[b]], axis=1).astype(np.float64))
@@ -717,7 +778,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     brightness = vals.sum(axis=(1, 2))
     ratio = _axis_ratio(vals, X, Y, uv, sigma)
     psnr = peak_val / sigma
-    ratio_limit = max_axis_ratio + 0.5 * np.clip((20.0 - psnr) / 10.0, 0.0, 1.0)
+    ratio_limit = max_axis_ratio + 0.5 * np.minimum(np.maximum((20.0 - psnr) / 10.0, 0.0), 1.0)
     elongated = (ratio > ratio_limit) & (psnr >= 10.0)
     extended = area > max(MIN_EXTENDED_PX, EXTENDED_PSF_AREAS * math.pi * (3.0 * s_eff) ** 2)
     n_extended = int(extended.sum())
@@ -741,10 +802,11 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
 # The same estimators as _iwcog / _psf_fit, rearranged for speed (the fast path uses them; the
 # reference keeps the originals): the Gaussian weight and the PSF model are separable, so sums run
 # over rows and columns; the 3x3 normal equations are batched and solved in closed form; a star
-# leaves the Gauss-Newton loop once its steps are below _FIT_TOL (the reference always makes
-# max(3, iterations) steps). Positions agree with the originals to ~3e-5 px.
+# leaves the Gauss-Newton loop once its step, or the error its last two steps predict is left, is
+# below _FIT_TOL (the reference always makes max(3, iterations) steps). From the same start, positions
+# agree with the originals to ~1e-4 px.
 
-_FIT_TOL = 1e-4  # px: the Gauss-Newton fit of a star stops once its steps are below this
+_FIT_TOL = 1e-4  # px: the Gauss-Newton fit of a star stops once its step (or the error left) is below this
 
 
 def _iwcog_sep(vals, X, Y, uv0, s_eff, h, pi, pj, iterations):
@@ -772,94 +834,114 @@ def _iwcog_sep(vals, X, Y, uv0, s_eff, h, pi, pj, iterations):
     return uv
 
 
+# the adjugate of a symmetric 3 x 3 matrix from its 9 entries (row-major): rows r1 x r2, r2 x r0, r0 x r1
+_ADJ3 = np.array([[4, 5, 3, 7, 8, 6, 1, 2, 0], [8, 6, 7, 2, 0, 1, 5, 3, 4],
+                  [5, 3, 4, 8, 6, 7, 2, 0, 1], [7, 8, 6, 1, 2, 0, 4, 5, 3]])
+
+
 def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None):
-    """_psf_fit (pixel-integrated Gaussian, amplitude and position, Gauss-Newton from uv0, steps
-    limited to 0.5 px, saturated / off-image pixels left out), computed on the separable profiles."""
+    """Least-squares fit of a pixel-integrated Gaussian PSF of sigma s (amplitude and position) to the
+    windows `vals` (N, n, n), pixels where `use` is False left out (saturated, off the image), by
+    Gauss-Newton from uv0 (steps limited to 0.5 px; the amplitude starts at its linear least-squares
+    value): the reference's _psf_fit, computed on the separable model (the u and v profiles of all stars
+    from one erf and one exp of their pixel edges, the normal equations from one batched product, the
+    3 x 3 systems solved by their adjugates); a star stops once its step, or the error left after it
+    (step^2 / (previous step - step): the rest of a geometric series with its last two steps' ratio),
+    is below _FIT_TOL (near the minimum Gauss-Newton contracts by a small ratio, so a 1e-3 px step
+    after a 0.05 px one leaves ~2e-5 px: the step that would only confirm it is not made).
+    (uv (N, 2), amplitude (N,)); where the fit fails, uv0 and amplitude 0."""
     n_st = len(vals)
     n = vals.shape[1]
-    x = X[:, 0, :]
-    y = Y[:, :, 0]
-    w = use.reshape(n_st, n * n).astype(np.float64)
-    vf = vals.reshape(n_st, n * n)
-    u = uv0[:, 0].copy()
-    v = uv0[:, 1].copy()
+    if n_st == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    first = np.stack([X[:, 0, 0], Y[:, 0, 0]], axis=1)  # (N, 2): the first column and row of each window
+    edges = first[:, :, None] + (np.arange(n + 1) - 0.5)  # (N, 2, n + 1) pixel edges along u and v
+    w = use.reshape(n_st, 1, n * n).astype(np.float64)
+    vw = vals.reshape(n_st, n * n, 1) * w.reshape(n_st, n * n, 1)
+    uv = np.array(uv0, dtype=np.float64)
+    A = None
     k = 1.0 / (s * math.sqrt(2.0))
-    c = 1.0 / (s * math.sqrt(2.0 * math.pi))
-
-    def prof(t, t0):
-        hi = (t + 0.5 - t0[:, None]) * k
-        lo = (t - 0.5 - t0[:, None]) * k
-        p = 0.5 * (erf(hi) - erf(lo))
-        dp = -c * (np.exp(-hi * hi) - np.exp(-lo * lo))
-        return p, dp
-
-    fu, _ = prof(x, u)
-    fv, _ = prof(y, v)
-    P = (fv[:, :, None] * fu[:, None, :]).reshape(n_st, -1)
-    A = (w * vf * P).sum(axis=1) / np.maximum((w * P * P).sum(axis=1), 1e-300)
-    ok = np.isfinite(A) & (A > 0)
+    c = -1.0 / (s * math.sqrt(2.0 * math.pi))
     act = np.arange(n_st)
-    for _ in range(max(3, iterations)):
-        if act.size == 0:
-            break
-        ua, va, Aa, wa = u[act], v[act], A[act], w[act]
-        fu, dfu = prof(x[act], ua)
-        fv, dfv = prof(y[act], va)
-        # rows: P, d P / d u, d P / d v (per unit amplitude), each (n_act, n*n)
-        M = (np.stack([fv, fv, dfv], axis=1)[:, :, :, None]
-             * np.stack([fu, dfu, fu], axis=1)[:, :, None, :]).reshape(len(act), 3, n * n)
-        e = (vf[act] - Aa[:, None] * M[:, 0]) * wa
-        Mw = M * wa[:, None, :]
-        G = Mw @ M.transpose(0, 2, 1)  # (n_act, 3, 3)
-        g = (Mw @ e[:, :, None])[:, :, 0]
-        sc = np.stack([np.ones_like(Aa), Aa, Aa], axis=1)
-        G = G * sc[:, :, None] * sc[:, None, :]
-        G[:, [0, 1, 2], [0, 1, 2]] += 1e-9
-        g = g * sc
-        # closed-form solve of the symmetric 3x3 systems
-        a00, a01, a02, a11, a12, a22 = G[:, 0, 0], G[:, 0, 1], G[:, 0, 2], G[:, 1, 1], G[:, 1, 2], G[:, 2, 2]
-        c00 = a11 * a22 - a12 * a12
-        c01 = a02 * a12 - a01 * a22
-        c02 = a01 * a12 - a02 * a11
-        c11 = a00 * a22 - a02 * a02
-        c12 = a01 * a02 - a00 * a12
-        c22 = a00 * a11 - a01 * a01
-        det = a00 * c00 + a01 * c01 + a02 * c02
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / det
-            s0 = (c00 * g[:, 0] + c01 * g[:, 1] + c02 * g[:, 2]) * inv
-            s1 = (c01 * g[:, 0] + c11 * g[:, 1] + c12 * g[:, 2]) * inv
-            s2 = (c02 * g[:, 0] + c12 * g[:, 1] + c22 * g[:, 2]) * inv
-        s0 = np.where(np.isfinite(s0), s0, 0.0)
-        s1 = np.where(np.isfinite(s1), s1, 0.0)
-        s2 = np.where(np.isfinite(s2), s2, 0.0)
-        A[act] = Aa + s0
-        du = np.minimum(np.maximum(s1, -0.5), 0.5)
-        dv = np.minimum(np.maximum(s2, -0.5), 0.5)
-        u[act] = ua + du
-        v[act] = va + dv
-        act = act[(np.abs(du) > _FIT_TOL) | (np.abs(dv) > _FIT_TOL)]
+    prev = np.zeros(n_st)  # each star's last step (px)
+    err = np.seterr(divide="ignore", invalid="ignore")
+    try:
+        for _ in range(max(3, iterations)):
+            m = act.size
+            if m == 0:
+                break
+            every = m == n_st  # no star has stopped yet: no index copies
+            z = ((edges if every else edges[act]) - (uv if every else uv[act])[:, :, None]) * k
+            pe = erf(z)
+            ge = np.exp(-z * z)
+            Q = np.empty((m, 2, 2, n))  # [u or v][profile or its derivative]
+            np.subtract(pe[:, :, 1:], pe[:, :, :-1], out=Q[:, :, 0])
+            Q[:, :, 0] *= 0.5
+            np.subtract(ge[:, :, 1:], ge[:, :, :-1], out=Q[:, :, 1])
+            Q[:, :, 1] *= c
+            # (m, 4, n*n): P = fv fu, dP/du = fv dfu, dP/dv = dfv fu (and dfv dfu, unused)
+            M = (Q[:, 1, :, None, :, None] * Q[:, 0, None, :, None, :]).reshape(m, 4, n * n)
+            S = (M * (w if every else w[act])) @ M.transpose(0, 2, 1)  # (m, 4, 4) weighted Gram matrix
+            b = (M @ (vw if every else vw[act]))[:, :3, 0]  # (m, 3) weighted products with the data
+            if A is None:
+                A = b[:, 0] / S[:, 0, 0]  # the linear least-squares amplitude at uv0
+            Aa = A if every else A[act]
+            # unknowns x = (dA, A du, A dv): S3 x = r, the residual's products with P, dP/du, dP/dv
+            r = b - Aa[:, None] * S[:, 0, :3]
+            S9 = S[:, :3, :3].reshape(m, 9)
+            g = S9[:, _ADJ3]
+            adj = (g[:, 0] * g[:, 1] - g[:, 2] * g[:, 3]).reshape(m, 3, 3)
+            det = (S9[:, :3] * adj[:, 0]).sum(axis=1)
+            x = (adj @ r[:, :, None])[:, :, 0] / det[:, None]
+            d = x[:, 1:] / Aa[:, None]
+            d = np.where(np.isfinite(d), d, 0.0)
+            np.minimum(np.maximum(d, -0.5, out=d), 0.5, out=d)
+            A[act] = Aa + np.where(np.isfinite(x[:, 0]), x[:, 0], 0.0)
+            uv[act] += d
+            # a star stops once its step, or the error its steps predict are left (the next steps of a
+            # contraction with the ratio of its last two: step^2 / (previous step - step)), is below _FIT_TOL
+            step = np.abs(d).max(axis=1)
+            left = step * step / np.maximum(prev[act] - step, 1e-12)
+            prev[act] = step
+            act = act[(step > _FIT_TOL) & (left > _FIT_TOL)]
+    finally:
+        np.seterr(**err)
     lim = h if max_shift is None else max_shift
-    ok &= np.isfinite(u) & np.isfinite(v) & (A > 0) & (np.abs(u - pj) <= lim) & (np.abs(v - pi) <= lim)
-    uv = np.stack([np.where(ok, u, uv0[:, 0]), np.where(ok, v, uv0[:, 1])], axis=1)
-    return uv, np.where(ok, A, 0.0)
+    ok = (np.isfinite(A) & (A > 0) & np.isfinite(uv).all(axis=1) & (np.abs(uv[:, 0] - pj) <= lim)
+          & (np.abs(uv[:, 1] - pi) <= lim))
+    return np.where(ok[:, None], uv, uv0), np.where(ok, A, 0.0)
 
 
-def _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, pj, sigma, sat, min_sep=2.5,
-                     max_area=1000, max_peaks=8):
-    """_split_blends reading through a _Pixels (same rules, same results)."""
+def _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, pj, sigma, sat, nb_max, hot,
+                     min_sep=2.5, max_area=1000, max_peaks=8):
+    """_split_blends reading through a _Pixels (same rules, same results). nb_max: the largest of each
+    pixel's 8 neighbours read before the hot pixels `hot` (sorted flat indices, or None) were repaired;
+    read again for the pixels next to one."""
     big = comp[(area >= 6) & (area <= max_area)]
     if big.size == 0:
         return None
-    sel = np.isin(lab, big)
+    is_big = np.zeros(int(comp[-1]) + 1, dtype=bool)  # comp ascends: a lookup table by label
+    is_big[big] = True
+    sel = is_big[np.minimum(lab, int(comp[-1]))] & (lab <= comp[-1])
     sidx, slab, sval, sraw = idx[sel], lab[sel], val[sel], raw[sel]
     ri, rj = sidx // W, sidx % W
-    ismax = (sval >= _neighbour_max(px, H, W, bkg, resid, sidx)) & (sraw < sat)
+    nbm = nb_max[sel]
+    if hot is not None:
+        near_hot = np.sort((hot[:, None] + np.array([-W - 1, -W, -W + 1, -1, 1, W - 1, W, W + 1])).ravel())
+        pos = np.minimum(np.searchsorted(near_hot, sidx), near_hot.size - 1)
+        redo = np.flatnonzero(near_hot[pos] == sidx)
+        if redo.size:
+            nbm[redo] = _neighbour_max(px, H, W, bkg, resid, sidx[redo])
+    ismax = (sval >= nbm) & (sraw < sat)
     if not ismax.any():
         return None
     c_lab, c_val, c_i, c_j, c_raw = slab[ismax], sval[ismax], ri[ismax], rj[ismax], sraw[ismax]
     # a blob whose only local maximum is its peak has nothing to split: those are set aside at once
-    labs, first, counts = np.unique(c_lab, return_index=True, return_counts=True)
+    counts = np.bincount(c_lab)
+    labs = np.flatnonzero(counts)
+    where = np.empty(counts.size, dtype=np.int64)
+    where[c_lab] = np.arange(c_lab.size)  # a label's (last) local maximum: its only one when counts == 1
+    first, counts = where[labs], counts[labs]
     k0s = np.searchsorted(comp, labs)  # comp is ascending
     lone = (counts == 1) & (c_i[first] == pi[k0s]) & (c_j[first] == pj[k0s])
     out = []
@@ -896,27 +978,29 @@ def _cog(vals, X, Y, pi, pj):
     sw = w.sum(axis=(1, 2))
     ok = sw > 0
     sw = np.where(ok, sw, 1.0)
-    u = np.where(ok, (w * X).sum(axis=(1, 2)) / sw, pj)
-    v = np.where(ok, (w * Y).sum(axis=(1, 2)) / sw, pi)
-    return np.stack([u, v], axis=1)
+    uv = np.empty((len(w), 2))
+    uv[:, 0] = np.where(ok, (w * X).sum(axis=(1, 2)) / sw, pj)
+    uv[:, 1] = np.where(ok, (w * Y).sum(axis=(1, 2)) / sw, pi)
+    return uv
 
 
 def _gauss3(vals, h, pi, pj):
-    """Three-point Gaussian fit on the 3x3 marginals: (ok, uv, effective sigma^2)."""
+    """Three-point Gaussian fit on the 3x3 marginals: (ok, uv, effective sigma^2); u and v as one (N, 2)."""
     c = vals[:, h - 1: h + 2, h - 1: h + 2]
-    mx = c.sum(axis=1)  # (N, 3) along u
-    my = c.sum(axis=2)  # (N, 3) along v
-    ok = (mx > 0).all(axis=1) & (my > 0).all(axis=1)
+    m = np.empty((len(c), 2, 3))
+    c.sum(axis=1, out=m[:, 0])  # along u
+    c.sum(axis=2, out=m[:, 1])  # along v
+    pos = m > 0
     with np.errstate(divide="ignore", invalid="ignore"):
-        lx = np.log(np.where(mx > 0, mx, 1.0))
-        ly = np.log(np.where(my > 0, my, 1.0))
-        cx = lx[:, 0] - 2 * lx[:, 1] + lx[:, 2]
-        cy = ly[:, 0] - 2 * ly[:, 1] + ly[:, 2]
-        du = (lx[:, 0] - lx[:, 2]) / (2.0 * cx)
-        dv = (ly[:, 0] - ly[:, 2]) / (2.0 * cy)
-        s2 = -0.5 * (1.0 / cx + 1.0 / cy)
-    ok &= (cx < 0) & (cy < 0) & (np.abs(du) < 1.0) & (np.abs(dv) < 1.0)
-    uv = np.stack([pj + np.where(ok, du, 0.0), pi + np.where(ok, dv, 0.0)], axis=1)
+        lg = np.log(np.where(pos, m, 1.0))
+        cxy = lg[:, :, 0] - 2 * lg[:, :, 1] + lg[:, :, 2]
+        d = (lg[:, :, 0] - lg[:, :, 2]) / (2.0 * cxy)
+        inv = 1.0 / cxy
+        s2 = -0.5 * (inv[:, 0] + inv[:, 1])
+    ok = pos.all(axis=(1, 2)) & (cxy < 0).all(axis=1) & (np.abs(d) < 1.0).all(axis=1)
+    uv = np.empty((len(c), 2))
+    uv[:, 0], uv[:, 1] = pj, pi
+    uv += np.where(ok[:, None], d, 0.0)
     return ok, uv, np.where(ok, s2, np.nan)
 
 

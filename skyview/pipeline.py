@@ -8,30 +8,29 @@ one-call API: with no method it runs the default pipeline, the strongest one sky
 then, when an FOV estimate is given and the blind search fails, the improved angle method at that
 FOV); with a method it runs that method, on the camera that the blind front end fitted when the
 FOV is only an estimate (fov_error > 0). The CLI (`skyview solve`) and the bench go through these
-classes, so what is measured is what users run.
+classes, so what is measured is what users run. What every solver shares around its identifier (the
+observation it is given, the `SolveResult` with the catalog rows of its matches) is `skyview.result`.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from skyview.attitude import ESTIMATORS, RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R
+from skyview.attitude import ESTIMATORS
 from skyview.camera import Camera
 from skyview.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.centroid import Centroids, detect_centroids, finite_image, load_image, to_gray
 from skyview.detect import detect_stars
-from skyview.fits_image import undeclared_row_order
 from skyview.errors import BadInput
+from skyview.fits_image import undeclared_row_order
 from skyview.identify import make_identifier
-from skyview.identify.base import Identification, Observation
+from skyview.result import NOT_SOLVED, SOLVED, SolveResult, observation, result_from_identification
 
-SOLVED = "solved"
-NOT_SOLVED = "failed"
+__all__ = ["Solver", "BlindSolver", "SolveResult", "solve_image", "blind_solver", "result_from_identification",
+           "observation", "SOLVED", "NOT_SOLVED", "check_fov_error", "check_solve_options", "as_image"]
 DEFAULT_CENTROID_SIGMA_PX = 0.5
 DEFAULT_FOV_ERROR = 0.1  # an FOV given without a tolerance is taken as good to +-10 %
 BLIND = "blind"
@@ -42,90 +41,6 @@ PAPER_MAG_LIMIT = 6.0
 # a limit is given (the triangle database grows with the cube of
 # the stars in a field and has no memory budget yet)
 AUTO_DEPTH_METHODS = ("angle",)
-
-
-@dataclass
-class SolveResult:
-    status: str  # "solved" | "failed"
-    reason: str
-    method: str
-    variant: str
-    camera: Camera
-    centroids: Centroids
-    identification: Identification | None
-    R: np.ndarray | None = None
-    sigma_boresight_arcsec: float | None = None
-    sigma_roll_arcsec: float | None = None
-    matches: list[dict] = field(default_factory=list)  # [{index, u, v, hip, mag}]
-    time_ms: dict[str, float] = field(default_factory=dict)
-    database_key: dict[str, Any] = field(default_factory=dict)
-    epoch: float = DEFAULT_EPOCH
-    sigma_rad: float = 0.0  # assumed per-star direction sigma
-    sigma_measured_rad: float | None = None  # from the match residuals (a posteriori)
-    residuals_arcsec: list[float] = field(default_factory=list)
-    mag_limit: float | None = None  # the catalog depth the solve used (Hp)
-    camera_fitted: bool = False  # the camera (FOV, distortion) was fitted to the stars, not given
-    notes: list[str] = field(default_factory=list)  # how the input was read, when it matters (FITS rows)
-    rows_reversed: bool = False  # solved with the image's rows turned over (try_flipped_rows)
-
-    @property
-    def solved(self) -> bool:
-        return self.status == SOLVED
-
-    def to_dict(self) -> dict:
-        out: dict[str, Any] = {"status": self.status}
-        if self.reason:
-            out["reason"] = self.reason
-        if self.notes:
-            out["notes"] = list(self.notes)
-        if self.R is not None:
-            ra, dec, roll = radec_roll_from_R(self.R)
-            out.update({
-                "R": self.R.tolist(),
-                "quaternion": quat_from_R(self.R).tolist(),
-                "ra_deg": float(np.degrees(ra)),
-                "dec_deg": float(np.degrees(dec)),
-                "roll_deg": float(np.degrees(roll)),
-                "sigma_arcsec": {"boresight": self.sigma_boresight_arcsec, "roll": self.sigma_roll_arcsec},
-            })
-        ident = self.identification
-        out.update({
-            "method": self.method,
-            "variant": self.variant,
-            "matches": self.matches,
-            "n_centroids": len(self.centroids),
-            "n_matches": len(self.matches),
-            "verification": _jsonable(ident.verification) if ident else {},
-            "identification": {"status": ident.status, "steps": len(ident.steps),
-                               **_jsonable(ident.stats)} if ident else None,
-            "time_ms": {k: round(v, 3) for k, v in self.time_ms.items()},
-            "database_key": self.database_key,
-            "epoch": self.epoch,
-            "sigma_assumed_arcsec": self.sigma_rad * RAD_TO_ARCSEC,
-            "sigma_measured_arcsec": (None if self.sigma_measured_rad is None
-                                      else self.sigma_measured_rad * RAD_TO_ARCSEC),
-            "camera": self.camera.to_dict(),
-            "fov_deg": self.camera.fov_deg,
-            "plate_scale_arcsec_per_px": self.camera.pixel_scale_rad * RAD_TO_ARCSEC,
-            "distortion": {"k1": self.camera.k1, "k2": self.camera.k2},
-            "mag_limit": self.mag_limit,
-            "camera_fitted": self.camera_fitted,
-        })
-        return out
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if np.isfinite(obj) else None  # JSON has no NaN or Infinity
-    return obj
 
 
 class Solver:
@@ -165,13 +80,6 @@ class Solver:
         t2 = time.perf_counter()
         self.setup_ms = {"catalog_load": (t1 - t0) * 1e3, "database_load": (t2 - t1) * 1e3}
 
-    # ------------------------------------------------------------------ stages
-    def observation(self, centroids: Centroids) -> Observation:
-        n = min(len(centroids), self.max_stars)
-        uv = centroids.uv[:n]
-        return Observation(vectors=self.camera.unproject(uv) if n else np.zeros((0, 3)), uv=uv,
-                           brightness=centroids.brightness[:n], sigma_rad=self.sigma_rad)
-
     def solve_array(self, image: np.ndarray) -> SolveResult:
         if image.ndim != 2:
             raise BadInput(f"expected a single-channel image, got shape {image.shape}")
@@ -188,7 +96,7 @@ class Solver:
 
     def solve_centroids(self, centroids: Centroids) -> SolveResult:
         t0 = time.perf_counter()
-        obs = self.observation(centroids)
+        obs = observation(centroids, self.camera, self.sigma_rad, self.max_stars)
         ident = self.identifier.identify(obs) if len(centroids) else None
         result = result_from_identification(
             centroids, obs, ident, camera=self.camera, catalog=self.catalog, method=self.method,
@@ -199,49 +107,6 @@ class Solver:
 
     def solve_path(self, path: str | Path) -> SolveResult:
         return self.solve_array(load_image(path))
-
-
-def result_from_identification(centroids: Centroids, obs: Observation, ident: Identification | None, *,
-                               camera: Camera, catalog: GuideCatalog, method: str, variant: str, sigma_rad: float,
-                               estimator: str = "svd", database_key: dict | None = None,
-                               identify_ms: float = 0.0) -> SolveResult:
-    """The `SolveResult` of an identification of `obs` (the observation of `centroids`): the attitude
-    from every match by `estimator`, its 1-sigma, the matches with their residuals. `Solver` uses it
-    for each image; a sequence uses it for each of its frames (ident=None: nothing was identified
-    because the image has no stars)."""
-    t1 = time.perf_counter()
-    common = dict(method=method, variant=variant, camera=camera, centroids=centroids,
-                  database_key=database_key or {}, epoch=catalog.epoch, sigma_rad=sigma_rad)
-    if ident is None or len(centroids) == 0:
-        return SolveResult(status=NOT_SOLVED, reason="no stars found in the image (blank or empty sky)",
-                           identification=None, time_ms={"identify": 0.0, "attitude": 0.0, "solve": 0.0},
-                           **common)
-    result = SolveResult(status=NOT_SOLVED, reason=ident.reason or ident.status, identification=ident, **common)
-    if ident.identified:
-        idx = np.array(sorted(ident.matches))
-        rows = np.array([ident.matches[i] for i in idx])
-        b, r = obs.vectors[idx], catalog.xyz[rows]
-        est = ESTIMATORS[estimator](b, r, sigma_rad)
-        result.status, result.reason = SOLVED, ""
-        result.R = est.R
-        # The reported 1-sigma uses the noise measured from the residuals when there are enough
-        # matches (2n - 3 degrees of freedom >= 5), else the assumed sigma.
-        resid = np.linalg.norm(np.cross(b, r @ est.R.T), axis=1)
-        dof = 2 * len(idx) - 3
-        scale = 1.0
-        if dof >= 5:
-            result.sigma_measured_rad = float(np.sqrt(np.sum(resid ** 2) / dof))
-            scale = result.sigma_measured_rad / sigma_rad
-        result.sigma_boresight_arcsec = est.sigma_boresight_arcsec * scale
-        result.sigma_roll_arcsec = est.sigma_roll_arcsec * scale
-        result.residuals_arcsec = (resid * RAD_TO_ARCSEC).tolist()
-        result.matches = [{"index": int(i), "u": float(obs.uv[i, 0]), "v": float(obs.uv[i, 1]),
-                           "hip": int(catalog.hip[k]), "mag": float(catalog.mag[k]),
-                           "residual_arcsec": float(e * RAD_TO_ARCSEC)}
-                          for i, k, e in zip(idx, rows, resid)]
-    attitude_ms = (time.perf_counter() - t1) * 1e3
-    result.time_ms = {"identify": identify_ms, "attitude": attitude_ms, "solve": identify_ms + attitude_ms}
-    return result
 
 
 def as_image(image) -> np.ndarray:
@@ -333,9 +198,7 @@ class BlindSolver:
         guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(self.fov_range_deg)))
         camera = br.camera if br.camera is not None else Camera.from_fov(guess, width, height)
         sigma = br.sigma_rad if br.sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
-        uv = centroids.uv[:n]
-        obs = Observation(vectors=camera.unproject(uv) if n else np.zeros((0, 3)), uv=uv,
-                          brightness=centroids.brightness[:n], sigma_rad=sigma)
+        obs = observation(centroids, camera, sigma, n)
         result = result_from_identification(
             centroids, obs, ident if n else None, camera=camera, catalog=self.catalog, method=BLIND,
             variant="improved", sigma_rad=sigma, estimator=self.estimator,

@@ -19,7 +19,7 @@ same colours. What a step shows:
 
 The identification (matched stars, their mesh) is not a step role: sinks draw it only at the last
 step (`StepView.final`) or when no step is selected. Re-exported here from its two halves: the image
-stretch and label placement without collisions (`skyview.present_image`: `stretch`, `place_labels`)
+stretch and label placement without collisions (`skyview.present_image`: `stretch`, `layout_labels`)
 and the result as text (`skyview.present_text`: `result_lines`, `why_not`). Pure numpy; nothing here
 imports viser or rerun.
 """
@@ -33,7 +33,8 @@ import numpy as np
 
 from skyview import sky_geometry as sg
 from skyview.identify.layers import Attitudes, Hypotheses, Population, Posterior, SearchRegion, StarSets
-from skyview.present_image import TEXTURE_FLOOR_SIGMAS, place_labels, stretch, stretch_note
+from skyview.present_image import (TEXTURE_FLOOR_SIGMAS, LabelLayout, layout_labels, place_labels, stretch,
+                                   stretch_note)
 from skyview.present_text import PAPER_SCENARIOS, format_number, result_lines, step_summary, why_not
 
 # One palette for every sink (RGB).
@@ -441,5 +442,5 @@ __all__ = ["PALETTE", "OUTCOME_RGB", "LEGEND", "SKY_ROLES", "IMAGE_ROLES", "ARC_
            "log_normalised", "numeric_keys", "series", "default_plot_key", "unit_of", "match_groups",
            "posterior_figures",
            # the image and text halves (skyview.present_image, skyview.present_text), re-exported
-           "TEXTURE_FLOOR_SIGMAS", "place_labels", "stretch", "stretch_note", "PAPER_SCENARIOS", "format_number",
-           "result_lines", "step_summary", "why_not"]
+           "TEXTURE_FLOOR_SIGMAS", "LabelLayout", "layout_labels", "place_labels", "stretch", "stretch_note",
+           "PAPER_SCENARIOS", "format_number", "result_lines", "step_summary", "why_not"]

@@ -18,7 +18,8 @@ Entity paths (see docs/recordings.md; constants in `skyview.record_draw`):
                                 candidate_stars, points (a GA population, a posterior's stars),
                                 attitudes (footprints), outline (the region searched)
     sky/matches                 the identified stars, from the last step on
-    sky/matches/labels          their HIP labels beside them (the ones that do not collide)
+    sky/matches/labels          their HIP labels beside them: those that collide with no label and no star at
+                                the sky view's opening eye (the rest are on the image)
     camera                      camera pose: Transform3D(mat3x3=R, relation=ChildFromParent)
     camera/image                Pinhole + the sensor image (JPEG, the viewer's stretch)
     camera/image/centroids      centroids (static), labelled with their brightness rank (#0 brightest)
@@ -26,7 +27,7 @@ Entity paths (see docs/recordings.md; constants in `skyview.record_draw`):
     camera/image/matches        matched catalog stars reprojected with the estimated attitude (last step on)
     camera/image/labels         their HIP labels beside them, without collisions (last step on)
     camera/image/truth/stars    where the simulator drew the catalog stars (when truth is known)
-    camera/image/truth/false_stars  where it drew false stars (debris), labelled
+    camera/image/truth/false_stars  where it drew false stars (debris), labelled beside them (.../labels)
     truth/camera                camera pose and frustum at the true attitude (when known)
     steps/log                   one TextLog entry per step: "[kind] note" and what it shows
     steps/numbers/<unit>/<name> one Scalars series per `Step.numbers` entry, one plot per unit
@@ -54,23 +55,21 @@ from skyview.attitude import attitude_error_arcsec, radec_roll_from_R
 from skyview.errors import BadInput
 from skyview.present import result_lines, step_views
 from skyview.record_draw import (CAMERA, CENTROIDS, FOV_ESTIMATED, FOV_TRUE, IMAGE, IMAGE_LABELS, IMAGE_MATCHES,
-                                 JPEG_QUALITY, MATCH_LABELS, MATCHES, NO_AXES, OBSERVED, RESULT, STEP_LOG,
-                                 TIMELINE, TRUE_CAMERA, TRUTH_FALSE_STARS, TRUTH_STARS, C_CENTROID, C_FALSE, C_FOV_EST,
-                                 C_FOV_TRUE, C_MATCH, C_OBSERVED, C_TRUTH, RecordInfo, check_output_path,
-                                 display_image, fmt, image_labels, log_sky, log_step, open_recording, pinhole, pose,
-                                 rerun_uv, unit_plots)
+                                 IMAGE_ROW_SHARES, JPEG_QUALITY, MATCH_LABELS, MATCHES, NO_AXES, OBSERVED, RESULT,
+                                 SKY_COLUMN_SHARES, SKY_MATCH_RADIUS, SKY_OBSERVED_RADIUS, STEP_LOG, TIMELINE,
+                                 TRUE_CAMERA, TRUTH_FALSE_LABELS, TRUTH_FALSE_STARS, TRUTH_STARS, C_CENTROID, C_FALSE,
+                                 C_FOV_EST, C_FOV_TRUE, C_MATCH, C_OBSERVED, C_TRUTH, RecordInfo, SkyEye, catalog_radii,
+                                 check_output_path, display_image, fmt, image_labels, log_sky, log_step,
+                                 open_recording, pinhole, pose, rerun_uv, sky_labels, unit_plots)
 from skyview.scoring import score_trial
-
-MAX_SHOWN_LABELS = 12  # at most this many HIP labels in the 3D view (the brightest that do not collide)
-LABEL_SEPARATION_RAD = math.radians(1.0)  # 3D labels closer than this to a brighter labelled star hide
 
 
 # ============================================================================ the result document
 
 def result_markdown(result, *, truth: dict | None = None, meta: dict | None = None,
-                    image_note: str = "", wrong: list[int] | None = None) -> str:
+                    image_note: str = "", wrong: list[int] | None = None, label_note: str = "") -> str:
     """The result as Markdown: `present.result_lines` (status, why not, attitude, sigma, verification,
-    time), the matches, the error against the truth."""
+    time), the matches, the error against the truth; label_note: which stars the views label."""
     lines = [f"# {result.method} ({result.variant}): {result.status}", ""]
     if result.reason:
         lines += [f"**Reason:** {result.reason}", ""]
@@ -105,6 +104,8 @@ def result_markdown(result, *, truth: dict | None = None, meta: dict | None = No
             lines.append(f"- wrong matches: **{len(wrong)}**" + (f" (#{', #'.join(map(str, wrong))})" if wrong else ""))
     if image_note:
         lines += ["", f"*Image:* {image_note}."]
+    if label_note:
+        lines += ["", f"*Labels:* {label_note}."]
     if result.database_key:
         lines += ["", "*Database key:* `" + json.dumps(result.database_key, sort_keys=True) + "`"]
     return "\n".join(lines) + "\n"
@@ -116,18 +117,18 @@ def blueprint(R_view: np.ndarray | None, plots: list) -> rrb.Blueprint:
     """It opens on the 3D sky (looking out along the boresight from behind the camera), the image with its
     centroids and the step log; the step numbers, one plot per unit, and the result are tabs."""
     eye = None
-    if R_view is not None:
-        b, up = R_view[2], -R_view[1]
-        eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(0.45 * b - 0.03 * up).tolist(),
-                                look_target=b.tolist(), eye_up=up.tolist())
+    if R_view is not None:  # the labels of the sky are laid out for this eye (record_draw.sky_labels)
+        e = SkyEye.behind(R_view)
+        eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=e.position.tolist(),
+                                look_target=e.target.tolist(), eye_up=e.up.tolist())
     sky = rrb.Spatial3DView(name="sky", origin="/", contents=["/sky/**", "/camera/**", "/truth/**"],
                             background=[5, 8, 16], line_grid=rrb.LineGrid3D(visible=False), eye_controls=eye,
                             spatial_information=NO_AXES)
     tabs = [rrb.TextLogView(name="step log", origin=f"/{STEP_LOG}"),
             rrb.TextDocumentView(name="result", origin=f"/{RESULT}")] + list(plots)
     right = rrb.Vertical(rrb.Spatial2DView(name="image", origin=f"/{IMAGE}"), rrb.Tabs(*tabs, active_tab=0),
-                         row_shares=[5, 4])
-    return rrb.Blueprint(rrb.Horizontal(sky, right, column_shares=[3, 2]),
+                         row_shares=list(IMAGE_ROW_SHARES))
+    return rrb.Blueprint(rrb.Horizontal(sky, right, column_shares=list(SKY_COLUMN_SHARES)),
                          rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
                          rrb.TimePanel(state="collapsed", timeline=TIMELINE))
 
@@ -167,16 +168,17 @@ def record_solve(path: str | os.PathLike, result, image: np.ndarray, *, catalog,
     digest = hashlib.sha1(np.ascontiguousarray(image).tobytes()).hexdigest()
     rec_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"skyview:{title}:{result.method}:{result.variant}:{digest}"))
     with open_recording(p, rec_id, title, blueprint(R_view, unit_plots(views))) as rec:
-        image_note = _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view)
+        image_note, taken = _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view)
         drawn: set[str] = set()
         for k, v in enumerate(views):
             rec.set_time(TIMELINE, sequence=k)
             drawn = log_step(rec, v, result.centroids.uv, drawn)
         if views:  # the identification, from the last step on (a step shows what is known at that step)
             rec.set_time(TIMELINE, sequence=len(views) - 1)
-        _write_matches(rec, result, catalog, R_est, static=not views)
+        label_note = _write_matches(rec, result, catalog, R_est, truth, taken, static=not views)
         rec.log(RESULT, rr.TextDocument(result_markdown(result, truth=truth, meta=meta, image_note=image_note,
-                                                        wrong=wrong), media_type=rr.MediaType.MARKDOWN),
+                                                        wrong=wrong, label_note=label_note),
+                                        media_type=rr.MediaType.MARKDOWN),
                 static=True)
     return RecordInfo(path=p, bytes=p.stat().st_size, write_ms=(time.perf_counter() - t0) * 1e3,
                       steps=len(steps), status=result.status)
@@ -190,7 +192,17 @@ def _has_hip(catalog, hip: int) -> bool:
     return True
 
 
-def _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view) -> str:
+def _marks_uv(result, truth) -> np.ndarray:
+    """Every star marked in the image: the centroids and, when known, where the simulator drew stars."""
+    uv = [np.asarray(result.centroids.uv, dtype=np.float64).reshape(-1, 2)]
+    if truth is not None:
+        uv += [np.array([[s["u_noisy"], s["v_noisy"]] for s in truth.get("stars", [])]).reshape(-1, 2),
+               np.array([[f["u"], f["v"]] for f in truth.get("false_stars", [])]).reshape(-1, 2)]
+    return np.concatenate(uv)
+
+
+def _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view) -> tuple[str, np.ndarray]:
+    """The static entities; returns the image note and the screen boxes of the labels placed (false stars)."""
     camera = result.camera
     log_sky(rec, catalog)
     if R_est is not None:
@@ -216,7 +228,7 @@ def _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view) -> 
                 static=True)
         if R_view is not None:
             v = camera.unproject(cents.uv) @ R_view  # v_icrs = R^T v_cam
-            rec.log(OBSERVED, rr.Points3D(v.astype(np.float32), radii=0.004, colors=C_OBSERVED,
+            rec.log(OBSERVED, rr.Points3D(v.astype(np.float32), radii=SKY_OBSERVED_RADIUS, colors=C_OBSERVED,
                                           labels=[f"#{k}" for k in range(n)], show_labels=False), static=True)
     # --- where the simulator drew stars
     if truth is not None:
@@ -231,53 +243,56 @@ def _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view) -> 
             uv = np.array([[f["u"], f["v"]] for f in false])
             rec.log(TRUTH_FALSE_STARS, rr.Points2D(rerun_uv(uv), radii=rr.Radius.ui_points(10.0),
                                                    colors=C_FALSE + (140,), labels=["false star"] * len(false),
-                                                   show_labels=True, draw_order=6), static=True)
-    return note
+                                                   show_labels=False, draw_order=6), static=True)
+            at, texts, taken = image_labels(uv, ["false star"] * len(false), np.zeros(len(false)), camera,
+                                            _marks_uv(result, truth))
+            rec.log(TRUTH_FALSE_LABELS, rr.Points2D(at, radii=0.0, labels=texts, show_labels=True, colors=C_FALSE,
+                                                    draw_order=31), static=True)
+            return note, taken
+    return note, np.zeros((0, 4))
 
 
-def sky_label_keep(xyz: np.ndarray, mag: np.ndarray, limit: int = MAX_SHOWN_LABELS) -> np.ndarray:
-    """Which 3D labels to show: brightest first, none within LABEL_SEPARATION_RAD of one kept, at most `limit`."""
-    order = np.argsort(np.asarray(mag, dtype=np.float64), kind="stable")
-    keep = np.zeros(len(xyz), dtype=bool)
-    for i in order:
-        if keep.sum() >= limit:
-            break
-        kept = xyz[keep]
-        if len(kept) == 0 or np.max(kept @ xyz[i]) < math.cos(LABEL_SEPARATION_RAD):
-            keep[i] = True
-    return keep
-
-
-def write_matches(rec, matches: list[tuple[int, int]], catalog, camera, R_est, static: bool) -> None:
+def write_matches(rec, matches: list[tuple[int, int]], catalog, camera, R_est, static: bool, *,
+                  stars_uv: np.ndarray | None = None, stars_xyz: np.ndarray | None = None,
+                  taken: np.ndarray | None = None, eye: SkyEye | None = None) -> str:
     """The identification: (observed index, catalog row) pairs on the sky and in the image, with HIP labels
-    beside the stars (brightest first, hidden where they would overlap)."""
+    beside the stars, on no other label and no star (`record_draw.image_labels`, `record_draw.sky_labels`:
+    the brightest first, hidden where there is no room). stars_uv / stars_xyz: the other stars marked in
+    the image / on the sky (the catalog's are avoided on the sky too); taken: screen boxes of the image's
+    labels placed before (`record_draw.image_labels`); eye: the sky view's opening eye (default
+    `SkyEye.behind(R_est)`, as `blueprint`). Returns a sentence saying which stars each view labels."""
     if not matches:
-        return
+        return ""
     rows = np.array([c for _, c in matches], dtype=np.int64)
     xyz = catalog.xyz[rows]
     mag = np.asarray(catalog.mag)[rows]
-    texts = [f"HIP {int(catalog.hip[c])} (#{o})" for o, c in matches]
-    rec.log(MATCHES, rr.Points3D(xyz.astype(np.float32), radii=0.006, colors=C_MATCH, show_labels=False),
+    rec.log(MATCHES, rr.Points3D(xyz.astype(np.float32), radii=SKY_MATCH_RADIUS, colors=C_MATCH, show_labels=False),
             static=static)
-    keep = sky_label_keep(xyz, mag)
-    right = np.asarray(R_est, dtype=np.float64)[0]  # labels beside the stars: towards the image's right
-    at = xyz[keep] + 0.0035 * right
-    rec.log(MATCH_LABELS, rr.Points3D((at / np.linalg.norm(at, axis=1)[:, None]).astype(np.float32), radii=0.0,
-                                      labels=[t for t, k in zip(texts, keep) if k], show_labels=True,
-                                      colors=C_MATCH), static=static)
+    others = [catalog.xyz] + ([] if stars_xyz is None else [np.asarray(stars_xyz, dtype=np.float64).reshape(-1, 3)])
+    radii = [catalog_radii(catalog)] + ([] if stars_xyz is None else [np.full(len(others[1]), SKY_OBSERVED_RADIUS)])
+    at, sky_texts = sky_labels(xyz, [f"HIP {int(catalog.hip[c])} (#{o})" for o, c in matches], mag,
+                               eye or SkyEye.behind(R_est), np.concatenate(others), np.concatenate(radii))
+    rec.log(MATCH_LABELS, rr.Points3D(at, radii=0.0, labels=sky_texts, show_labels=True, colors=C_MATCH),
+            static=static)
     uv, _ = camera.project(xyz @ np.asarray(R_est).T)
     rec.log(IMAGE_MATCHES, rr.Points2D(rerun_uv(uv), radii=rr.Radius.ui_points(7.0), colors=C_MATCH + (110,),
                                        show_labels=False, draw_order=10), static=static)
-    anchors, shown = image_labels(uv, [f"HIP {int(catalog.hip[c])}" for _, c in matches], mag)
+    anchors, shown, _ = image_labels(uv, [f"HIP {int(catalog.hip[c])}" for _, c in matches], mag, camera, stars_uv,
+                                     taken)
     rec.log(IMAGE_LABELS, rr.Points2D(anchors, radii=0.0, labels=shown, show_labels=True, colors=C_MATCH,
                                       draw_order=30), static=static)
+    return (f"the image labels {len(shown)} of the {len(matches)} identified stars and the sky {len(sky_texts)}, "
+            f"beside them, the brightest first; a label that would cover another label or a star is left out "
+            f"(the sky's at the view it opens on: the rest are on the image, every match is in the table above)")
 
 
-def _write_matches(rec, result, catalog, R_est, static: bool) -> None:
+def _write_matches(rec, result, catalog, R_est, truth, taken, static: bool) -> str:
     if not result.matches or R_est is None:
-        return
+        return ""
     pairs = [(int(m["index"]), int(catalog.index_of(m["hip"]))) for m in result.matches]
-    write_matches(rec, pairs, catalog, result.camera, R_est, static)
+    observed = result.camera.unproject(result.centroids.uv) @ R_est  # v_icrs = R^T v_cam
+    return write_matches(rec, pairs, catalog, result.camera, R_est, static, stars_uv=_marks_uv(result, truth),
+                         stars_xyz=observed, taken=taken)
 
 
-__all__ = ["record_solve", "result_markdown", "blueprint", "write_matches", "sky_label_keep"]
+__all__ = ["record_solve", "result_markdown", "blueprint", "write_matches"]

@@ -27,16 +27,37 @@ import rerun.blueprint as rrb
 from skyview import sky_geometry as sg
 from skyview.errors import BadInput
 from skyview.present import (IMAGE_ROLES, PALETTE, SKY_ROLES, TEXTURE_FLOOR_SIGMAS, ImageEdges, ImageMarks, SkyLines,
-                             SkyPoints, StepView, place_labels, stretch, stretch_note, unit_of)
+                             SkyPoints, StepView, layout_labels, stretch, stretch_note, unit_of)
 
 APP_ID = "skyview"
 TIMELINE = "step"
 JPEG_QUALITY = 85
 PIXEL_OFFSET = 0.5  # skyview pixel centre (integer) -> Rerun pixel centre (half-integer)
 IMAGE_PLANE_DISTANCE = 1.03  # where the sensor image sits in 3D: just behind the stars on the unit sphere
-LABEL_OFFSET_PX = 14.0  # labels sit this far right of their star in the image
-LABEL_CHAR_PX = 17.0  # one label character in image pixels, as a 1024-pixel image shows in its panel
-LABEL_HEIGHT_PX = 40.0
+SKY_MATCH_RADIUS = 0.006  # an identified star on the sky (world units: the sphere's radius is 1)
+SKY_OBSERVED_RADIUS = 0.004  # an observed star's direction on the sky
+
+# Labels are laid out in screen pixels of the window the recording opens in: the browser test's 1400 x 860
+# (a larger window only spreads them apart), cut by the blueprint's shares (skyview.record.blueprint).
+WINDOW_PX = (1400.0, 860.0)
+WINDOW_CHROME_PX = 66.0  # Rerun's top bar and the collapsed time panel
+VIEW_TITLE_PX = 28.0  # a view's title bar
+SKY_COLUMN_SHARES = (3, 2)  # the sky | the image over the tabs
+IMAGE_ROW_SHARES = (5, 4)  # the image over the tabs
+SKY_VIEW_PX = (WINDOW_PX[0] * SKY_COLUMN_SHARES[0] / sum(SKY_COLUMN_SHARES),
+               WINDOW_PX[1] - WINDOW_CHROME_PX - VIEW_TITLE_PX)
+IMAGE_VIEW_PX = (WINDOW_PX[0] * SKY_COLUMN_SHARES[1] / sum(SKY_COLUMN_SHARES),
+                 (WINDOW_PX[1] - WINDOW_CHROME_PX) * IMAGE_ROW_SHARES[0] / sum(IMAGE_ROW_SHARES) - VIEW_TITLE_PX)
+EYE_BACK = 0.45  # the sky view's eye sits this far out along the boresight (the sphere's radius is 1) ...
+EYE_DROP = 0.03  # ... and this far below it (image-down), looking at the boresight on the sphere
+EYE_FOV_Y = math.radians(55.0)  # Rerun's 3-D eye: vertical field of view
+# A Rerun label on screen (egui's body font): a box as wide as its text (~6.6 px a character) plus 13 px and
+# 23 px tall, centred under its point with its top LABEL_DROP_PX below it.
+LABEL_CHAR_PX, LABEL_PAD_PX, LABEL_HEIGHT_PX, LABEL_DROP_PX = 6.6, 13.0, 23.0, 1.0
+LABEL_GAP_PX = 3.0  # between a label and its star's mark
+LABEL_APART_PX = 8.0  # every other labelled star's mark is this much farther from a label than its own star's
+SKY_MARK_GROW = 1.2  # a star on the sky covers its projected radius and the image plane's marks beside it
+IMAGE_RING_PX = 10.0  # the widest mark drawn on a star in the image (the truth rings, 10 ui points)
 
 # Entity paths (kept in one place: the tests and the docs read them from here).
 CATALOG = "sky/catalog"
@@ -55,6 +76,7 @@ IMAGE_LABELS = "camera/image/labels"
 IMAGE_STEP = "camera/image/step"  # camera/image/step/<role> for the image roles
 TRUTH_STARS = "camera/image/truth/stars"
 TRUTH_FALSE_STARS = "camera/image/truth/false_stars"
+TRUTH_FALSE_LABELS = "camera/image/truth/false_stars/labels"
 TRUE_CAMERA = "truth/camera"
 STEP_LOG = "steps/log"
 STEP_NUMBERS = "steps/numbers"  # steps/numbers/<unit>/<name>: one plot per unit
@@ -198,23 +220,128 @@ def fmt(v: Any) -> str:
 
 def log_sky(rec, catalog) -> None:
     """The celestial sphere (static): the guide catalog by magnitude and colour, the RA/Dec grid."""
-    radii = sg.star_radius(catalog.mag, r_bright=0.007, r_faint=0.0018).astype(np.float32)
-    rec.log(CATALOG, rr.Points3D(catalog.xyz.astype(np.float32), radii=radii,
+    rec.log(CATALOG, rr.Points3D(catalog.xyz.astype(np.float32), radii=catalog_radii(catalog),
                                  colors=sg.star_color(catalog.mag, catalog.bv)), static=True)
     rec.log(GRID, rr.LineStrips3D([g.astype(np.float32) for g in sg.radec_grid()], colors=C_GRID,
                                   radii=rr.Radius.ui_points(0.5)), static=True)
 
 
-def image_labels(uv: np.ndarray, texts: list[str], priority: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """Label anchors beside their stars in the image (LABEL_OFFSET_PX to the right), only those that do
-    not overlap a more important one (`present.place_labels`): (K, 2) Rerun pixels and their texts."""
+def catalog_radii(catalog) -> np.ndarray:
+    """The radius of each catalog star on the sky (by magnitude), as `log_sky` draws it."""
+    return sg.star_radius(catalog.mag, r_bright=0.007, r_faint=0.0018).astype(np.float32)
+
+
+def label_sizes(texts: list[str]) -> np.ndarray:
+    """(N, 2) screen width and height of Rerun labels."""
+    return np.array([[LABEL_CHAR_PX * len(t) + LABEL_PAD_PX, LABEL_HEIGHT_PX] for t in texts]).reshape(-1, 2)
+
+
+def rerun_label_anchor(centre: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """Where to put a label's point so that Rerun (which centres a label under its point) draws its box
+    centred at `centre` (screen pixels)."""
+    return np.asarray(centre, dtype=np.float64) - np.stack([np.zeros(len(size)), size[:, 1] / 2 + LABEL_DROP_PX], 1)
+
+
+def image_scale(camera) -> float:
+    """Screen pixels per image pixel in the image view (the image fitted to IMAGE_VIEW_PX)."""
+    return min(IMAGE_VIEW_PX[0] / camera.width, IMAGE_VIEW_PX[1] / camera.height)
+
+
+def image_view_bounds(camera) -> np.ndarray:
+    """Where the image view's labels may go, in its screen pixels (the image's corner at the origin): on
+    the image, else in the margins Rerun leaves beside the fitted image (light: less readable), not over
+    the view's edge. (2, 4) areas as (x0, y0, x1, y1), tried in turn."""
+    s = image_scale(camera)
+    w, h = camera.width * s, camera.height * s
+    mx, my = (IMAGE_VIEW_PX[0] - w) / 2 - LABEL_GAP_PX, (IMAGE_VIEW_PX[1] - h) / 2 - LABEL_GAP_PX
+    return np.array([[0.0, 0.0, w, h], [-mx, -my, w + mx, h + my]])
+
+
+def image_labels(uv: np.ndarray, texts: list[str], priority: np.ndarray, camera, stars: np.ndarray | None = None,
+                 taken: np.ndarray | None = None) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Labels beside their stars in the image view, on no other label and no star (`present.layout_labels`
+    in the view's screen pixels, the brightest first; a label with no room is hidden): (K, 2) Rerun pixels
+    of the points to log them on (radius 0), their texts and their (K, 4) screen boxes. stars: (M, 2) the
+    other stars marked (uv); taken: screen boxes of labels placed before (an earlier call's)."""
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     if len(uv) == 0:
-        return np.zeros((0, 2), np.float32), []
-    sizes = np.array([[LABEL_CHAR_PX * len(t), LABEL_HEIGHT_PX] for t in texts])
-    keep = place_labels(uv, priority, sizes, gap=LABEL_OFFSET_PX)
-    at = uv[keep] + np.stack([LABEL_OFFSET_PX + 0.5 * sizes[keep, 0], np.zeros(int(keep.sum()))], axis=1)
-    return rerun_uv(at), [t for t, k in zip(texts, keep) if k]
+        return np.zeros((0, 2), np.float32), [], np.zeros((0, 4))
+    s = image_scale(camera)
+    lay = layout_labels(rerun_uv(uv) * s, label_sizes(texts), priority, anchor_radius=IMAGE_RING_PX,
+                        stars=rerun_uv(np.zeros((0, 2)) if stars is None else stars) * s, star_radius=IMAGE_RING_PX,
+                        gap=LABEL_GAP_PX, apart=LABEL_APART_PX, bounds=image_view_bounds(camera), taken=taken)
+    at = rerun_label_anchor(lay.centre[lay.shown], lay.size[lay.shown]) / s
+    return at.astype(np.float32), [t for t, k in zip(texts, lay.shown) if k], lay.boxes()
+
+
+@dataclass(frozen=True)
+class SkyEye:
+    """A 3-D view's opening eye (the blueprint's): at `position`, looking at `target`, `up` up; it projects
+    the sky to the view's screen pixels (`view_px` wide and high, Rerun's EYE_FOV_Y) and back."""
+
+    position: np.ndarray
+    target: np.ndarray
+    up: np.ndarray
+    view_px: tuple[float, float] = SKY_VIEW_PX
+
+    @classmethod
+    def behind(cls, R: np.ndarray) -> SkyEye:
+        """Looking out along the boresight R[2] from behind the camera, image-up (-R[1]) up."""
+        R = np.asarray(R, dtype=np.float64)
+        b, up = R[2], -R[1]
+        return cls(EYE_BACK * b - EYE_DROP * up, b, up)
+
+    def _axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        f = self.target - self.position
+        f = f / np.linalg.norm(f)
+        r = np.cross(f, self.up)
+        r = r / np.linalg.norm(r)
+        return f, r, np.cross(r, f), self.view_px[1] / 2.0 / math.tan(EYE_FOV_Y / 2.0)
+
+    def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """(N, 2) screen pixels, (N,) depths along the view and the focal length in pixels."""
+        f, r, u, F = self._axes()
+        W, H = self.view_px
+        d = np.asarray(xyz, dtype=np.float64).reshape(-1, 3) - self.position
+        z = d @ f
+        with np.errstate(divide="ignore", invalid="ignore"):
+            px = np.stack([W / 2 + F * (d @ r) / z, H / 2 - F * (d @ u) / z], axis=1)
+        return px, z, F
+
+    def on_sphere(self, px: np.ndarray) -> np.ndarray:
+        """The points of the unit sphere seen at screen pixels `px` (the eye is inside the sphere)."""
+        f, r, u, F = self._axes()
+        W, H = self.view_px
+        px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
+        ray = f + np.outer((px[:, 0] - W / 2) / F, r) - np.outer((px[:, 1] - H / 2) / F, u)
+        ray /= np.linalg.norm(ray, axis=1)[:, None]
+        pe = ray @ self.position
+        t = -pe + np.sqrt(pe ** 2 - (self.position @ self.position - 1.0))
+        return self.position + t[:, None] * ray
+
+
+def sky_labels(xyz: np.ndarray, texts: list[str], priority: np.ndarray, eye: SkyEye, stars: np.ndarray,
+               star_radius: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """The sky view's labels of stars `xyz` (drawn SKY_MATCH_RADIUS wide) that fit beside them at the
+    view's opening `eye` (the blueprint's), on no other label and no star `stars` (radii `star_radius`,
+    world units): `present.layout_labels` in the view's screen pixels, the brightest first. Returns (K, 3)
+    points of the unit sphere to log them on (radius 0) and their texts."""
+    view = np.asarray(eye.view_px, dtype=np.float64)
+    px, z, F = eye.project(xyz)
+    inside = (z > 0.05) & np.all((px >= 0) & (px <= view), axis=1)
+    sp, sz, _ = eye.project(stars)
+    seen = (sz > 0.05) & np.all((sp >= -20) & (sp <= view + 20), axis=1)
+    rows = np.flatnonzero(inside)
+    if len(rows) == 0:
+        return np.zeros((0, 3), np.float32), []
+    sizes = label_sizes([texts[i] for i in rows])
+    grow = SKY_MARK_GROW * F  # a sphere's mark on screen: its projected radius, widened
+    lay = layout_labels(px[rows], sizes, np.asarray(priority)[rows],
+                        anchor_radius=SKY_MATCH_RADIUS * grow / z[rows] + 2,
+                        stars=sp[seen], star_radius=np.asarray(star_radius)[seen] * grow / sz[seen] + 2,
+                        gap=LABEL_GAP_PX, apart=LABEL_APART_PX, bounds=(0.0, 0.0, view[0], view[1]))
+    at = eye.on_sphere(rerun_label_anchor(lay.centre[lay.shown], lay.size[lay.shown]))
+    return at.astype(np.float32), [texts[i] for i, k in zip(rows, lay.shown) if k]
 
 
 def step_archetypes(view: StepView, uv: np.ndarray) -> dict[str, Any]:

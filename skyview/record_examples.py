@@ -17,10 +17,9 @@ from skyview.present import PAPER_SCENARIOS
 from skyview.record_cases import Case, CaseRunner
 from skyview.record_draw import check_output_path
 
-# Sequence methods: their example is the paper's frame sequence (skyview.record_sequence), on this scenario.
-SEQUENCE_EXAMPLES = {"stochastic": PAPER_SCENARIOS["stochastic"]}
-# The other methods: their paper's scenario.
-EXAMPLE_SCENARIOS = {m: s for m, s in PAPER_SCENARIOS.items() if m not in SEQUENCE_EXAMPLES}
+# Every method's example is on its paper's scenario; a sequence method's (`is_sequence_method`) is the
+# paper's frame sequence there (skyview.record_sequence).
+EXAMPLE_SCENARIOS = PAPER_SCENARIOS
 # The failure example: the paper variant of this method on this scenario, first seed that ends inconclusive.
 FAILURE_EXAMPLE = ("angle", "cole8-false")
 EXAMPLE_SEED_START = 1
@@ -30,13 +29,14 @@ MANIFEST = "index.json"
 
 def record_examples(out_dir: str | os.PathLike = "recordings", *, force: bool = False, say=print) -> list[dict]:
     """Regenerate the example recordings: every method in METHODS on its paper's scenario (the first seed
-    from EXAMPLE_SEED_START that it solves correctly; a sequence method, SEQUENCE_EXAMPLES, records its
+    from EXAMPLE_SEED_START that it solves correctly; a sequence method records its
     paper's frame sequence, `record_sequence.record_example`), and one failure case (FAILURE_EXAMPLE, paper
     variant: the first seed that ends inconclusive with at least 6 stars drawn and the false star among
     the observed stars its steps used). Writes
     `<method>-<scenario>.rrd`, `failure-<method>-<scenario>.rrd` and a manifest `index.json`."""
     from skyview.catalog import load_guide_catalog
     from skyview.identify import METHODS
+    from skyview.identify.base import is_sequence_method
     from skyview.scenarios import SCENARIOS
 
     out = Path(out_dir)
@@ -44,7 +44,7 @@ def record_examples(out_dir: str | os.PathLike = "recordings", *, force: bool = 
         raise BadInput(f"folder {out} does not exist")
     plan: list[tuple[str, str, bool]] = []
     for method in METHODS:
-        scenario = SEQUENCE_EXAMPLES.get(method, EXAMPLE_SCENARIOS.get(method))
+        scenario = EXAMPLE_SCENARIOS.get(method)
         if scenario is None:
             say(f"skipped {method}: no default scenario for it in skyview.present.PAPER_SCENARIOS")
         elif scenario not in SCENARIOS:
@@ -64,7 +64,7 @@ def record_examples(out_dir: str | os.PathLike = "recordings", *, force: bool = 
     catalog = load_guide_catalog()
     entries = []
     for (method, scenario, fail), name in zip(plan, names):
-        if method in SEQUENCE_EXAMPLES and not fail:  # a sequence: the paper's experiment, frame by frame
+        if is_sequence_method(METHODS[method]) and not fail:  # the paper's experiment, frame by frame
             from skyview.record_sequence import record_example
 
             entry = record_example(out / name, scenario=scenario, catalog=catalog, force=force,

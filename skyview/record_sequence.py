@@ -1,5 +1,9 @@
 """Rerun recordings (.rrd) of a frame sequence solved by the stochastic method.
 
+Long (about 700 lines) because a sequence recording is one document in sections (drawing helpers, the
+result document, the blueprint, frame by frame writing, the paper's experiment runner) that share one
+frame/step timeline layout.
+
 `record_sequence(path, seq_result, images, truths=...)` writes one `sequence.SequenceResult`: every frame
 on a `frame` timeline (the sequence index), and every step of every frame on the `step` timeline, which
 runs on across frames (frame 0's steps are 0, 1; frame 1's 2, 3, 4; ...). `record_paper_sequence`
@@ -60,7 +64,7 @@ from skyview.attitude import attitude_error_arcsec, east_north, quat_from_R, rad
 from skyview.errors import BadInput
 from skyview.present import posterior_figures, step_views
 from skyview.record import write_matches
-from skyview.scoring import frame_truth
+from skyview.scoring import sequence_truth
 
 FRAME_TIMELINE = "frame"
 STEP_TIMELINE = D.TIMELINE
@@ -201,18 +205,18 @@ def _truth_rows(seq_result, truths):
 
 def frame_figures(seq_result, rows=None) -> list[dict]:
     """Per frame, the figures a recording shows, read from the steps' Posterior layers
-    (`present.posterior_figures`) and scored against the truth rows here (`scoring.frame_truth`), not
+    (`present.posterior_figures`) and scored against the truth rows here (`skyview.scoring`), not
     taken from the method: designated, top_rows, top_mass, top_hips, top_posterior, above_prior,
-    true_row, true_posterior; plus the method's own count of field stars and true-sequence posterior
-    when it reports them (stars, true_sequence_posterior)."""
+    true_row, true_posterior, true_sequence_posterior (`scoring.sequence_truth`); plus the method's own
+    count of field stars (stars)."""
     cat = seq_result.catalog
     out = []
+    scored = sequence_truth(seq_result.identifications, rows)
     for k, r in enumerate(seq_result.identifications):
         f = dict(posterior_figures(r.steps) or {})
-        f.update(frame_truth(r.steps, None if rows is None else rows[k]))
+        f.update({key: scored[k][key] for key in ("true_row", "true_posterior", "true_sequence_posterior")})
         f["top_hips"] = [int(cat.hip[c]) for c in f.get("top_rows", [])]
         f["stars"] = r.stats.get("stars")
-        f["true_sequence_posterior"] = r.stats.get("true_sequence_posterior")
         out.append(f)
     return out
 

@@ -8,6 +8,9 @@ false stars it rendered) is compared with what a solve found here, after the fac
     truth_rows          the catalog row of each centroid (-1: a false star or nothing drawn there)
     true_posterior      per step, the probability a method's posterior (a `Posterior` layer) gives the
                         true star, and its rank among the stars
+    sequence_truth      per frame of a sequence: the designated star's true row, its posterior and rank,
+                        and the posterior of the true sequence (the hypothesis that started on the true
+                        star), read from the frames' Posterior layers
 
 The geometry of the match (which centroid lies on which rendered star) is `skyview.truth`'s.
 """
@@ -100,3 +103,32 @@ def frame_truth(steps, rows: np.ndarray | None) -> dict:
     true_row = int(rows[fig["designated"]])
     return {"true_row": true_row if true_row >= 0 else None,
             "true_posterior": last_true_posterior(steps, true_row) if true_row >= 0 else None}
+
+
+def sequence_truth(identifications, rows) -> list[dict]:
+    """Per frame of a sequence method's result, scored against the truth here (the method never sees it):
+    true_row (the true catalog row of the frame's designated star, `frame_truth`), true_posterior and
+    true_rank (its probability under the frame's posterior and its rank among the stars, 0 = leading),
+    true_sequence_posterior (the weight of the hypothesis that started on the true star of the first
+    frame with a posterior: hypothesis h starts on catalog row h, the paper's Table 1).
+
+    rows: per frame, the true catalog row of every observed star (-1: a false star), or None (then
+    every figure is None). A frame without a posterior (nothing to designate) keeps the last weights."""
+    out = []
+    start = None  # the true row of the first designated star: the true sequence's hypothesis
+    weights = None
+    for k, r in enumerate(identifications):
+        steps = r.steps
+        f = frame_truth(steps, None if rows is None else rows[k])
+        post = next((s.layer(Posterior) for s in reversed(list(steps)) if s.layer(Posterior) is not None), None)
+        f["true_rank"] = None
+        if f["true_row"] is not None:
+            f["true_rank"] = [v for v in true_posterior(steps, f["true_row"]) if v is not None][-1][1]
+        if post is not None:
+            weights = np.asarray(post.weights, dtype=np.float64)
+            if start is None and rows is not None:
+                start = f["true_row"] if f["true_row"] is not None else -1
+        f["true_sequence_posterior"] = (float(weights[start]) if weights is not None and start is not None
+                                        and 0 <= start < len(weights) else None)
+        out.append(f)
+    return out

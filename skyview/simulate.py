@@ -1,5 +1,9 @@
 """Star-field simulator: attitude + camera + catalog -> sensor image with known truth.
 
+Long (over 900 lines) because the simulator is one chain in sections (sensor model, PSF rendering,
+optics and sky effects, JPEG, frames, atomic file writing, slews) that share the pixel, sensor and truth
+conventions this module defines once.
+
 Conventions (docs: /work/shared/DESIGN.md): v_cam = R @ v_icrs; camera +x right (u), +y down (v),
 +z boresight; pixel centres at integer coordinates, (0, 0) the centre of the top-left pixel, so
 pixel (i, j) (row i, column j) covers u in [j - 0.5, j + 0.5] and v in [i - 0.5, i + 0.5].

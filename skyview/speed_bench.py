@@ -8,8 +8,9 @@ work folder, then times, one image after the other, in this process:
 
 - decode: `skyview.centroid.load_image` of the file (reported apart; the totals below exclude it,
   and "total + decode" includes it);
-- for each calibrated method (default: the improved angle method; `methods=` adds e.g. the improved
-  triangle method), one `Solver` for the scenario's camera, exact FOV, `solve_array` on the decoded
+- for each calibrated method (default: the improved angle and triangle methods, issue 11's pair;
+  `methods=` or the CLI's `--method/--variant` choose others), one `Solver` for the scenario's
+  camera, exact FOV, `solve_array` on the decoded
   image: centroids, identification, attitude (verification is part of identification: every method
   ends in it), total; scored against the truth sidecar as `skyview bench` scores (a wrong match is
   incorrect);
@@ -51,7 +52,7 @@ from skyview.errors import BadInput
 REPO = Path(__file__).resolve().parent.parent
 PEERS_WORKER = REPO / "benchmarks" / "peers_worker.py"
 DEFAULT_PEERS_PYTHON = REPO / ".venv-peers" / "bin" / "python"
-DEFAULT_METHODS = (("angle", "improved"),)
+DEFAULT_METHODS = (("angle", "improved"), ("triangle", "improved"))
 STAGES = ("decode", "centroid", "identify", "attitude", "total", "total+decode")
 MAX_ERROR_PX = 5.0
 RAD_TO_ARCSEC = 180.0 / math.pi * 3600.0

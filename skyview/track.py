@@ -1,5 +1,8 @@
 """Tracking mode for every identification method: solve once lost-in-space, then follow the stars.
 
+Long (over 500 lines) because `Tracker` is one state machine (lost-in-space, predicted windows,
+verification of the tracked matches, loss of lock) whose stages share its state; the rest is short.
+
 `Tracker` solves the first frame lost-in-space (LIS) with the given method through `Solver` (or, with
 no method, the default pipeline: the blind solver, then the improved angle method at the given FOV,
 as `solve_image` runs them). For every later frame it
@@ -55,6 +58,7 @@ from skyview.errors import BadInput
 from skyview.identify.verify import MAX_RADIUS_RAD, RADIUS_SIGMAS, verify
 from skyview.pipeline import (BLIND, DEFAULT_CENTROID_SIGMA_PX, DEFAULT_FOV_ERROR, PAPER_MAG_LIMIT, SOLVED,
                               NOT_SOLVED, BlindSolver, SolveResult, Solver, as_image, blind_solver)
+from skyview.result import matched_stars, observation
 from skyview.track_verify import (HYPOTHESIS_STARS, cross, nearest_one_to_one, predicted_sigma, rotation_matrix,
                                    rotvec, spread_subset, verify_windowed, wahba)
 from skyview.track_window import DEFAULT_PSF_SIGMA_PX, MAX_HALF_PX, PSF_REACH_SIGMAS, centroid_windows, window_centers
@@ -363,9 +367,8 @@ class Tracker:
 
     # ------------------------------------------------------------------ internals
     def _observation(self, centroids: Centroids) -> tuple[np.ndarray, np.ndarray]:
-        n = min(len(centroids), self.max_stars)
-        uv = centroids.uv[:n]
-        return self.camera.unproject(uv), uv
+        obs = observation(centroids, self.camera, 0.0, self.max_stars)  # sigma: the tracker's own
+        return obs.vectors, obs.uv
 
     def _solved(self, res: TrackFrame) -> None:
         if self.history:
@@ -454,7 +457,7 @@ class Tracker:
                 return False
             res.mode, res.status = TRACKING, SOLVED
             res.R, res.covariance, res.p_false = sol.R, sol.covariance, sol.p_false
-            res.matches = self._match_list(sol.matches, uv)
+            res.matches = matched_stars(self.catalog, uv, sol.matches)
             return True
         ver = None
         for t in range(MAX_TRACK_TRIES):
@@ -477,13 +480,8 @@ class Tracker:
         res.R = ver.R
         res.covariance = ver.covariance
         res.p_false = float(ver.p_false)
-        res.matches = self._match_list(ver.matches, uv)
+        res.matches = matched_stars(self.catalog, uv, ver.matches)
         return True
-
-    def _match_list(self, matches: dict[int, int], uv: np.ndarray) -> list[dict]:
-        cat = self.catalog
-        return [{"index": int(o), "u": float(uv[o, 0]), "v": float(uv[o, 1]), "hip": int(cat.hip[c]),
-                 "mag": float(cat.mag[c])} for o, c in sorted(matches.items())]
 
     def _lost_in_space(self, centroids: Centroids, width: int, height: int, res: TrackFrame) -> None:
         res.mode = LOST_IN_SPACE
@@ -528,7 +526,7 @@ class Tracker:
             idx = np.array([o for o, _ in pairs])
             est = svd_attitude(b[idx], self.catalog.xyz[[c for _, c in pairs]], self.sigma_rad)
             res.R, res.covariance = est.R, est.covariance
-            res.matches = self._match_list(dict(pairs), uv)
+            res.matches = matched_stars(self.catalog, uv, dict(pairs))
         else:
             res.R = lis.R
             P = np.diag([(lis.sigma_boresight_arcsec or 60.0) ** 2] * 2 + [(lis.sigma_roll_arcsec or 600.0) ** 2])

@@ -6,7 +6,6 @@ from scipy.spatial.transform import Rotation
 
 from skyview.attitude import attitude_error_arcsec, random_attitudes
 from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
 from skyview.errors import BadInput
 from skyview.identify import FAILED, IDENTIFIED, METHODS, make_identifier
 from skyview.identify import database
@@ -16,24 +15,6 @@ from skyview.identify.synthetic import add_noise, synthetic_frame
 from skyview.identify.verify import angular_distance
 
 SIGMA = 87e-6
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("skyview-cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("SKYVIEW_CACHE", str(path))
-        yield path
-
-
-@pytest.fixture(scope="module")
-def cat():
-    return load_guide_catalog().brighter_than(6.0)
-
-
-@pytest.fixture(scope="module")
-def cam():
-    return Camera.from_fov(8.0, 1024)
 
 
 @pytest.fixture(scope="module")
@@ -254,6 +235,48 @@ def test_limits_and_small_inputs(ident, cat, cam):
     assert r.status == FAILED and "at least 3" in r.reason
     none = Observation(vectors=np.zeros((0, 3)), uv=np.zeros((0, 2)), brightness=np.zeros(0), sigma_rad=SIGMA)
     assert ident.identify(none).status == FAILED
+
+
+def test_pattern_stars_are_the_brightest_and_every_star_verifies(cache, cat, cam):
+    """max_stars (12 in the improved variant): only the brightest stars form angles, all of them verify."""
+    f = frames(cat, cam, 1, seed=12, n_min=9)[0]
+    capped = AngleMethod(cat, cam, SIGMA, pivoting="join", close_loops=True, max_stars=5)
+    r = capped.identify(f.obs)
+    assert r.stats["pattern_stars"] == 5 and r.stats["stars"] == len(f.obs) >= 9
+    for s in r.steps:
+        if s.kind in ("pick", "pivot", "skip"):
+            assert max(s.observed) < 5
+    assert_correct(r, f)
+    assert max(r.matches) >= 5  # stars outside the pattern search are matched by the verification
+    full = AngleMethod(cat, cam, SIGMA, pivoting="join", close_loops=True)
+    assert full.identify(f.obs).stats["pattern_stars"] == len(f.obs)
+    assert make_identifier("angle", cat, cam, SIGMA, variant="improved").max_stars == 12
+    with pytest.raises(BadInput):
+        make_identifier("angle", cat, cam, SIGMA, max_stars=2)
+
+
+def test_join_against_a_loop():
+    """The vectorised join (blocks by catalog star) gives the rows of a plain double loop, in its order."""
+    rng = np.random.default_rng(5)
+    ci, cj = rng.integers(0, 300, 3000), rng.integers(0, 300, 3000)
+    H = np.stack([rng.integers(0, 300, 40), rng.integers(300, 600, 40)], axis=1)
+    H[:10, 1] = ci[:10]  # some closed loops that hold
+    H[:10, 0] = cj[:10]
+    cand = list(zip(np.concatenate([ci, cj]).tolist(), np.concatenate([cj, ci]).tolist()))  # (on p, on q)
+    for n in (0, 1, 3, 40):
+        for p, q in ((1, 2), (2, 1), (0, 2), (0, 1), (1, 0)):  # a new star on either side, closed loops
+            got, used, new = _join(H[:n], [0, 1], p, q, ci, cj)
+            pairs = cand if p in (0, 1) else [(b, a) for a, b in cand]  # (on the shared star, on the other)
+            s, o = (p, q) if p in (0, 1) else (q, p)
+            if o in (0, 1):
+                ref = [h for h in H[:n].tolist() if (h[s], h[o]) in set(pairs)]
+                assert new is None
+            else:
+                ref = [h + [b] for h in H[:n].tolist() for a, b in sorted(pairs, key=lambda x: x[0])
+                       if a == h[s] and b not in h]
+                assert new == o and used == [0, 1, o]
+            assert got.tolist() == ref
+    assert len(_join(H, [0, 1], 0, 1, ci, cj)[0]) == 10
 
 
 def test_join_is_a_join_on_the_shared_star():

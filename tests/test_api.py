@@ -68,7 +68,6 @@ def test_to_json_round_trip(photo, failed):
 
 def test_skycoord_wcs_and_rotation_agree_with_R(photo):
     from skyview.attitude import R_from_quat
-    from skyview.catalog import load_guide_catalog, vec_to_radec
 
     R = photo.R
     assert np.allclose(photo.rotation().as_matrix(), R, atol=1e-12)
@@ -84,13 +83,27 @@ def test_skycoord_wcs_and_rotation_agree_with_R(photo):
     cam = photo.camera
     px = w.all_world2pix([[photo.ra_deg, photo.dec_deg]], 0)[0]
     assert px == pytest.approx([cam.cx, cam.cy], abs=1e-6)  # CRVAL lands on the principal point
-    # the catalog stars that were matched land on their centroids through the WCS (distortion included)
-    cat = load_guide_catalog(epoch=photo.epoch)
-    rows = {int(h): i for i, h in enumerate(cat.hip)}
-    radec = np.degrees(np.array([vec_to_radec(cat.xyz[rows[m.hip]]) for m in photo.matches]))
+    # the catalog stars that were matched (their rows carried by the solution) land on their centroids
+    # through the WCS (distortion included)
+    radec = np.array([[m.ra_deg, m.dec_deg] for m in photo.matches])
     uv = np.array([[m.u, m.v] for m in photo.matches])
     err = np.linalg.norm(w.all_world2pix(radec, 0) - uv, axis=1)
     assert np.median(err) < 0.3 and err.max() < 1.0
+
+
+def test_the_matches_carry_their_catalog_rows(photo):
+    from skyview.catalog import load_guide_catalog, vec_to_radec
+
+    cat = load_guide_catalog(epoch=photo.epoch)  # opened here only to check what the solution carries
+    for m in photo.matches:
+        row = cat.index_of(m.hip)
+        ra, dec = np.degrees(vec_to_radec(cat.xyz[row]))
+        assert (m.ra_deg, m.dec_deg) == pytest.approx((ra, dec), abs=1e-9) and m.mag == pytest.approx(cat.mag[row])
+        assert m.to_dict()["ra_deg"] == m.ra_deg and m.to_dict()["hip"] == m.hip
+    result = photo.result  # the SolveResult holds the catalog its identification's rows index
+    assert result.catalog is not None and result.catalog.epoch == photo.epoch
+    assert {m.hip for m in photo.matches} == {int(result.catalog.hip[r])
+                                            for r in result.identification.matches.values()}
 
 
 def test_a_failed_solution(failed):

@@ -12,7 +12,6 @@ from scipy.spatial.transform import Rotation
 from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, radec_roll_from_R
 from skyview.camera import Camera
 from skyview.camera_fit import fit_camera
-from skyview.catalog import load_guide_catalog
 from skyview.centroid import load_image
 from skyview.errors import BadInput
 from skyview.identify import database
@@ -24,11 +23,6 @@ from skyview.truth import wrong_matches
 
 REAL = Path(__file__).parent / "data" / "real-images"
 REFERENCE = json.loads((REAL / "reference.json").read_text())
-
-
-@pytest.fixture(scope="module")
-def catalog():
-    return load_guide_catalog()
 
 
 @pytest.fixture(scope="module")

@@ -247,3 +247,69 @@ def test_a_calibrated_failure_says_what_to_try(orion, capsys):
     code, out, err = run(capsys, "solve", str(orion), "--fov-deg", "9.5", "--fov-error", "0", "--method", "angle")
     assert code == 1 and one_line_error(err)
     assert "leave out --fov-error 0" in err and "--variant improved" in err
+
+
+# ---------------------------------------------------------------------- experiments
+
+def test_every_experiment_is_registered_and_listed(capsys):
+    import importlib
+    import pkgutil
+
+    import skyview.experiments as experiments
+    from skyview.experiments import EXPERIMENTS
+
+    modules = {m.name for m in pkgutil.iter_modules(experiments.__path__)}
+    assert modules == set(EXPERIMENTS)  # a module without its registry line would be unreachable
+    with pytest.raises(SystemExit) as exc:
+        main(["experiment", "--help"])
+    assert exc.value.code == 0
+    listing = capsys.readouterr().out
+    for name, line in EXPERIMENTS.items():
+        assert f"{name}  " in listing and line in listing
+        module = importlib.import_module(f"skyview.experiments.{name}")
+        parser = argparse.ArgumentParser()
+        module.add_arguments(parser)
+        assert all(a.help for a in parser._actions), name  # every option says what it is
+        assert callable(module.command) and callable(module.main)
+
+
+@pytest.mark.parametrize("argv", [["nope"], ["measure", "--bogus"], ["measure", "--n", "many"],
+                                  ["measure", "--method", "svd", "--configs", "paper"],
+                                  ["genetic_map", "--runs", "0"], ["ellipticity_sweep", "--param", "x=not json"]])
+def test_an_experiment_with_bad_arguments_says_so_in_one_line(capsys, argv):
+    code, out, err = run(capsys, "experiment", *argv)
+    assert code == 2 and one_line_error(err) and out == ""
+
+
+def test_an_experiment_runs_from_the_cli_and_as_a_module(tmp_path, capsys):
+    out = tmp_path / "measure.json"
+    code, text, err = run(capsys, "experiment", "measure", "--n", "12", "--false-stars", "0", "--configs", "paper",
+                          "--json", str(out))
+    assert code == 0, err
+    report = json.loads(out.read_text())
+    counts = report["runs"][0]["configs"]["paper"]["counts"]
+    assert sum(counts.values()) == 12 and counts["incorrect"] == 0  # every attitude accounted for, none wrong
+    assert "database angle-" in text and "paper" in text
+    p = subprocess.run([sys.executable, "-m", "skyview.experiments.measure", "--n", "0x"], capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 2 and "skyview experiment measure" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_the_choices_come_from_the_registries():
+    from skyview.cli import build_parser
+    from skyview.identify import METHODS, VARIANTS
+    from skyview.identify.verify import STATISTICS
+
+    seen = set()
+    for argv, sub in _subcommands(build_parser()):
+        for action in sub._actions:
+            if "--variant" in action.option_strings:
+                assert tuple(action.choices) == tuple(VARIANTS) and action.default == VARIANTS[0], argv
+                seen.add("variant")
+            if "--statistic" in action.option_strings:
+                assert tuple(action.choices) == tuple(STATISTICS), argv
+                seen.add("statistic")
+            if "--method" in action.option_strings and action.choices is not None:
+                assert set(METHODS) <= set(action.choices) <= set(METHODS) | {"blind"}, argv
+                seen.add("method")
+    assert seen == {"variant", "statistic", "method"}

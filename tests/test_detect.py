@@ -22,11 +22,6 @@ REAL = Path(__file__).parent / "data" / "real-images"
 REFERENCE = json.loads((REAL / "reference.json").read_text())
 
 
-@pytest.fixture(scope="module")
-def catalog():
-    return load_guide_catalog()
-
-
 def _frame(catalog, name="blind8", seed=3, **sensor):
     sc = get_scenario(name)
     R = random_attitudes(1, np.random.default_rng(seed))[0]

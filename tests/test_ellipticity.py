@@ -13,26 +13,13 @@ from skyview.identify import IDENTIFIED, METHODS, make_identifier
 from skyview.identify.base import Observation
 from skyview.identify.ellipticity import (EllipticityMethod, build_ellipticity_database, ellipticity, eps_sigma,
                                           guide_rows, nearest_adjacent, pattern_features, singular_vector_attitude)
-from skyview.identify.ellipticity_sweep import grid, run_sweep
+from skyview.experiments.ellipticity_sweep import grid, run_sweep
 from skyview.identify.synthetic import add_noise, synthetic_frame
 from skyview.identify.verify import angular_distance
 from skyview.pipeline import Solver
 from skyview.simulate import SensorModel, simulate_image
 
 SIGMA = 10e-6
-
-
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("skyview-cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("SKYVIEW_CACHE", str(path))
-        yield path
-
-
-@pytest.fixture(scope="module")
-def cat():
-    return load_guide_catalog().brighter_than(6.0)
 
 
 @pytest.fixture(scope="module")

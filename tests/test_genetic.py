@@ -16,25 +16,12 @@ from skyview.identify.genetic import (IMPROVED_PARAMS, PAPER_FIRST, GeneSpace, G
                                       distance_cost, distance_vector, merged_catalog, noise_floor, position_angles,
                                       reference_magnitude, ring_seeds,
                                       roll_threshold, run_ga, tangent_basis, wrap_angle)
-from skyview.identify.genetic_map import MapField, make_map, main as map_main, solve_map
+from skyview.experiments.genetic_map import MapField, make_map, main as map_main, solve_map
 from skyview.identify.layers import Population, SearchRegion
 from skyview.identify.synthetic import synthetic_frame
 from skyview.identify.verify import angular_distance
 
 SIGMA = 87e-6
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("skyview-cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("SKYVIEW_CACHE", str(path))
-        yield path
-
-
-@pytest.fixture(scope="module")
-def cat():
-    return load_guide_catalog().brighter_than(6.0)
 
 
 @pytest.fixture(scope="module")
@@ -183,8 +170,8 @@ def test_map_cli_writes_statistics(tmp_path, capsys):
     out = tmp_path / "map.json"
     assert map_main(["--runs", "1", "--seed", "3", "--fov-stars", "15", "30", "--quiet", "--json", str(out)]) == 0
     assert "paper mean" in capsys.readouterr().out and out.exists()
-    with pytest.raises(SystemExit):  # never overwrites
-        map_main(["--runs", "1", "--quiet", "--json", str(out)])
+    assert map_main(["--runs", "1", "--quiet", "--json", str(out)]) == 2  # never overwrites
+    assert "exists: not overwritten" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------- the sky
@@ -342,7 +329,7 @@ def test_two_workers_give_the_same_answer(cache, cat, cam20):
 
 
 def test_verify_every_answer_counts_no_wrong_pass(cache):
-    from skyview.identify.genetic import verify_every_answer
+    from skyview.experiments.genetic_map import verify_every_answer
     tally = verify_every_answer(20.0, frames=3, attempts=2, seed=4, initial=5000)
     assert tally["frames"] >= 1 and tally["wrong_passed"] == 0
     assert tally["answers"] == tally["wrong_answers"] + tally["right_passed"] + tally["right_rejected"]

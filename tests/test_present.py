@@ -122,3 +122,61 @@ def test_sequence_methods_are_found_by_their_interface_not_an_attribute():
 
     assert [m for m in METHODS if is_sequence_method(METHODS[m])] == ["stochastic"]
     assert issubclass(METHODS["stochastic"], SequenceIdentifier)
+
+
+def _boxes_overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    return bool(a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3])
+
+
+def _box_star_clearance(box: np.ndarray, xy: np.ndarray, r: float) -> np.ndarray:
+    """How far each star's mark (centre xy, radius r) is from the box: negative when it is under it."""
+    near = np.clip(xy, box[:2], box[2:]) - xy
+    return np.hypot(near[:, 0], near[:, 1]) - r
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_labels_sit_beside_their_stars_on_no_label_and_no_star(seed):
+    """A crowded field (60 stars, 25 labelled, 300 x 200 px): the shown labels' boxes overlap no other, cover
+    no star's mark (labelled or not) and stay in bounds; each sits beside its own star, nearer to it than
+    to any other labelled star; a label is hidden only where every side was taken."""
+    rng = np.random.default_rng(seed)
+    stars = rng.uniform([0, 0], [300, 200], size=(60, 2))
+    anchors, others = stars[:25], stars[25:]
+    sizes = np.stack([rng.uniform(30, 70, 25), np.full(25, 12.0)], axis=1)
+    mag = rng.uniform(0, 6, 25)
+    lay = present.layout_labels(anchors, sizes, mag, anchor_radius=4.0, stars=others, star_radius=3.0, gap=2.0,
+                                apart=2.0, bounds=(0, 0, 300, 200))
+    boxes = lay.boxes()
+    assert 3 <= len(boxes) < 25  # crowded: some shown, some hidden
+    for k, b in enumerate(boxes):
+        assert b[0] >= 0 and b[1] >= 0 and b[2] <= 300 and b[3] <= 200
+        assert not any(_boxes_overlap(b, c) for c in boxes[k + 1:])
+        assert np.all(_box_star_clearance(b, others, 3.0) >= 0) and np.all(_box_star_clearance(b, anchors, 4.0) >= 0)
+    for i in np.flatnonzero(lay.shown):
+        box = np.concatenate([lay.centre[i] - lay.size[i] / 2, lay.centre[i] + lay.size[i] / 2])
+        clear = _box_star_clearance(box, anchors, 4.0)
+        assert 2.0 - 1e-9 <= clear[i] <= np.hypot(1, 0.5) * (4.0 + 2.0) - 4.0  # beside it, `gap` away (or a bit more)
+        assert np.all(np.delete(clear, i) >= clear[i] + 2.0 - 1e-9)  # it reads as its own star's label
+
+
+def test_of_two_colliding_labels_the_brightest_keeps_its_place():
+    """Two stars whose labels, both to the right, would overlap: with one side only the brighter one is
+    shown, whichever comes first; with every side the fainter moves below its star instead of hiding."""
+    xy = np.array([[100.0, 100.0], [120.0, 106.0]])
+    sizes = np.array([[40.0, 10.0], [40.0, 10.0]])
+    for mag in ([3.0, 1.0], [1.0, 3.0]):
+        one_side = present.layout_labels(xy, sizes, np.array(mag), gap=1.0, sides=((1, 0),))
+        assert one_side.shown.tolist() == [mag[0] < mag[1], mag[1] < mag[0]]
+    both = present.layout_labels(xy, sizes, np.array([1.0, 3.0]), gap=1.0)
+    assert both.shown.all()
+    np.testing.assert_allclose(both.centre, [[121.0, 100.0], [120.0, 112.0]])  # right of it; below it
+    # a label whose box would cover another star is moved: to the right it would cover the star at x = 104
+    near = present.layout_labels(np.array([[100.0, 100.0], [104.0, 100.0]]), sizes, np.array([1.0, 3.0]), gap=1.0,
+                                 stars=np.zeros((0, 2)))
+    assert near.centre[0, 0] < 100 and near.centre[1, 0] > 104
+    # no room at all (the box is bigger than the bounds): hidden, not drawn out of bounds
+    none = present.layout_labels(xy, sizes, np.array([1.0, 2.0]), bounds=(90, 90, 120, 120))
+    assert not none.shown.any() and np.isnan(none.centre).all()
+    # place_labels (the viewer's one-sided form) is layout_labels to the right, with no stars to avoid
+    keep = present.place_labels(xy, np.array([3.0, 1.0]), sizes, gap=1.0)
+    assert keep.tolist() == [False, True]

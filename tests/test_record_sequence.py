@@ -90,12 +90,13 @@ def test_frame_and_step_timelines(paper):
 def test_posterior_series_are_the_results(paper):
     case, _, _, ents = paper
     ids = case.result.identifications
+    scored = case.result.truth_figures()  # the truth, scored by skyview.scoring (not in the method's stats)
     for path_, (key, _, _) in rs.SERIES.items():
         got = last(ents[f"/{path_}"], "Scalars:scalars")
-        want = {k: r.stats[key] for k, r in enumerate(ids)}
+        want = {k: {**r.stats, **scored[k]}[key] for k, r in enumerate(ids)}
         assert sorted(got) == sorted(want), path_
         np.testing.assert_allclose([got[k][0] for k in sorted(got)], [want[k] for k in sorted(want)], rtol=1e-12)
-    tp = [r.stats["true_posterior"] for r in ids]
+    tp = [f["true_posterior"] for f in scored]
     assert tp[-1] > 0.95 and tp[0] < 0.05  # the posterior converges over the frames
     assert [r.stats["above_prior"] for r in ids][-1] <= 2
     # the legend: each series named once, statically
@@ -107,11 +108,11 @@ def test_posterior_series_are_the_results(paper):
 def test_same_as_run_0_of_the_bench(paper):
     """`skyview record --method stochastic --seed S` is run 0 of `bench-sequence --noise-arcsec 10 --seed S`."""
     from skyview.scenarios import get_scenario
-    from skyview.sequence import bench_sequence
+    from skyview.sequence_bench import bench_sequence
 
     case = paper[0]
     b = bench_sequence(get_scenario("udomkesmalee30"), 1, position_noise_rad=10 * ARCSEC, seed=0, progress=False)
-    assert b["run0"]["true_posterior"] == [r.stats["true_posterior"] for r in case.result.identifications]
+    assert b["run0"]["true_posterior"] == [f["true_posterior"] for f in case.result.truth_figures()]
     assert b["run0"]["above_prior"] == [r.stats["above_prior"] for r in case.result.identifications]
     assert b["runs"][0]["seed"] == case.run_seed
 
@@ -155,7 +156,7 @@ def test_designated_hypotheses_and_truth(paper):
     true_ring = last(ents["/sky/true_designated"], "LineStrips3D:strips")
     true_lab = last(ents["/sky/true_designated"], "LineStrips3D:labels")
     for k, r in enumerate(res.identifications):
-        st = r.stats
+        st = {**r.stats, **res.truth_figures()[k]}
         d = st["designated"]
         ring = np.array(rings[k][0])
         np.testing.assert_allclose(ring[:-1].mean(axis=0), res.centroids[k].uv[d] + 0.5,
@@ -183,8 +184,8 @@ def test_result_document(paper):
                   "## Truth", "wrong matches: **0**", "error: boresight", "Betelgeuse", "run 0 of skyview bench-sequence",
                   "| 0 | 27 |", "paper: above 1/N"):
         assert piece in text, piece
-    for k, r in enumerate(ids):
-        assert f"| {k} |" in text and f"{r.stats['true_posterior']:.3f}" in text
+    for k, f in enumerate(case.result.truth_figures()):
+        assert f"| {k} |" in text and f"{f['true_posterior']:.3f}" in text
 
 
 def test_without_truth_or_images_centroids(paper, tmp_path):

@@ -32,11 +32,6 @@ def cat():
 
 
 @pytest.fixture(scope="module")
-def cam():
-    return Camera.from_fov(8.0, 1024)
-
-
-@pytest.fixture(scope="module")
 def betel_frame(cat, cam):
     return simulate_image(cat, cam, R_pointing_at(cat, HIP_BETELGEUSE), seed=3)
 

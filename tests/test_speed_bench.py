@@ -27,6 +27,8 @@ def test_speed_bench_scores_and_times_every_stage(tmp_path):
     assert len(list(tmp_path.glob("trial*.png"))) == 3  # the images the peers would read
     md = format_markdown(s)
     assert "| angle (improved) |" in md and "load average" in md
+    t = s["results"]["triangle (improved)"]  # the default pair of issue 11: angle and triangle, improved
+    assert t["n"] == 3 and t["outcomes"]["incorrect"] == 0 and t["outcomes"]["correct"] >= 1
 
 
 def test_tetra3rs_answers_are_scored_by_the_boresight():

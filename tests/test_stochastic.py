@@ -17,24 +17,17 @@ from skyview.identify.layers import Posterior
 from skyview.identify.stochastic import (PAPER_Q, StochasticMethod, field_statistics, neighbour_angles,
                                          observed_basis, position_angles)
 from skyview.scenarios import get_scenario
-from skyview.sequence import (PAPER_SENSOR, bench_sequence, format_sequence_markdown, perturb_magnitudes,
-                              vector_frame, zero_point)
+from skyview.scoring import sequence_truth
+from skyview.sequence import PAPER_SENSOR, perturb_magnitudes, vector_frame, zero_point
+from skyview.sequence_bench import bench_sequence, format_sequence_markdown
 from skyview.simulate import betelgeuse_ra_sequence, save_sequence, turn_about_camera_axis
 
 DEG = np.pi / 180
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("skyview-cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("SKYVIEW_CACHE", str(path))
-        yield path
-
-
-@pytest.fixture(scope="module")
-def full_catalog():
-    return load_guide_catalog()
+def full_catalog(catalog):
+    return catalog  # conftest's session catalog
 
 
 @pytest.fixture(scope="module")
@@ -175,12 +168,18 @@ def test_sequence_end_to_end_images(ident, cat, cam, full_catalog):
     obs = [perturb_magnitudes(observation(detect_centroids(f.image), cam, ident.sigma_rad), 0.6, rng)
            for f in seq.frames]
     truths = [truth_rows(o.uv, f.truth, cat) for o, f in zip(obs, seq.frames)]
-    res = ident.identify_sequence(obs, [seq.dR_cam(k) for k in range(4)], truth=truths)
+    res = ident.identify_sequence(obs, [seq.dR_cam(k) for k in range(4)])
     assert _check_identifications(res, truths, [f.R for f in seq.frames]) >= 1
-    assert res[-1].stats["true_posterior"] > 0.9
-    # the step record: per frame the hypotheses above the prior, the leading ones, the true posterior
+    # the truth is scored after the fact, from the posterior layers (the method never sees it)
+    scored = sequence_truth(res, truths)
+    assert scored[-1]["true_posterior"] > 0.9 and scored[-1]["true_rank"] == 0
+    assert scored[-1]["true_row"] == truths[-1][res[-1].stats["designated"]]
+    assert scored[0]["true_sequence_posterior"] < scored[-1]["true_sequence_posterior"]
+    # the step record: per frame the hypotheses above the prior, the leading ones; no truth in it
     upd = [s for s in res[-1].steps if s.kind == "update"][0]
-    assert {"above_prior", "top_posterior", "true_posterior"} <= set(upd.numbers)
+    assert {"above_prior", "top_posterior"} <= set(upd.numbers)
+    assert not any(key.startswith("true") for s in res[-1].steps for key in s.numbers)
+    assert not any(key.startswith("true") for r in res for key in r.stats)
     post = upd.layer(Posterior)
     assert len(post.top_mass) == len(upd.catalog) == 10
     assert np.all(np.diff(post.top_mass) <= 0)
@@ -200,7 +199,7 @@ def test_random_sequences_never_wrong(ident, cat, cam):
         obs = [perturb_magnitudes(o, 0.6, rng) for o, _ in frames]
         # vector frames have brightness 10^(-0.4 Hp): zero point 0
         m = make_identifier("stochastic", cat, cam, ident.sigma_rad, mag_zero_point=0.0, variant="improved")
-        res = m.identify_sequence(obs, [Rs[k + 1] @ Rs[k].T for k in range(3)], truth=[t for _, t in frames])
+        res = m.identify_sequence(obs, [Rs[k + 1] @ Rs[k].T for k in range(3)])
         n_id += _check_identifications(res, [t for _, t in frames], Rs)
     assert n_id >= 4
 
@@ -293,7 +292,7 @@ def test_boresight_hypothesis_registers_the_true_sequence_exactly(cache, cat, ca
         obs, truth = vector_frame(cat, cam, R, 1.0 * DEG, rng)
         f_true = m.designated_star(R)
         des = int(np.flatnonzero(truth == f_true)[0])
-        m.update(state, perturb_magnitudes(obs, 0.6, rng), T, truth=truth, designated=des)
+        m.update(state, perturb_magnitudes(obs, 0.6, rng), T, designated=des)
         assert state.rows[row0] == f_true  # the true sequence registers exactly
         assert np.allclose(state.R[row0][2], R[2], atol=1e-9)  # its boresight is the true one
         R_next = trn.apply(R)

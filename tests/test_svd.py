@@ -13,8 +13,9 @@ from skyview.catalog import GuideCatalog, load_guide_catalog
 from skyview.errors import BadInput
 from skyview.identify import FAILED, METHODS, make_identifier
 from skyview.identify.base import Identification, Observation
-from skyview.identify.svd import (IMPROVED_PARAMS, SVDMethod, ambiguous_ranks, attitude_eq24, bench_trial_hook,
-                                  bonferroni_bound, build_svd_database, decompose, diagnose, paper_storage_bytes,
+from skyview.diagnose_svd import bench_trial_hook, diagnose
+from skyview.identify.svd import (IMPROVED_PARAMS, SVDMethod, ambiguous_ranks, attitude_eq24,
+                                  bonferroni_bound, build_svd_database, decompose, paper_storage_bytes,
                                   relative_magnitudes, right_vector_sigma, sign_matrix, singular_value_sigma,
                                   singular_values)
 from skyview.identify.synthetic import add_noise, synthetic_frame
@@ -25,22 +26,9 @@ from skyview.simulate import SensorModel, simulate_image
 SIGMA = 88e-6
 
 
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("skyview-cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("SKYVIEW_CACHE", str(path))
-        yield path
-
-
 @pytest.fixture(scope="module")
 def cat():
     return load_guide_catalog().brighter_than(7.3)
-
-
-@pytest.fixture(scope="module")
-def cam():
-    return Camera.from_fov(8.0, 1024)
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@ import pytest
 
 from skyview.attitude import R_from_radec_roll, attitude_error_arcsec
 from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
 from skyview.cli import main
 from skyview.simulate import SensorModel, save_sequence, simulate_image, simulate_sequence, turn_about_camera_axis
 from skyview.track import LOST_IN_SPACE, TRACKING, Tracker, body_turn_rotvec
@@ -16,22 +15,6 @@ from skyview.truth import wrong_matches
 
 CAM = Camera.from_fov(12.0, 1024)
 STEP = math.radians(2.0)
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    import os
-
-    old = os.environ.get("SKYVIEW_CACHE")
-    os.environ["SKYVIEW_CACHE"] = str(tmp_path_factory.mktemp("track-cache"))
-    yield
-    if old is not None:
-        os.environ["SKYVIEW_CACHE"] = old
-
-
-@pytest.fixture(scope="module")
-def catalog(cache):
-    return load_guide_catalog()
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from skyview.errors import BadInput
+from skyview.viewer.player import Player
 from skyview.viewer.run import SceneConfig, Solvers
 from skyview.viewer.sequence_run import SequenceConfig, track_sequence_run
 
@@ -60,8 +61,16 @@ def test_the_footprints_and_the_played_frame_on_a_viser_scene(with_gyros):
         assert len(seq.handles) == 2 + len(seq) and seq.current is not None and seq.shown == len(seq) - 1
         labels = [h for h in seq.handles if hasattr(h, "text")]
         assert [h.text for h in labels][:2] == ["0 · lost-in-space", "1 · tracking"]
-        seq.play(server.scene, delay_s=0.0)
-        assert seq.shown == len(seq) - 1
+        # the viewer's one player plays the frames (the session's moves the slider, which calls set_frame)
+        shown = []
+
+        def show(k):
+            seq.set_frame(server.scene, k)
+            shown.append(seq.shown)
+
+        player = Player(None, show, interval_s=0.0, label="Play the frames", min_length=2)
+        player.toggle(len(seq), None)
+        assert player.wait(10) and shown == list(range(len(seq))) and seq.shown == len(seq) - 1
         seq.set_frame(server.scene, 2)
         assert seq.shown == 2
         with pytest.raises(BadInput):

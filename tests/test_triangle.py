@@ -9,10 +9,12 @@ from scipy.spatial.transform import Rotation
 
 from skyview.attitude import random_attitudes
 from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, load_guide_catalog, radec_to_vec
+from skyview.catalog import GuideCatalog, radec_to_vec
 from skyview.errors import BadInput
 from skyview.identify import FAILED, IDENTIFIED, METHODS, make_identifier
+from skyview.identify import database
 from skyview.identify import spherical as sph
+from skyview.identify.angle import AngleMethod
 from skyview.identify.base import Observation
 from skyview.identify.layers import Hypotheses
 from skyview.identify.synthetic import add_noise, synthetic_frame
@@ -170,24 +172,6 @@ def test_upper_line_lies_above_every_point():
 
 # ---------------------------------------------------------------------- fixtures
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("skyview-cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("SKYVIEW_CACHE", str(path))
-        yield path
-
-
-@pytest.fixture(scope="module")
-def cat():
-    return load_guide_catalog().brighter_than(6.0)
-
-
-@pytest.fixture(scope="module")
-def cam():
-    return Camera.from_fov(8.0, 1024)
-
-
 CENTRE = radec_to_vec(np.radians(84.0), np.radians(-1.0))  # Orion: a cap of the real sky, 20 deg wide
 CAP_DEG = 20.0
 
@@ -206,6 +190,12 @@ def paper(cache, region, cam):
 @pytest.fixture(scope="module")
 def improved(cache, region, cam, paper):
     return make_identifier("triangle", region, cam, SIGMA, variant="improved")
+
+
+@pytest.fixture(scope="module")
+def stored_sides(cache, region, cam, paper):
+    """The improved variant's search on the stored triangle database (database="triangles")."""
+    return make_identifier("triangle", region, cam, SIGMA, variant="improved", database="triangles")
 
 
 def region_attitudes(rng, n, cam, region, n_min):
@@ -253,7 +243,8 @@ def test_database_on_a_tiny_catalog(tmp_path, monkeypatch, cam):
     m = TriangleMethod(cat, cam, SIGMA)
     info = m.database_info
     assert info["source"] == "built" and info["file_bytes"] > 0
-    r_max = cam.half_diagonal_rad
+    r_max = database.angular_range(cam.half_diagonal_rad)  # the half-diagonal rounded up on the 5 % grid
+    assert cam.half_diagonal_rad <= r_max < 1.05 * cam.half_diagonal_rad and m.max_radius_rad == r_max
     # brute force over every triple of stars
     T = np.array(list(itertools.combinations(range(len(cat)), 3)))
     A, B, C = (cat.xyz[T[:, s]] for s in range(3))
@@ -261,13 +252,15 @@ def test_database_on_a_tiny_catalog(tmp_path, monkeypatch, cam):
     expected = set(map(tuple, T[sph.enclosing_cap_radius(A, B, C) <= r_max].tolist()))
     got = {tuple(int(x) for x in t) for t in m.tri}
     assert got == expected and len(m.tri) == len(expected) > 100
-    assert info["triangle_counts"]["sides_within_diagonal"] == sides_ok
-    assert info["triangle_counts"]["cap_within_half_diagonal"] == len(expected)
+    assert info["triangle_counts"]["sides_within_diameter"] == sides_ok
+    assert info["triangle_counts"]["cap_within_radius"] == len(expected)
     assert m.tri.dtype == np.int16 and m.area.dtype == np.float32
     # stored area and polar moment are those of the stars, sorted by area; the moment order is a permutation
     T = m.tri.astype(np.int64)
     P = [cat.xyz[T[:, s]] for s in range(3)]
     np.testing.assert_allclose(m.area, sph.area(*P), rtol=1e-6)
+    np.testing.assert_allclose(m.cap, sph.enclosing_cap_radius(*P), rtol=1e-6)  # each triangle's cap, stored
+    assert np.any(m.cap > cam.half_diagonal_rad)  # the rounded-up range holds triangles beyond this camera
     assert np.all(np.diff(m.area) >= 0)
     moment = m.kv_moment.sorted_values[m.moment_rank]
     np.testing.assert_allclose(moment, sph.polar_moment(*P), rtol=1e-6)
@@ -277,10 +270,27 @@ def test_database_on_a_tiny_catalog(tmp_path, monkeypatch, cam):
     I, s = m.moment_sigma_samples.T
     c0, c1 = m.moment_sigma_coef
     assert np.all(c0 + c1 * I >= s) and len(I) == min(1000, len(T))
-    # loaded again from the cache, the same arrays
+    # the ranks sorted within each block, stored with the database
+    blocks = np.sort(np.pad(m.moment_rank, (0, -len(T) % 256), constant_values=np.iinfo(np.int32).max)
+                     .reshape(-1, 256), axis=1).ravel()
+    np.testing.assert_array_equal(m.block_rank, blocks)
+    # loaded again from the cache (memory-mapped), the same arrays
     again = TriangleMethod(cat, cam, SIGMA, beta=2.0)
     assert again.database_info["source"] == "cache"
     np.testing.assert_array_equal(again.tri, m.tri)
+    assert isinstance(again.tri, np.memmap)
+    # the database belongs to the sky: a camera of nearly the same field (another size, a fitted FOV)
+    # whose half-diagonal rounds up to the same range reads the same file
+    other = Camera.from_fov(7.9, 800, 800)
+    assert database.angular_range(other.half_diagonal_rad) == r_max
+    shared = TriangleMethod(cat, other, SIGMA)
+    assert shared.database_info["source"] == "cache" and shared.database_key_string == m.database_key_string
+    # the pieces of a chunked build are the triangles of one piece
+    tri = catalog_triangles(cat.xyz, 2 * r_max)
+    pieces = [t for _, _, t in __import__("skyview.identify.triangle", fromlist=["_triangle_chunks"])
+              ._triangle_chunks(cat.xyz, 2 * r_max, None, None, 50)]
+    assert len(pieces) > 3
+    np.testing.assert_array_equal(np.concatenate(pieces), tri)
 
 
 def test_candidates_are_the_intersection(paper, region, cam):
@@ -292,7 +302,8 @@ def test_candidates_are_the_intersection(paper, region, cam):
     for k in range(len(t["area"])):
         inside = ((area >= t["area"][k] - t["area_bound"][k]) & (area <= t["area"][k] + t["area_bound"][k])
                   & (moment >= t["moment"][k] - t["moment_bound"][k])
-                  & (moment <= t["moment"][k] + t["moment_bound"][k]))
+                  & (moment <= t["moment"][k] + t["moment_bound"][k])
+                  & (paper.cap <= cam.half_diagonal_rad))  # the database's range is larger: this camera's circle
         rows = paper.candidates(t, k)
         np.testing.assert_array_equal(rows, np.flatnonzero(inside))
         assert t["counts"][k] == len(rows)
@@ -309,7 +320,8 @@ def test_candidates_are_the_intersection(paper, region, cam):
     assert true in {tuple(int(x) for x in paper.tri[r]) for r in paper.candidates(t, k0)}
 
 
-def test_orientation_by_sides_and_handedness(improved, region, cam):
+def test_orientation_by_sides_and_handedness(stored_sides, region, cam):
+    improved = stored_sides
     f = frames(region, cam, 1, seed=6, n_min=6)[0]
     t = improved.triangle_bounds(f.obs.vectors[:6], SIGMA)
     k0 = int(np.flatnonzero((t["ti"] == 0) & (t["tj"] == 1) & (t["tk"] == 2))[0])
@@ -323,6 +335,37 @@ def test_orientation_by_sides_and_handedness(improved, region, cam):
     np.testing.assert_allclose(tm["area"], t["area"], rtol=1e-12)
     Hm, _ = improved.orient(tm, k0, rows, SIGMA)
     assert [int(x) for x in f.truth[:3]] not in Hm.tolist()
+
+
+def test_pair_join_gives_the_stored_candidates(improved, stored_sides, region, cam):
+    """database="pairs" (the improved variant) joins each observed triangle's candidates from the angle
+    database: with the same polar-moment bound, exactly the oriented candidates of the stored database."""
+    assert improved.database == "pairs" and not hasattr(improved, "tri")
+    # it reads the angle method's own pair database (one file for both)
+    assert improved.database_info["key_string"] == AngleMethod(region, cam, SIGMA).database_key_string
+    I, s = improved.moment_sigma_samples.T
+    c0, c1 = improved.moment_sigma_coef
+    assert np.all(c0 + c1 * I >= s) and len(I) == 1000
+    # the two simulated lines agree closely (different random triangles, the same rule)
+    Ic = np.quantile(I, 0.9)
+    assert improved.moment_sigma(Ic, SIGMA) == pytest.approx(stored_sides.moment_sigma(Ic, SIGMA), rel=0.2)
+    improved.moment_sigma_coef, saved = stored_sides.moment_sigma_coef, improved.moment_sigma_coef
+    try:
+        n_true = 0
+        for f in frames(region, cam, 3, seed=21, n_min=6):
+            V = f.obs.vectors[:6]
+            tp = improved.triangle_bounds(V, SIGMA)
+            ts = stored_sides.triangle_bounds(V, SIGMA)
+            for k in range(len(tp["area"])):
+                Hp = improved.hypotheses(tp, k, SIGMA)[0]
+                Hs = stored_sides.orient(ts, k, stored_sides.candidates(ts, k), SIGMA)[0]
+                assert set(map(tuple, Hp.tolist())) == set(map(tuple, Hs.tolist()))
+                assert tp["counts"][k] == len({frozenset(h) for h in Hp.tolist()})
+                truth = [int(f.truth[i]) for i in (tp["ti"][k], tp["tj"][k], tp["tk"][k])]
+                n_true += truth in Hp.tolist()
+        assert n_true >= 50  # the true vertex order is nearly always among them (3 sigma bounds)
+    finally:
+        improved.moment_sigma_coef = saved
 
 
 def test_join_on_shared_observed_stars():
@@ -490,7 +533,8 @@ def test_limits_and_small_inputs(paper, region, cam):
 def test_registry_and_bad_input(cache, region, cam):
     assert METHODS["triangle"] is TriangleMethod and TriangleMethod.improved_params == IMPROVED_PARAMS
     for bad in ({"order": "random"}, {"area_sigma": "x"}, {"vertex_order": "x"}, {"beta": 0}, {"max_pivots": -1},
-                {"max_stars": 2}, {"max_candidates": 0}, {"depth": -1}):
+                {"max_stars": 2}, {"max_candidates": 0}, {"depth": -1}, {"database": "x"},
+                {"database": "pairs"}):
         with pytest.raises(BadInput):
             make_identifier("triangle", region, cam, SIGMA, **bad)
     with pytest.raises(BadInput, match="no parameter"):

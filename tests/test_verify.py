@@ -1,6 +1,6 @@
 """The shared verification: correct hypotheses pass, wrong ones fail, P(false) is what it says."""
 
-from itertools import combinations, permutations
+from itertools import combinations, permutations, product
 from math import comb
 
 import numpy as np
@@ -16,16 +16,6 @@ from skyview.identify.verify import (CALIBRATED, DEFAULT_THRESHOLD, TETRA3, angu
                                      match_radius, p_false_calibrated, p_false_tetra3, poisson_binomial_sf, verify)
 
 SIGMA = 87e-6
-
-
-@pytest.fixture(scope="module")
-def cat():
-    return load_guide_catalog().brighter_than(6.0)
-
-
-@pytest.fixture(scope="module")
-def cam():
-    return Camera.from_fov(8.0, 1024)
 
 
 def frame_with(cat, cam, n_min, seed, n_max=99):
@@ -103,6 +93,27 @@ def test_no_other_star_cannot_be_verified(cat, cam):
     assert "no observed star" in v.reason
     v = verify(f.obs.vectors, {0: int(f.truth[0])}, cat, cam, SIGMA)
     assert not v.passed  # one star gives no attitude
+
+
+def test_poisson_binomial_tail_against_enumeration():
+    """Every k, tiny and near-1 probabilities, by both of its paths (the hits or the misses counted,
+    Python floats or numpy): the enumerated tail within 1e-12, with no cancellation in tiny tails."""
+    rng = np.random.default_rng(3)
+    for n in range(1, 11):
+        ps = np.concatenate([rng.uniform(0, 1, n - n // 3) ** 4, 1 - rng.uniform(0, 1e-9, n // 3)])
+        rows = np.array(list(product([0, 1], repeat=n)))
+        weight = np.prod(np.where(rows == 1, ps, 1 - ps), axis=1)
+        for k in range(n + 2):
+            tail = float(weight[rows.sum(axis=1) >= k].sum())
+            assert poisson_binomial_sf(k, ps) == pytest.approx(tail, rel=1e-12, abs=0 if tail else 1e-300)
+    ps = rng.uniform(1e-6, 0.6, 80)  # states beyond 32: numpy; against the plain full distribution
+    dist = np.zeros(81)
+    dist[0] = 1.0
+    for p in ps:
+        dist[1:] = dist[1:] * (1 - p) + dist[:-1] * p
+        dist[0] *= 1 - p
+    for k in (1, 20, 40, 41, 60, 79, 80):
+        assert poisson_binomial_sf(k, ps) == pytest.approx(dist[k:].sum(), rel=1e-12)
 
 
 def test_p_false_by_hand(cat, cam):

@@ -45,7 +45,8 @@ from skyview.viewer import picture
 from skyview.viewer.panel import result_markdown, step_markdown
 from skyview.viewer.run import SceneConfig, Solvers, compare, simulate, solve
 from skyview.viewer.sequence_run import SequenceConfig, solve_sequence_run
-from skyview.viewer.scene import NODES, frustum_scale, local_grid, nearest_star, pose_wxyz, ray_to_sphere
+from skyview.viewer.geometry import frustum_scale, local_grid, nearest_star, pose_wxyz, ray_to_sphere
+from skyview.viewer.scene import NODES
 
 REPO = Path(__file__).resolve().parents[1]
 ARTIFACTS = REPO / "test-artifacts"
@@ -355,6 +356,11 @@ def test_picture_stretch_decode_and_annotate():
     assert (np.abs(out.astype(int) - picture.HIGHLIGHT_RGB).sum(axis=2) < 40).any()
     tex = picture.texture(img)
     assert tex.shape == (200, 300, 3) and np.median(tex) == 14  # the background is flat: small JPEG
+    # centroid numbers never overlap: of two stars 4 px apart the brighter (lower number) keeps its
+    # number, unless the step measures the other one
+    p = np.array([[50.0, 50.0], [54.0, 51.0], [120.0, 50.0]])
+    assert picture.numbers_placed(p, 5, 0.4, set()).tolist() == [True, False, True]
+    assert picture.numbers_placed(p, 5, 0.4, {1}).tolist() == [False, True, True]
 
 
 # ============================================================================ a session, server side
@@ -427,25 +433,21 @@ def test_step_slider_changes_the_candidates(session):
 
 
 def test_play_runs_through_the_steps_and_pause_stops(session, monkeypatch):
-    import skyview.viewer.session as session_mod
-
     server, s = session
-    monkeypatch.setattr(session_mod, "PLAY_INTERVAL_S", 0.05)
+    monkeypatch.setattr(s.step_player, "interval_s", 0.05)
     n = len(s.run.drawables)
     s.panel.step.value = n - 1
     s.toggle_play()  # from the last step, Play starts again at the first
     assert s.panel.play.label == "Pause"
-    deadline = time.monotonic() + 10
-    while s._playing and time.monotonic() < deadline:
-        time.sleep(0.02)
+    assert s.step_player.wait(10)
     assert s.step_index == n - 1 and s.panel.play.label == "Play the steps"
-    monkeypatch.setattr(session_mod, "PLAY_INTERVAL_S", 5.0)
+    monkeypatch.setattr(s.step_player, "interval_s", 5.0)
     s.toggle_play()
     time.sleep(0.2)
     assert s.step_index == 0
     s.toggle_play()  # pause
     time.sleep(0.1)
-    assert not s._playing and s.panel.play.label == "Play the steps"
+    assert not s.step_player.playing and s.panel.play.label == "Play the steps"
 
 
 def test_bad_input_in_the_ui_shows_an_error_and_the_server_keeps_running(session):
@@ -454,12 +456,11 @@ def test_bad_input_in_the_ui_shows_an_error_and_the_server_keeps_running(session
     assert s.wait_idle(30) and "unknown method" in s.error and s.panel.error.visible
     s.panel.method.value = "angle"
     assert s.wait_idle(30) and s.error == "" and s.run.result.solved
-    upload = lambda name, data: SimpleNamespace(target=SimpleNamespace(value=SimpleNamespace(name=name, content=data)))
-    s._guard(s._on_upload)(upload("notes.png", b"this is not an image"))
+    s.receive_upload("notes.png", b"this is not an image")  # as the upload button does
     assert "not an image" in s.error
     s.panel.upload_fov.value = 0.0
     ok, png = cv2.imencode(".png", s.run.source.image)
-    s._guard(s._on_upload)(upload("sky.png", png.tobytes()))
+    s.receive_upload("sky.png", png.tobytes())
     assert "FOV" in s.error
     s.panel.fov.value = 0.0  # out of the slider's range, as a crafted message could send
     assert s.wait_idle(30) and "FOV" in s.error
@@ -476,8 +477,7 @@ def test_upload_solves_the_users_image(session):
     # the improved angle method: the paper's, as printed, leaves this 12 deg field ambiguous
     s.panel.variant.value = "improved"
     assert s.wait_idle(60)
-    ev = SimpleNamespace(target=SimpleNamespace(value=SimpleNamespace(name="mine.png", content=png.tobytes())))
-    s._guard(s._on_upload)(ev)
+    s.receive_upload("mine.png", png.tobytes())
     assert s.wait_idle(30) and s.error == ""
     assert s.run.source.name == "mine.png" and s.run.source.truth is None and s.run.result.solved
     err = np.degrees(np.arccos(np.clip(s.run.result.R[2] @ np.asarray(frame.truth["R"])[2], -1, 1))) * 3600
@@ -485,8 +485,7 @@ def test_upload_solves_the_users_image(session):
     # an image with no stars: not solved, no pose, no camera or fine grid drawn, no steps to play
     noise = np.random.default_rng(3).normal(500, 5, (480, 640)).astype(np.uint16)
     ok, png = cv2.imencode(".png", noise)
-    s._guard(s._on_upload)(SimpleNamespace(target=SimpleNamespace(value=SimpleNamespace(name="dark.png",
-                                                                                         content=png.tobytes()))))
+    s.receive_upload("dark.png", png.tobytes())
     assert s.wait_idle(30) and s.error == "" and not s.run.result.solved
     assert _node(server, "frustum") is None and _node(server, "fine_grid") is None
     assert s.panel.step.disabled and "No steps" in s.panel.step_text.content and "not solved" in s.panel.status.content
@@ -499,10 +498,41 @@ def test_upload_solves_the_users_image(session):
 def test_clicking_a_star_names_it(session):
     server, s = session
     row = s.run.catalog.index_of(26311)  # Alnilam, in the default field
-    ray = SimpleNamespace(ray_origin=(0.0, 0.0, 0.0), ray_direction=tuple(s.run.catalog.xyz[row] * 3.0))
-    s._guard(s._on_scene_click)(ray)
+    s.click_sky((0.0, 0.0, 0.0), tuple(s.run.catalog.xyz[row] * 3.0))  # a click's ray, as the scene reports it
     assert "HIP 26311" in s.panel.picked.content and "Alnilam" in s.panel.picked.content
     assert _node(server, "pick") is not None
+
+
+def test_labels_in_the_field_never_overlap_and_all_show_when_zoomed_in(session):
+    """Centroid numbers and the fine grid's degrees give way to the star names and to each other (the
+    brighter star's number first); zoomed in on the field, every one of them shows."""
+    server, s = session
+    run = s.run
+    n = min(len(run.result.centroids), 40)
+    labels = lambda key, k: [server.scene.get_handle_by_name(f"{NODES[key]}/{i}") for i in range(k)]  # noqa: E731
+    try:
+        for zoom, everything in ((0.02, True), (0.3, False)):  # zoom 0.3: the 8-degree field fills the view
+            s.sky.set_zoom(zoom)
+            nums = labels("numbers", n)
+            shown = [i for i, h in enumerate(nums) if h.visible]
+            if everything:
+                grid = labels("fine_labels", len(s.sky.h["fine_labels"]))
+                # every number; every degree but one of the two at the crossing of the labelled RA and Dec lines
+                assert len(shown) == n and sum(h.visible for h in grid) == len(grid) - 1
+                continue
+            assert 0 in shown and 0 < len(shown) < n  # the brightest keeps its number, crowded ones give way
+            # no two numbers shown overlap on screen (as Chromium draws them: 4.5 px a character and 3 px of
+            # padding, 10 px high, beside the ring)
+            per_px = 2.0 * np.tan(np.radians(30.0)) * zoom ** (1 / 0.85) / 860.0
+            pos = {i: np.asarray(nums[i].position[:2], dtype=np.float64) / per_px for i in shown}
+            for a in shown:
+                for b in shown:
+                    if a < b:
+                        wa, wb = 4.5 * len(str(a)) + 3.0, 4.5 * len(str(b)) + 3.0
+                        dx, dy = pos[b][0] - pos[a][0], pos[b][1] - pos[a][1]
+                        assert dx >= wa or -dx >= wb or abs(dy) >= 10.0, (a, b, dx, dy)
+    finally:
+        s.sky.set_zoom(1.0)
 
 
 def test_the_page_stays_responsive_while_a_slow_method_runs(session, monkeypatch):
@@ -612,17 +642,12 @@ def test_compare_says_a_sequence_method_needs_a_sequence():
 
 def _set_quietly(s, **values):
     """Set panel controls without a solve per control (as `Session.randomise` does)."""
-    s._mute = True
-    try:
+    with s.quietly():
         for name, v in values.items():
             getattr(s.panel, name).value = v
-    finally:
-        s._mute = False
 
 
 def test_session_shows_a_stochastic_sequence_frame_by_frame(session, monkeypatch):
-    import skyview.viewer.session as session_mod
-
     server, s = session
     p = s.panel
     assert not p.seq_controls.visible and not p.seq_box.visible  # the default method runs single images
@@ -640,7 +665,8 @@ def test_session_shows_a_stochastic_sequence_frame_by_frame(session, monkeypatch
     assert f"identified at frame {first}" in p.result.content and "error vs truth" in p.result.content
     assert "Frame 4" in p.frame_text.content and "identified" in p.frame_text.content and err < 60
     # the plot across frames is the SequenceResult's per-frame stats, the shown frame marked
-    x, above, top, true, now = s._frame_plot.data
+    x, above, top, true, now = p.frame_plot.data
+    assert p.frame_plot.visible
     assert x.tolist() == [0, 1, 2, 3, 4]
     for k in range(5):
         fd = seq.result.frame_dict(k)
@@ -659,7 +685,7 @@ def test_session_shows_a_stochastic_sequence_frame_by_frame(session, monkeypatch
     uv0 = s.run.result.centroids.uv
     assert len(uv0) != len(uv4) or not np.allclose(uv0, uv4)  # ... and its centroids
     assert "Frame 0" in p.frame_text.content and "not identified" in p.frame_text.content
-    assert np.isnan(s._frame_plot.data[4][1:]).all() and s._frame_plot.data[4][0] == top[0]
+    assert np.isnan(p.frame_plot.data[4][1:]).all() and p.frame_plot.data[4][0] == top[0]
     # that frame's steps in the Steps tab; its update lights the leading hypotheses, tinted by posterior
     kinds = [d.kind for d in s.run.drawables]
     assert kinds == [st.kind for st in seq.result.identifications[0].steps] and p.step.max == max(1, len(kinds) - 1)
@@ -671,17 +697,16 @@ def test_session_shows_a_stochastic_sequence_frame_by_frame(session, monkeypatch
     p.frame.value = 99
     assert "outside 0..4" in s.error and s.seq is seq and s.frame_index == 0 and p.frame.value == 0
     # Play runs through the frames to the last
-    monkeypatch.setattr(session_mod, "FRAME_INTERVAL_S", 0.05)
+    monkeypatch.setattr(s.frame_player, "interval_s", 0.05)
     s.toggle_play_frames()
-    deadline = time.monotonic() + 20
-    while s._playing_frames and time.monotonic() < deadline:
-        time.sleep(0.02)
+    assert s.frame_player.wait(20)
     assert s.frame_index == 4 and p.play_frames.label == "Play the frames"
     # back to a single-image method: no frames, no track; the default scene again
     _set_quietly(s, fov=8.0, mag=6.0, noise=0.0, variant="paper")
     p.method.value = "angle"
     assert s.wait_idle(60) and s.error == "" and s.seq is None and s.run.result.solved
     assert not p.seq_box.visible and not p.seq_controls.visible and _node(server, "track") is None
+    assert not p.frame_plot.visible
 
 
 def test_compare_covers_every_method_by_default():
@@ -1093,6 +1118,58 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
         _stop_view(proc)
         print("\n[viewer figures]", json.dumps(FIGURES))
         _save_figures()
+
+
+# the panel's scroll: its position, its height, and the smallest height it had since JS_SCROLL_WATCH
+JS_SCROLL_WATCH = """() => { const e = document.querySelector('.mantine-ScrollArea-viewport'); window.__minHeight = 1e9;
+  const seen = () => { window.__minHeight = Math.min(window.__minHeight, e.scrollHeight); };
+  new MutationObserver(seen).observe(e, {subtree: true, childList: true, attributes: true}); e.onscroll = seen; }"""
+JS_SCROLL = """() => { const e = document.querySelector('.mantine-ScrollArea-viewport');
+  const m = window.__minHeight; window.__minHeight = 1e9; return [e.scrollTop, e.scrollHeight, m]; }"""
+
+
+@pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no chromium at {CHROMIUM} (apt-get install chromium)")
+def test_browser_panel_keeps_its_scroll_when_a_run_is_redrawn():
+    """A panel scrolled down (to the plot) stays where it is while a new run and its steps are drawn:
+    its elements are updated in place, so it never shrinks for a moment (which made it jump)."""
+    pw = pytest.importorskip("playwright.sync_api")
+    from skyview.viewer.app import ViewerApp
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        app = ViewerApp("127.0.0.1", 0, method="angle")
+    try:
+        with pw.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+            try:
+                pg = browser.new_page(viewport={"width": 1400, "height": 860})
+                pg.goto(app.url)
+                pg.wait_for_function(JS_HAS, arg=NODES["frustum"], timeout=60000)
+                s = next(iter(app.sessions.values()))
+                assert s.wait_idle(60) and s.run.result.method == "angle" and len(s.run.drawables) >= 3
+                pg.get_by_text("by angle (paper)", exact=False).first.wait_for(timeout=30000)
+                pg.wait_for_timeout(800)
+                pg.mouse.move(1200, 500)  # over the panel
+                pg.mouse.wheel(0, 5000)  # down to the plot across the steps
+                pg.wait_for_timeout(500)
+                pg.evaluate(JS_SCROLL_WATCH)
+                top, height, _ = pg.evaluate(JS_SCROLL)
+                assert top > 100, "the panel did not scroll"
+                for _ in range(2):
+                    s.request_solve()  # the same scene again: a new run with the same text and plot
+                    assert s.wait_idle(60) and s.error == ""
+                    pg.wait_for_timeout(1200)
+                    now, h, lowest = pg.evaluate(JS_SCROLL)
+                    assert (now, h) == (top, height) and lowest >= height - 40, (top, height, now, h, lowest)
+                s.panel.step.value = 0  # a step drawn: the image, the text and the plot's marker in place
+                pg.wait_for_timeout(800)
+                s.panel.step.value = len(s.run.drawables) - 1
+                pg.wait_for_timeout(800)
+                assert pg.evaluate(JS_SCROLL)[:2] == [top, height]
+            finally:
+                browser.close()
+    finally:
+        with contextlib.redirect_stdout(io.StringIO()):
+            app.stop()
 
 
 JS_VISIBLE = "(n) => { const o = window.__viserMutable?.nodeRefFromName?.[n]; return !!(o && o.visible); }"

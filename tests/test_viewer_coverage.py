@@ -36,9 +36,9 @@ def test_a_tab_shows_the_map_and_its_checkbox_switches_it(sweep):
         assert "angle" in box.label and box.value
         assert layer.visible and "20 deg FOV" in layer.caption
         assert not app.coverage.visible  # the app's own copy is never drawn: each tab draws its own
-        session._toggle("coverage", False)
+        box.value = False  # as the checkbox does
         assert not layer.visible
-        session._toggle("coverage", True)
+        box.value = True
         assert layer.visible
         session.close()
     finally:

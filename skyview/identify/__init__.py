@@ -2,20 +2,21 @@
 
 `make_identifier("angle", catalog, camera, sigma_rad, **params)` builds (or loads from the cache) the
 method's database and returns an identifier with `name`, `database_key`, `database_info` and
-`identify(obs) -> Identification`. To add a method, write its module and add one line to METHODS.
+`identify(obs) -> Identification`. To add a method, write its module (its `Params` dataclass, its
+database, its `hypotheses`) and add one line to METHODS (or `register` it at run time); the CLI, the
+bench, the viewer and the recorder find it here. docs/architecture.md has a worked example.
 """
 
 from __future__ import annotations
 
 import importlib
-import inspect
 from collections.abc import Mapping
 
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog
 from skyview.errors import BadInput
-from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
-                                   Step)
+from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Hypothesis, Identification, Identifier,
+                                   Observation, Search, SequenceIdentifier, Status, Step, is_sequence_method)
 
 class _Registry(Mapping):
     """Method name -> identifier class, each module imported on first use (a `skyview solve` that
@@ -37,6 +38,20 @@ class _Registry(Mapping):
 
     def __len__(self) -> int:
         return len(self._paths)
+
+    def register(self, name: str, cls: type[Identifier] | str) -> None:
+        """Add a method at run time: its class, or its "module.Class" path (imported on first use)."""
+        if isinstance(cls, str):
+            self._paths[name] = cls
+            self._classes.pop(name, None)
+        else:
+            self._paths[name] = f"{cls.__module__}.{cls.__qualname__}"
+            self._classes[name] = cls
+
+    def unregister(self, name: str) -> None:
+        """Remove a method registered at run time."""
+        self._paths.pop(name, None)
+        self._classes.pop(name, None)
 
 
 METHODS: Mapping[str, type[Identifier]] = _Registry({
@@ -70,12 +85,11 @@ def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_ra
                        f"(--sigma-arcsec, --variant, --fov-deg, --mag-limit)")
     if variant == "improved":
         params = {**cls.improved_params, **params}
-    sig = inspect.signature(cls.__init__)
-    allowed = [n for n, p in sig.parameters.items() if p.kind == inspect.Parameter.KEYWORD_ONLY]
+    allowed = cls.parameters()
     unknown = sorted(set(params) - set(allowed))
     if unknown:
-        raise BadInput(f"method {method!r} has no parameter {', '.join(map(repr, unknown))}: "
-                       f"its parameters are {', '.join(allowed)}")
+        raise BadInput(f"method {method!r} has no parameter {', '.join(map(repr, unknown))}: its parameters "
+                       f"(paper defaults) are {', '.join(f'{k}={v!r}' for k, v in allowed.items())}")
     try:
         return cls(catalog, camera, sigma_rad, **params)
     except (TypeError, ValueError) as exc:
@@ -85,5 +99,12 @@ def make_identifier(method: str, catalog: GuideCatalog, camera: Camera, sigma_ra
         raise BadInput(f"method {method!r} cannot take {shown}: {exc}") from None
 
 
-__all__ = ["METHODS", "VARIANTS", "make_identifier", "Identifier", "Identification", "Observation", "Step",
+def register(name: str, cls: type[Identifier] | str) -> None:
+    """Register a method under `name` (a class or its "module.Class" path): the one line a new method
+    needs when it is not in METHODS' literal (tests, plug-ins)."""
+    METHODS.register(name, cls)
+
+
+__all__ = ["METHODS", "VARIANTS", "make_identifier", "register", "Identifier", "SequenceIdentifier",
+           "Identification", "Observation", "Step", "Hypothesis", "Search", "Status", "is_sequence_method",
            "IDENTIFIED", "INCONCLUSIVE", "FAILED"]

@@ -43,6 +43,18 @@ stars already assigned (closing a triangle: no new star, strong pruning) before 
 chain usually ends unique with three stars and leaves the others to verify with; the paper's chain
 often consumes every star of a sparse field, and a hypothesis with no star left cannot be verified.
 
+Pattern stars (option, max_stars = 12 in IMPROVED_PARAMS, None in the paper). Only the brightest
+max_stars observed stars form the angles the chain pivots on; every star still takes part in the
+verification. A 20 deg field at Hp 6 holds ~40 stars (780 angles, each with thousands of catalog
+pairs); the twelve brightest give 66 angles and the same identifications (vector level, cole8 and
+sun20, with and without a false star).
+
+Speed (beyond the paper, same results). A join groups the candidate pairs by their catalog star on
+the shared observed star once (a radix sort and a bincount, `_by_star`) and each hypothesis meets
+its star's block, a closed loop included (no binary search per hypothesis: ~0.1 ms instead of ~2.5 ms
+for 12,000 candidates at 20 deg); steps record capped samples (CAP rows, `Hypotheses.sample`), never
+the whole candidate lists.
+
 Backtracking (option, default off as in the paper). When the hypotheses go to zero (a false star or an
 angle outside its bound was used) or the unique hypothesis fails verification, the paper's method has
 failed. With backtrack=True the chain is restarted without one suspect star: first the star whose
@@ -78,7 +90,7 @@ ORDERS = ("largest", "fewest")
 # Hp 6.0 fields instead of 65.7 %, and 75 % instead of 27 % with a false star, never wrongly (vector
 # level, 300 attitudes, seed 1): join full assignments on the shared star, close triangles first so
 # that stars are left to verify with, and restart without a suspect star when a chain fails.
-IMPROVED_PARAMS = {"pivoting": "join", "close_loops": True, "backtrack": True}
+IMPROVED_PARAMS = {"pivoting": "join", "close_loops": True, "backtrack": True, "max_stars": 12}
 # the paper's pairwise list pruning: a common star anywhere ("lists") or on the shared observed star
 # ("shared-star"); beyond the paper: full assignments joined on the shared star ("join")
 PIVOTINGS = ("shared-star", "lists", "join")
@@ -97,6 +109,29 @@ def build_angle_database(catalog: GuideCatalog, max_sep_rad: float, fit: str = "
     order = np.lexsort((j, i, ang))
     kv = KVector(ang[order], fit=fit, presorted=True)
     return {"pair_i": i[order].astype(np.int32), "pair_j": j[order].astype(np.int32), **kv.to_arrays()}
+
+
+def load_pair_database(catalog: GuideCatalog, camera: Camera, kvector_fit: str = "line"
+                       ) -> tuple[np.ndarray, np.ndarray, KVector, dict]:
+    """The angle database that serves `camera` (pairs up to its diagonal rounded up on the 5 % grid of
+    `database.angular_range`), loaded from the cache or built once: (pair_i, pair_j, k-vector, info).
+
+    The angle method and the improved triangle method (which joins its triangles from these pairs)
+    share it: one file per catalog and range. info holds the cache's figures, "key" and "max_sep_rad".
+    """
+    max_sep_rad = database.angular_range(2.0 * camera.half_diagonal_rad)
+    params = {"max_sep_rad": max_sep_rad, "kvector_fit": kvector_fit, "version": DATABASE_VERSION}
+    key = database.make_key("angle", params, catalog, None)
+    # ~48 bytes and ~0.5 us a pair while it is built (the pair list, the angles, the sorted copies, the k-vector)
+    n_pairs = database.pairs_estimate(len(catalog), max_sep_rad)
+    what = (f"the angle database ({len(catalog):,} stars, pairs up to {np.degrees(max_sep_rad):.1f} deg, "
+            f"~{n_pairs / 1e6:.1f} M pairs)")
+    arrays, info = database.load_or_build(
+        key, lambda: build_angle_database(catalog, max_sep_rad, kvector_fit),
+        what=what, estimate_s=0.5e-6 * n_pairs, estimate_bytes=48 * n_pairs)
+    info.update(max_sep_rad=max_sep_rad)
+    return (arrays["pair_i"].astype(np.int64), arrays["pair_j"].astype(np.int64), KVector.from_arrays(arrays),
+            info)
 
 
 @dataclass
@@ -123,7 +158,7 @@ class AngleMethod(Identifier):
                  backtrack: bool = False, max_restarts: int = 10, max_dropped: int = 1,
                  statistic: str = CALIBRATED, threshold: float | None = None,
                  radius_sigmas: float = RADIUS_SIGMAS, kvector_fit: str = "line", close_loops: bool = False,
-                 pivoting: str = "shared-star"):
+                 pivoting: str = "shared-star", max_stars: int | None = None):
         if not (np.isfinite(sigma_rad) and sigma_rad > 0):
             raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
         if not (np.isfinite(beta) and beta > 0):
@@ -134,6 +169,8 @@ class AngleMethod(Identifier):
             raise BadInput("max_candidates must be at least 1")
         if order not in ORDERS:
             raise BadInput(f"unknown order {order!r}: choose from {', '.join(ORDERS)}")
+        if max_stars is not None and int(max_stars) < 3:
+            raise BadInput("max_stars must be at least 3 or None (all)")
         if pivoting not in PIVOTINGS:
             raise BadInput(f"unknown pivoting {pivoting!r}: choose from {', '.join(PIVOTINGS)}")
         if statistic not in STATISTICS:
@@ -161,31 +198,23 @@ class AngleMethod(Identifier):
         self.radius_sigmas = float(radius_sigmas)
         self.close_loops = bool(close_loops)
         self.pivoting = pivoting
+        self.max_stars = None if max_stars is None else int(max_stars)
 
         # the database belongs to the sky: pairs up to the diagonal rounded up on a 5 % grid, so one
         # database serves every camera whose diagonal is below it
-        self.max_sep_rad = database.angular_range(2.0 * camera.half_diagonal_rad)
-        params = {"max_sep_rad": self.max_sep_rad, "kvector_fit": kvector_fit, "version": DATABASE_VERSION}
-        self.database_key = database.make_key(self.name, params, catalog, None)
-        # ~48 bytes and ~0.5 us a pair while it is built (the pair list, the angles, the sorted copies, the k-vector)
-        n_pairs = database.pairs_estimate(len(catalog), self.max_sep_rad)
-        what = (f"the angle database ({len(catalog):,} stars, pairs up to {np.degrees(self.max_sep_rad):.1f} deg, "
-                f"~{n_pairs / 1e6:.1f} M pairs)")
-        arrays, info = database.load_or_build(
-            self.database_key, lambda: build_angle_database(catalog, self.max_sep_rad, kvector_fit),
-            what=what, estimate_s=0.5e-6 * n_pairs, estimate_bytes=48 * n_pairs)
-        self.pair_i = arrays["pair_i"].astype(np.int64)
-        self.pair_j = arrays["pair_j"].astype(np.int64)
-        self.kv = KVector.from_arrays(arrays)
+        self.pair_i, self.pair_j, self.kv, info = load_pair_database(catalog, camera, kvector_fit)
+        self.max_sep_rad = info["max_sep_rad"]
+        self.database_key = info["key"]
         fov = np.radians(camera.fov_deg)
         n_fov = int(np.searchsorted(self.kv.sorted_values, fov, side="right"))
         info.update(pairs=len(self.pair_i), pairs_within_fov=n_fov, fov_deg=float(camera.fov_deg),
                     max_sep_deg=float(np.degrees(self.max_sep_rad)), catalog_stars=len(catalog))
         self.database_info = info
+        self._key_string = database.key_string(self.database_key)
 
     @property
     def database_key_string(self) -> str:
-        return database.key_string(self.database_key)
+        return self._key_string
 
     # ------------------------------------------------------------------ identify
     def identify(self, obs: Observation) -> Identification:
@@ -204,7 +233,8 @@ class AngleMethod(Identifier):
         V = np.asarray(obs.vectors, dtype=np.float64)
         if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
             raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
-        ii, jj = _pair_indices(n)
+        m = n if self.max_stars is None else min(n, self.max_stars)  # the stars that form angles
+        ii, jj = _pair_indices(m)
         theta = angular_distance(V[ii], V[jj])
         bound = self.beta * np.sqrt(2.0) * sigma  # beta sigma_p, sigma_p = sqrt(2) sigma (eq. 14)
         start, stop = self.kv.ranges(theta - bound, theta + bound)
@@ -259,7 +289,7 @@ class AngleMethod(Identifier):
             if self.backtrack and len(excluded) < self.max_dropped:
                 for s in suspects:
                     e2 = excluded | {int(s)}
-                    if e2 not in seen and n - len(e2) >= 3:
+                    if e2 not in seen and m - len(e2) >= 3:
                         seen.add(e2)
                         queue.append(e2)
         if result.status != IDENTIFIED:
@@ -270,6 +300,7 @@ class AngleMethod(Identifier):
         first = chains[0]
         result.stats = {
             "stars": n,
+            "pattern_stars": m,
             "pivots": last.pivots,
             "pivots_total": int(sum(c.pivots for c in chains)),
             "stars_used": len(last.used),
@@ -526,37 +557,41 @@ class AngleMethod(Identifier):
 def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np.ndarray):
     """Join hypotheses with the oriented candidates of angle (p, q) on the shared observed star(s).
 
-    Returns (H', used', new): new is the observed star added (None for a closed loop).
+    Returns (H', used', new): new is the observed star added (None for a closed loop). Vectorised:
+    the candidates are grouped by their catalog star on the shared observed star (`_by_star`), and
+    each hypothesis meets the block of its star.
     """
     cp = np.concatenate([ci, cj])  # catalog star of observed star p
     cq = np.concatenate([cj, ci])  # catalog star of observed star q
-    if p in used and q in used:  # closed loop: the pair (H[p], H[q]) must be a candidate as it is
-        m = max(int(H.max(initial=0)), int(cp.max(initial=0))) + 1
-        ip, iq = used.index(p), used.index(q)
-        keys = np.sort(cp * m + cq)  # membership by binary search: = np.isin(H[:, ip] * m + H[:, iq], keys)
-        hk = H[:, ip] * m + H[:, iq]
-        keep = keys[np.minimum(np.searchsorted(keys, hk), len(keys) - 1)] == hk if len(keys) else hk < 0
-        return H[keep], used, None
-    if q in used:  # make p the shared star
+    if q in used and p not in used:  # make p the shared star
         p, q = q, p
         cp, cq = cq, cp
     if p not in used:
         raise ValueError("a pivot angle must share a star with the hypotheses")
     ip = used.index(p)
-    o = np.argsort(cp, kind="stable")
-    cps, cqs = cp[o], cq[o]
+    m = max(int(H.max(initial=0)), int(cp.max(initial=0))) + 1
+    cqs, start, size = _by_star(cp, cq, m)
     v = H[:, ip]
-    lo = np.searchsorted(cps, v, side="left")
-    hi = np.searchsorted(cps, v, side="right")
-    cnt = hi - lo
-    total = int(cnt.sum())
+    cnt = size[v]
     rows = np.repeat(np.arange(len(H)), cnt)
-    offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    newq = cqs[np.repeat(lo, cnt) + offs]
+    newq = cqs[np.repeat(start[v] - np.cumsum(cnt) + cnt, cnt) + np.arange(int(cnt.sum()))]
+    if q in used:  # closed loop: the pair (H[p], H[q]) must be a candidate as it is
+        hit = newq == H[rows, used.index(q)]
+        return H[np.bincount(rows[hit], minlength=len(H)) > 0], used, None
     Hn = H[rows]
     ok = ~np.any(Hn == newq[:, None], axis=1)  # a catalog star is never two observed stars
     H2 = np.concatenate([Hn[ok], newq[ok, None]], axis=1)
     return H2, used + [q], q
+
+
+def _by_star(cp: np.ndarray, cq: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The candidates grouped by their star on p (catalog rows < m): cq in that order (stable), and
+    per catalog star the start and size of its block (= np.searchsorted on the sorted cp, without a
+    binary search per hypothesis; the sort is numpy's radix sort on 16-bit keys when they fit)."""
+    key = cp.astype(np.int16) if m <= np.iinfo(np.int16).max else cp
+    order = np.argsort(key, kind="stable")
+    size = np.bincount(cp, minlength=m)
+    return cq[order], np.cumsum(size) - size, size
 
 
 def _n_pairs(P: np.ndarray) -> int:
@@ -601,6 +636,10 @@ def _distinct(H: np.ndarray) -> list[int]:
     """The CAP smallest distinct catalog rows of H (= np.unique(H)[:CAP], without its per-call overhead)."""
     if not H.size:
         return []
+    if H.size > 1024:  # many hypotheses: mark the rows present instead of sorting them all
+        seen = np.zeros(int(H.max()) + 1, dtype=bool)
+        seen[H.ravel()] = True
+        return np.flatnonzero(seen)[:CAP].tolist()
     s = np.sort(H, axis=None)
     keep = np.empty(s.size, dtype=bool)
     keep[0] = True

@@ -1,23 +1,56 @@
-"""What every identification method shares: its input, its step record and its result.
+"""What every identification method shares: its input, its step record, its result and the template
+every method runs in.
+
+The template (`Identifier.identify`) owns the common path: the frame's sigma (the observation's, else
+the method's), the input checks, the too-few-stars exit with the method's minimum, timing into
+stats["time_s"], verifying each hypothesis the method proposes with the running hypothesis count (the
+Bonferroni factor of `skyview.identify.verify`), accepting a verified one, and the failure reason. A
+method writes `hypotheses(search)`: a generator that records its own steps in `search.steps` and
+yields `Hypothesis` records; each yield is answered with the `Verification` of that hypothesis (so
+the method can react: try the next orientation, blame a star, collect several); an accepted one ends
+the search (the hypothesis' `on_accept` sees it). A method that must
+choose among verified hypotheses itself yields the chosen `Verification` instead (it is accepted).
 
 Nothing in `skyview.identify` imports viser or rerun: the viewer and the recorder draw the steps.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
+import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any, TypeVar
 
 import numpy as np
 
+from skyview.errors import BadInput
 from skyview.identify.layers import Layer
+from skyview.jsonable import plain
 
 L = TypeVar("L")
 
-IDENTIFIED = "identified"
-INCONCLUSIVE = "inconclusive"
-FAILED = "failed"
+
+class Status(StrEnum):
+    """The outcome of one identification (a `str`: JSON and comparisons see "identified", ...).
+
+    IDENTIFIED: a hypothesis passed the shared verification. INCONCLUSIVE: the method ran and found
+    no unique verified hypothesis. FAILED: the method could not run on this frame (too few stars,
+    nothing to designate). A pipeline or sequence result that says "failed" means "not solved" (either
+    of the last two): that word belongs to `skyview.api.Solution`, not to this enum.
+    """
+
+    IDENTIFIED = "identified"
+    INCONCLUSIVE = "inconclusive"
+    FAILED = "failed"
+
+
+IDENTIFIED = Status.IDENTIFIED
+INCONCLUSIVE = Status.INCONCLUSIVE
+FAILED = Status.FAILED
 
 
 @dataclass(frozen=True)
@@ -84,7 +117,7 @@ class Identification:
     """
 
     method: str
-    status: str
+    status: Status
     matches: dict[int, int]
     steps: list[Step]
     reason: str = ""
@@ -115,58 +148,257 @@ class Identification:
             "R": None if self.R is None else np.asarray(self.R).tolist(),
             "attitude_covariance": (None if self.attitude_covariance is None
                                     else np.asarray(self.attitude_covariance).tolist()),
-            "verification": _plain(self.verification), "stats": _plain(self.stats),
+            "verification": plain(self.verification), "stats": plain(self.stats),
             "database_key": self.database_key, "steps": [s.to_dict() for s in self.steps],
         }
+
+
+@dataclass
+class Hypothesis:
+    """A correspondence a method proposes (observed index -> catalog row), for the shared verification.
+
+    count: how many hypotheses this one stands for in the Bonferroni factor (1; a method that picked
+    it among many pair hypotheses counts them all). numbers / groups / layers: what the 'verify' step
+    shows beside the verification's own figures. judge: an optional check run on the verification
+    before it is recorded (it may refuse a verified hypothesis: set `ver.passed = False` and the
+    reason), returning (extra numbers for the step, extra figures for the verification record). accept: False
+    when the method decides among verified hypotheses itself (it then yields the chosen Verification).
+    on_accept: called with the verification when this hypothesis is accepted (the search then ends).
+    """
+
+    matches: dict[int, int]
+    count: int = 1
+    numbers: dict[str, float] = field(default_factory=dict)
+    groups: list[tuple[int, ...]] = field(default_factory=list)
+    layers: tuple[Layer, ...] = ()
+    judge: Callable[[Any], tuple[dict, dict]] | None = None
+    accept: bool = True
+    on_accept: Callable[[Any], None] | None = None
+
+
+@dataclass
+class Search:
+    """One identification in progress: what the template gives a method's `hypotheses` and keeps.
+
+    obs, V ((N, 3) float64 vectors), n, sigma (this frame's), radius (the match radius); steps (the
+    method appends its own), stats (the method fills them; "time_s" is added), reasons (why
+    hypotheses failed: the default failure reason), verifications (hypotheses verified) and
+    n_hypotheses (the Bonferroni factor so far), result (the Identification being built), data (the
+    method's own working values, e.g. what its `too_few` computed).
+    """
+
+    obs: Any
+    V: np.ndarray
+    sigma: float
+    radius: float
+    result: Identification
+    t0: float
+    stats: dict[str, Any] = field(default_factory=dict)
+    reasons: list[str] = field(default_factory=list)
+    verifications: int = 0
+    n_hypotheses: int = 0
+    data: dict[str, Any] = field(default_factory=dict)  # the method's own working values
+
+    @property
+    def n(self) -> int:
+        return int(len(self.V))
+
+    @property
+    def steps(self) -> list[Step]:
+        return self.result.steps
+
+
+_SHARED_PARAMS = ("statistic", "threshold", "radius_sigmas")  # skyview.identify.params.MethodParams
+HypothesisSource = Generator["Hypothesis | Any", Any, None]
 
 
 class Identifier(ABC):
     """An identification method bound to its database (catalog + camera configuration).
 
-    Subclasses set `name`, fill `database_key` (the key dict the database was built for; see
-    `skyview.identify.database`) and `database_info` (counts, bytes, build / load time), and
-    implement `identify`. Every method ends in `skyview.identify.verify.verify`.
+    A method sets `name`, `Params` (its frozen parameter dataclass: `skyview.identify.params`),
+    `min_stars`, fills `database_key` (the key dict its database was built for; see
+    `skyview.identify.database`) and `database_info` (counts, bytes, build / load time), and writes
+    `hypotheses(search)`; `identify` (the template, above) does the rest and ends every hypothesis in
+    `skyview.identify.verify.verify`. Hooks with defaults: `too_few` (the too-few-stars exit),
+    `failure_reason`, `n_patterns` (the database size the tetra3 statistic divides by).
     """
 
     name: str = ""
+    Params: type | None = None  # the frozen dataclass of the method's parameters (paper defaults)
+    min_stars: int = 3  # fewer observed stars than this: FAILED, "too few stars"
+    title: str = ""  # the method in a sentence ("the angle method"), for the too-few-stars reason
     # Options beyond the paper that make the method better; `variant="improved"` applies them.
     improved_params: dict = {}
     database_key: dict
     database_info: dict
+    catalog: Any
+    camera: Any
+    sigma_rad: float
+    statistic: str
+    threshold: float | None
+    radius_sigmas: float
 
-    @abstractmethod
+    @classmethod
+    def parameters(cls) -> dict[str, Any]:
+        """The method's parameters and their paper defaults: its `Params` fields (or, for a method not
+        yet on a Params dataclass, its constructor's keyword-only arguments)."""
+        if cls.Params is not None:  # the method's own first, then the verification's (MethodParams)
+            fields = sorted(dataclasses.fields(cls.Params), key=lambda f: f.name in _SHARED_PARAMS)
+            return {f.name: (f.default if f.default is not dataclasses.MISSING else f.default_factory())
+                    for f in fields}
+        sig = inspect.signature(cls.__init__)
+        return {n: p.default for n, p in sig.parameters.items() if p.kind == inspect.Parameter.KEYWORD_ONLY}
+
+    def configure(self, catalog, camera, sigma_rad: float, params: dict):
+        """The common head of a constructor: `Params(**params)` (its checks: one-line BadInput), each
+        parameter set as an attribute, the sigma checked, the catalog and camera kept. Returns the Params."""
+        from skyview.identify.params import bind, check_sigma
+
+        p = self.Params(**params)
+        self.sigma_rad = check_sigma(sigma_rad)
+        bind(self, p)
+        self.catalog, self.camera = catalog, camera
+        return p
+
+    @property
+    def database_key_string(self) -> str:
+        from skyview.identify import database
+
+        return database.key_string(self.database_key)
+
+    @property
+    def n_patterns(self) -> int:
+        """Patterns in the database (the tetra3 statistic divides its threshold by this)."""
+        return 1
+
+    # ------------------------------------------------------------------ the template
     def identify(self, obs: Observation) -> Identification:
-        """Identify the observed stars of one frame."""
+        """Identify the observed stars of one frame (the template: see the module docstring)."""
+        search = self.begin(obs)
+        reason = self.too_few(search)
+        if reason:
+            return self.finish(search, reason=reason)
+        search.result.status = INCONCLUSIVE
+        self.drive(search, self.hypotheses(search))
+        return self.finish(search)
+
+    def hypotheses(self, search: Search) -> HypothesisSource:
+        """The method's search: record steps in `search.steps`, fill `search.stats`, yield `Hypothesis`
+        records (each answered with its Verification) or a chosen passed Verification."""
+        raise NotImplementedError(f"{type(self).__name__} does not propose hypotheses")
+
+    def begin(self, obs: Observation) -> Search:
+        """The frame's sigma (the observation's when it is a positive number, else the method's), the
+        checked vectors and an empty result (FAILED until the search runs)."""
+        from skyview.identify.verify import match_radius
+
+        t0 = time.perf_counter()
+        s = obs.sigma_rad
+        sigma = float(s) if (s is not None and np.isfinite(s) and s > 0) else self.sigma_rad
+        V = np.asarray(obs.vectors, dtype=np.float64)
+        if len(obs) and (V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V))):
+            raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
+        result = Identification(method=self.name, status=FAILED, matches={}, steps=[],
+                                database_key=self.database_key_string)
+        return Search(obs=obs, V=V.reshape(-1, 3), sigma=sigma, radius=match_radius(sigma, self.radius_sigmas),
+                      result=result, t0=t0)
+
+    def too_few(self, search: Search) -> str:
+        """Why the frame is too small to try (then FAILED), or ''."""
+        if search.n < self.min_stars:
+            return f"{self.title or f'the {self.name} method'} needs at least {self.min_stars} stars, " \
+                   f"the frame has {search.n}"
+        return ""
+
+    def verify(self, search: Search, hyp: Hypothesis):
+        """The shared verification of one hypothesis, counted in the Bonferroni factor, recorded as a
+        'verify' step; `result.verification` keeps its figures."""
+        from skyview.identify.verify import verification_step, verify
+
+        search.n_hypotheses += int(hyp.count)
+        search.verifications += 1
+        ver = verify(search.V, hyp.matches, self.catalog, self.camera, search.sigma,
+                     n_hypotheses=search.n_hypotheses, n_patterns=self.n_patterns, statistic=self.statistic,
+                     threshold=self.threshold, radius_rad=search.radius)
+        numbers, record = hyp.judge(ver) if hyp.judge is not None else ({}, {})
+        vd = ver.to_dict() | record
+        search.steps.append(verification_step(ver, hyp.matches, numbers={**hyp.numbers, **numbers},
+                                              groups=list(hyp.groups), layers=tuple(hyp.layers)))
+        search.result.verification = vd
+        return ver
+
+    def drive(self, search: Search, source: HypothesisSource) -> bool:
+        """Verify what `source` yields until a hypothesis is accepted (True) or the source ends."""
+        from skyview.identify.verify import Verification
+
+        try:
+            item = next(source)
+            while True:
+                if isinstance(item, Verification):  # the method's choice among verified hypotheses
+                    search.result.accept(item)
+                    search.result.verification = item.to_dict()
+                    return True
+                ver = self.verify(search, item)
+                if ver.passed and item.accept:
+                    search.result.accept(ver)
+                    if item.on_accept is not None:
+                        item.on_accept(ver)
+                    return True
+                item = source.send(ver)
+        except StopIteration:
+            return False
+        finally:
+            source.close()
+
+    def failure_reason(self, search: Search) -> str:
+        """Why nothing was identified (default: the reasons the search gave, joined)."""
+        r = search.reasons
+        return r[0] if len(r) == 1 else "; ".join(r) if r else "no hypothesis to verify"
+
+    def finish(self, search: Search, reason: str = "") -> Identification:
+        """The failure reason (the too-few-stars one, or `failure_reason`) and stats["time_s"]."""
+        result = search.result
+        if reason:
+            result.reason = reason
+        elif result.status != IDENTIFIED:
+            result.reason = self.failure_reason(search)
+        result.stats = {"stars": search.n, **search.stats, "time_s": time.perf_counter() - search.t0}
+        return result
 
 
 class SequenceIdentifier(Identifier):
     """A method that identifies over a sequence of frames with known turns between them (one frame alone
-    is only its first step). Sinks and runners ask `is_sequence_method`, never for an attribute."""
+    is only its first step). Its interface: `start()` a state, `update(state, obs, turn)` one frame,
+    `identify_sequence(observations, turns)` all of them. Sinks and runners ask `is_sequence_method`,
+    never for an attribute."""
 
     @abstractmethod
+    def start(self):
+        """The state before the first frame."""
+
+    @abstractmethod
+    def update(self, state, obs: Observation, turn) -> Identification:
+        """Absorb one frame into `state` (the turn from the previous frame, None for the first)."""
+
+    def identify(self, obs: Observation) -> Identification:
+        """One frame alone: the first step of a sequence."""
+        return self.update(self.start(), obs, None)
+
     def identify_sequence(self, observations, turns=None, **kwargs) -> list[Identification]:
         """Identify frame by frame: observations (one `Observation` per frame) and the known turns
-        between consecutive frames; one `Identification` per frame."""
+        between consecutive frames (turns[k]: frame k to k + 1); one `Identification` per frame."""
+        observations = list(observations)
+        turns = [] if turns is None else list(turns)
+        if len(turns) != max(len(observations) - 1, 0):
+            raise BadInput(f"{len(observations)} frames need {max(len(observations) - 1, 0)} turns, "
+                           f"got {len(turns)}")
+        state = self.start()
+        return [self.update(state, obs, turns[k - 1] if k > 0 else None, **{key: v[k] for key, v in kwargs.items()
+                                                                          if v is not None})
+                for k, obs in enumerate(observations)]
 
 
 def is_sequence_method(method_or_class) -> bool:
     """Whether a method (its class or an instance) identifies over sequences (`SequenceIdentifier`)."""
     cls = method_or_class if isinstance(method_or_class, type) else type(method_or_class)
     return issubclass(cls, SequenceIdentifier)
-
-
-def _plain(x: Any) -> Any:
-    """numpy scalars / arrays inside dicts and lists -> plain Python for JSON."""
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.floating):
-        return float(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x

@@ -26,6 +26,7 @@ import numpy as np
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, cache_dir
 from skyview.errors import BadInput
+from skyview.jsonable import plain
 
 FORMAT_VERSION = 1
 _KEY_FIELD = "__key__"
@@ -38,7 +39,7 @@ def make_key(method: str, params: dict, catalog: GuideCatalog, camera: Camera | 
     key = {
         "method": str(method),
         "format": FORMAT_VERSION,
-        "params": _jsonable(params),
+        "params": plain(params, other=str),
         "catalog": {"fingerprint": catalog.fingerprint, "stars": len(catalog), "epoch": float(catalog.epoch),
                     "filters": list(catalog.history)},
     }
@@ -232,22 +233,6 @@ def _write(path: Path, key: dict, arrays: dict[str, np.ndarray]) -> None:
 
 def _nbytes(arrays: dict[str, np.ndarray]) -> int:
     return int(sum(np.asarray(a).nbytes for a in arrays.values()))
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (np.floating,)):
-        return float(x)
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if x is None or isinstance(x, (bool, int, float, str)):
-        return x
-    return str(x)
 
 
 def cache_budget_bytes() -> int:

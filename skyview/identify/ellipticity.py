@@ -38,7 +38,7 @@ The paper's camera sees its guide catalog. A real one (and skyview's simulator) 
 brighter than 6.0: with Hipparcos, 4,559 stars, of which the guide catalog keeps 3,865. The others
 are unknown to the database, and in many frames the pivot or one of its 3 nearest observed stars is
 such a star. Vector level, 300 random attitudes of sun20's camera (seed 1, 10 urad,
-`python -m skyview.identify.measure`-style run, docs/methods.md): 58.7 % identified with this
+`skyview experiment measure`-style run, docs/methods.md): 58.7 % identified with this
 catalog, 25.3 % with the 2,994-star catalog (duplicity and variability flags too), 93.3 % with
 drop_flags=0 (every star; not the paper's). The options below bring it to ~100 %, never wrongly.
 
@@ -81,6 +81,7 @@ drops are adjacent stars of the patterns. On sun20 (300 attitudes) the improved 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, replace
 from itertools import combinations, permutations
 
 import numpy as np
@@ -91,10 +92,10 @@ from skyview.camera import Camera
 from skyview.catalog import FLAG_MULTIPLE, GuideCatalog, chord
 from skyview.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import (FAILED, INCONCLUSIVE, Identification, Identifier, Observation,
-                                   Step)
+from skyview.identify.base import Hypothesis, Identifier, Search, Step
 from skyview.identify.layers import Attitudes, Hypotheses
-from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius, verify
+from skyview.identify.params import MethodParams, positive
+from skyview.identify.verify import angular_distance
 
 # the paper's parameters (section 3)
 MAG_LIMIT = 6.0  # guide stars brighter than 6.0
@@ -108,8 +109,6 @@ N_ADJACENT = 3  # adjacent stars per pattern (the paper's option for fake stars:
 # at Hp <= 6.0 against the paper's 3,974; with the duplicity and variability flags too: 2,994)
 DROP_FLAGS = FLAG_MULTIPLE
 
-IMPROVED_PARAMS = {"n_adjacent": 8, "next_pivot": True, "pivot_radius_deg": 8.0, "adaptive_thresholds": True,
-                   "theta_min_slack": True, "resolve_ties": True}
 CAP = 200  # catalog rows / groups kept in one step
 DATABASE_VERSION = 2
 
@@ -229,59 +228,70 @@ def build_ellipticity_database(guide: GuideCatalog, theta_min_rad: float) -> dic
 
 # ---------------------------------------------------------------------- the method
 
+@dataclass(frozen=True)
+class EllipticityParams(MethodParams):
+    """The ellipticity method's parameters (the paper's section 3; the module docstring explains each)."""
+
+    mag_limit: float = MAG_LIMIT
+    close_pair_deg: float = CLOSE_PAIR_DEG
+    drop_flags: int = DROP_FLAGS
+    theta_min_deg: float = THETA_MIN_DEG
+    eps_threshold: float = EPS_THRESHOLD
+    angle_threshold_deg: float = ANGLE_THRESHOLD_DEG
+    pivot_radius_deg: float = PIVOT_RADIUS_DEG
+    n_adjacent: int = N_ADJACENT
+    next_pivot: bool = False
+    max_pivots: int = 30
+    adaptive_thresholds: bool = False
+    beta: float = 3.0
+    theta_min_slack: bool = False
+    resolve_ties: bool = False
+    max_candidates: int = 32
+
+    def __post_init__(self):
+        for nm in ("theta_min_deg", "eps_threshold", "angle_threshold_deg", "pivot_radius_deg", "beta",
+                   "radius_sigmas"):
+            positive(nm, getattr(self, nm))
+        positive("close_pair_deg", self.close_pair_deg, allow_zero=True)
+        if int(self.drop_flags) < 0:
+            raise BadInput(f"drop_flags must be a combination of FLAG_* bits, not {self.drop_flags!r}")
+        if not np.isfinite(self.mag_limit):
+            raise BadInput(f"mag_limit must be a number, not {self.mag_limit!r}")
+        if int(self.n_adjacent) < 3:
+            raise BadInput("n_adjacent must be at least 3 (a pattern is the pivot and 3 adjacent stars)")
+        if int(self.max_pivots) < 1 or int(self.max_candidates) < 1:
+            raise BadInput("max_pivots and max_candidates must be at least 1")
+        super().__post_init__()
+
+
+PAPER = EllipticityParams()
+IMPROVED = replace(PAPER, n_adjacent=8, next_pivot=True, pivot_radius_deg=8.0, adaptive_thresholds=True,
+                   theta_min_slack=True, resolve_ties=True)
+IMPROVED_PARAMS = IMPROVED.changed()
+
+
 class EllipticityMethod(Identifier):
     """Sun, Qi, Jin & Wang's ellipticity pivot-star method, ending in the shared verification."""
 
     name = "ellipticity"
+    title = "the ellipticity method"
+    Params = EllipticityParams
+    min_stars = 4
     improved_params = IMPROVED_PARAMS
 
-    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *,
-                 mag_limit: float = MAG_LIMIT, close_pair_deg: float = CLOSE_PAIR_DEG, drop_flags: int = DROP_FLAGS,
-                 theta_min_deg: float = THETA_MIN_DEG, eps_threshold: float = EPS_THRESHOLD,
-                 angle_threshold_deg: float = ANGLE_THRESHOLD_DEG, pivot_radius_deg: float = PIVOT_RADIUS_DEG,
-                 n_adjacent: int = N_ADJACENT, next_pivot: bool = False, max_pivots: int = 30,
-                 adaptive_thresholds: bool = False, beta: float = 3.0, theta_min_slack: bool = False,
-                 resolve_ties: bool = False, max_candidates: int = 32, statistic: str = CALIBRATED,
-                 threshold: float | None = None, radius_sigmas: float = RADIUS_SIGMAS):
-        if not (np.isfinite(sigma_rad) and sigma_rad > 0):
-            raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
-        for nm, v in (("theta_min_deg", theta_min_deg), ("eps_threshold", eps_threshold),
-                      ("angle_threshold_deg", angle_threshold_deg), ("pivot_radius_deg", pivot_radius_deg),
-                      ("beta", beta), ("radius_sigmas", radius_sigmas)):
-            if not (np.isfinite(v) and v > 0):
-                raise BadInput(f"{nm} must be a positive number, not {v!r}")
-        if not (np.isfinite(close_pair_deg) and close_pair_deg >= 0):
-            raise BadInput(f"close_pair_deg must be >= 0, not {close_pair_deg!r}")
-        if int(drop_flags) < 0:
-            raise BadInput(f"drop_flags must be a combination of FLAG_* bits, not {drop_flags!r}")
-        if not np.isfinite(mag_limit):
-            raise BadInput(f"mag_limit must be a number, not {mag_limit!r}")
-        if int(n_adjacent) < 3:
-            raise BadInput("n_adjacent must be at least 3 (a pattern is the pivot and 3 adjacent stars)")
-        if int(max_pivots) < 1 or int(max_candidates) < 1:
-            raise BadInput("max_pivots and max_candidates must be at least 1")
-        if statistic not in STATISTICS:
-            raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
-        if threshold is not None and not (0 < float(threshold) <= 1):
-            raise BadInput("threshold must be in (0, 1]")
-        self.catalog = catalog
-        self.camera = camera
-        self.sigma_rad = float(sigma_rad)
-        self.theta_min = float(np.radians(theta_min_deg))
-        self.eps_threshold = float(eps_threshold)
-        self.angle_threshold = float(np.radians(angle_threshold_deg))
-        self.pivot_radius = float(np.radians(pivot_radius_deg))
-        self.n_adjacent = int(n_adjacent)
-        self.next_pivot = bool(next_pivot)
-        self.max_pivots = int(max_pivots)
-        self.adaptive_thresholds = bool(adaptive_thresholds)
-        self.beta = float(beta)
-        self.theta_min_slack = bool(theta_min_slack)
-        self.resolve_ties = bool(resolve_ties)
-        self.max_candidates = int(max_candidates)
-        self.statistic = statistic
-        self.threshold = threshold
-        self.radius_sigmas = float(radius_sigmas)
+    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, **params):
+        p = self.configure(catalog, camera, sigma_rad, params)
+        mag_limit, close_pair_deg, drop_flags, theta_min_deg = p.mag_limit, p.close_pair_deg, p.drop_flags, \
+            p.theta_min_deg
+        self.theta_min = float(np.radians(p.theta_min_deg))
+        self.eps_threshold = float(p.eps_threshold)
+        self.angle_threshold = float(np.radians(p.angle_threshold_deg))
+        self.pivot_radius = float(np.radians(p.pivot_radius_deg))
+        self.n_adjacent = int(p.n_adjacent)
+        self.max_pivots = int(p.max_pivots)
+        self.beta = float(p.beta)
+        self.max_candidates = int(p.max_candidates)
+        self.radius_sigmas = float(p.radius_sigmas)
 
         t0 = time.perf_counter()
         self.guide_rows = guide_rows(catalog, mag_limit, close_pair_deg, drop_flags)
@@ -308,48 +318,39 @@ class EllipticityMethod(Identifier):
         self.database_info = info
 
     @property
-    def database_key_string(self) -> str:
-        return database.key_string(self.database_key)
+    def n_patterns(self) -> int:
+        return len(self.eps)
 
-    # ------------------------------------------------------------------ identify
-    def identify(self, obs: Observation) -> Identification:
-        t0 = time.perf_counter()
-        steps: list[Step] = []
-        n = len(obs)
-        sigma = float(obs.sigma_rad) if (obs.sigma_rad is not None and np.isfinite(obs.sigma_rad)
-                                         and obs.sigma_rad > 0) else self.sigma_rad
-        result = Identification(method=self.name, status=FAILED, matches={}, steps=steps,
-                                database_key=self.database_key_string)
-        stats = {"stars": n, "pivots": 0, "patterns": 0, "candidates": [], "verifications": 0,
-                 "first_pivot_adjacent": None, "first_chain": {"outcome": "none", "matches": {}}}
-        result.stats = stats
-        if n < 4:
-            result.reason = f"the ellipticity method needs a pivot and 3 adjacent stars, the frame has {n}"
-            stats["time_s"] = time.perf_counter() - t0
-            return result
-        V = np.asarray(obs.vectors, dtype=np.float64)
-        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
-            raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
+    # ------------------------------------------------------------------ identify (the template's parts)
+    def too_few(self, search: Search) -> str:
+        search.stats = {"pivots": 0, "patterns": 0, "candidates": [], "verifications": 0,
+                        "first_pivot_adjacent": None, "first_chain": {"outcome": "none", "matches": {}}}
+        if search.n < self.min_stars:
+            return f"the ellipticity method needs a pivot and 3 adjacent stars, the frame has {search.n}"
+        return ""
 
+    def failure_reason(self, search: Search) -> str:
+        reasons = search.reasons or ["no hypothesis to verify"]
+        return reasons[-1] if len(reasons) == 1 else f"{len(reasons)} failures, the last: {reasons[-1]}"
+
+    def hypotheses(self, search: Search):
+        """Pivots nearest the boresight first; each pivot's patterns (`_pivot`)."""
+        V, sigma, steps, stats, reasons = search.V, search.sigma, search.steps, search.stats, search.reasons
         # pivots: observed stars by angle from the boresight [0 0 1], within the critical value
         offset = angular_distance(V, np.array([0.0, 0.0, 1.0]))
         order = np.argsort(offset, kind="stable")
         pivots = order[offset[order] <= self.pivot_radius]
-        result.status = INCONCLUSIVE
         if len(pivots) == 0:
             steps.append(Step("pivot", f"no observed star within {np.degrees(self.pivot_radius):g} deg of the "
                                        f"boresight (nearest: {order[0]}, {np.degrees(offset[order[0]]):.3f} deg)",
                               observed=[int(order[0])],
                               numbers={"offset_deg": float(np.degrees(offset[order[0]])),
                                        "pivot_radius_deg": float(np.degrees(self.pivot_radius))}))
-            result.reason = f"no observed star within {np.degrees(self.pivot_radius):g} deg of the boresight"
-            stats["time_s"] = time.perf_counter() - t0
-            return result
+            reasons.append(f"no observed star within {np.degrees(self.pivot_radius):g} deg of the boresight")
+            return
 
         tol_theta = self.beta * np.sqrt(2.0) * sigma if self.adaptive_thresholds else self.angle_threshold
         theta_lo = self.theta_min - (tol_theta if self.theta_min_slack else 0.0)
-        radius = match_radius(sigma, self.radius_sigmas)
-        reasons: list[str] = []
         tried = 0
         for rank, p in enumerate(pivots.tolist()):
             if tried >= self.max_pivots:
@@ -373,20 +374,17 @@ class EllipticityMethod(Identifier):
                 continue  # the paper counts such first pivots among its successes: it took another
             tried += 1
             stats["pivots"] = tried
-            if self._pivot(V, p, adj, sigma, tol_theta, radius, steps, stats, reasons, result):
-                stats["time_s"] = time.perf_counter() - t0
-                return result
+            yield from self._pivot(search, p, adj, tol_theta)
             if not self.next_pivot:
                 break
         if tried == 0:
             reasons.append(f"no pivot within {np.degrees(self.pivot_radius):g} deg of the boresight has 3 adjacent "
                            "stars in the image")
-        result.reason = reasons[-1] if len(reasons) == 1 else f"{len(reasons)} failures, the last: {reasons[-1]}"
-        stats["time_s"] = time.perf_counter() - t0
-        return result
 
-    def _pivot(self, V, p, adj, sigma, tol_theta, radius, steps, stats, reasons, result) -> bool:
-        """All patterns of one pivot (the 3-subsets of its adjacent stars, in order); True if identified."""
+    def _pivot(self, search: Search, p: int, adj: np.ndarray, tol_theta: float):
+        """All patterns of one pivot (the 3-subsets of its adjacent stars, in order): yields the
+        hypotheses of the candidates, best first."""
+        V, sigma, steps, stats, reasons = search.V, search.sigma, search.steps, search.stats, search.reasons
         subsets = np.array(list(combinations(range(len(adj)), 3)), dtype=np.int64)
         idx = np.concatenate([np.full((len(subsets), 1), p), adj[subsets]], axis=1)  # (m, 4) observed
         W = V[idx]  # (m, 4, 3)
@@ -440,30 +438,20 @@ class EllipticityMethod(Identifier):
             for k in within[np.argsort(cost, kind="stable")][:self.max_candidates].tolist():
                 rows = self._assign(W[m], k, th, tol_theta, sigma)
                 R_sv = singular_vector_attitude(W[m], self.catalog.xyz[rows])
-                hyp = dict(zip(o, rows.tolist()))
-                stats["verifications"] += 1  # every verification counts in the Bonferroni factor
-                ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=stats["verifications"],
-                             n_patterns=len(self.eps), statistic=self.statistic, threshold=self.threshold,
-                             radius_rad=radius)
-                vd = ver.to_dict()
-                num = {key: vd[key] for key in ("n_agree", "n_tested", "p_false", "threshold_effective",
-                                                "radius_arcsec", "n_hypotheses", "p_single")}
-                num["passed"] = float(ver.passed)
-                if ver.R is not None:
-                    num["singular_vector_vs_verified_arcsec"] = attitude_error_arcsec(R_sv, ver.R)["total"]
-                steps.append(Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
-                                  observed=sorted(ver.matches or hyp),
-                                  catalog=[int(r) for _, r in sorted((ver.matches or hyp).items())][:CAP],
-                                  groups=[tuple(rows.tolist())], numbers=num,
-                                  layers=(Attitudes.of(R_sv, name="singular-vector attitude"),)))
-                result.verification = vd
-                if ver.passed:
-                    result.accept(ver)
-                    stats["pattern"] = {"pivot": p, "adjacent": o[1:], "catalog": rows.tolist(), "eps": float(eps[m])}
+
+                def compare(ver, R_sv=R_sv):  # the paper's attitude beside the verified one
+                    if ver.R is None:
+                        return {}, {}
+                    return {"singular_vector_vs_verified_arcsec": attitude_error_arcsec(R_sv, ver.R)["total"]}, {}
+
+                def record(ver, o=o, rows=rows, e=float(eps[m]), R_sv=R_sv):
+                    stats["pattern"] = {"pivot": p, "adjacent": o[1:], "catalog": rows.tolist(), "eps": e}
                     stats["R_singular_vectors"] = R_sv
-                    return True
+
+                stats["verifications"] += 1  # every verification counts in the Bonferroni factor
+                ver = yield Hypothesis(dict(zip(o, rows.tolist())), groups=[tuple(rows.tolist())], judge=compare,
+                                       layers=(Attitudes.of(R_sv, name="singular-vector attitude"),), on_accept=record)
                 reasons.append(f"candidate {rows.tolist()} failed verification: {ver.reason}")
-        return False
 
     def _assign(self, W: np.ndarray, k: int, theta: np.ndarray, tol_theta: float, sigma: float) -> np.ndarray:
         """Catalog rows (pivot, adjacent 1..3) for the observed pattern W and database pattern k.

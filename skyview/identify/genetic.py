@@ -17,7 +17,7 @@ must differ from the image's by one constant, eq. 4: C_i = sum_k |theta_a[k] + p
 generations restarts the whole search with new chromosomes. The GA is Haupt & Haupt's continuous GA
 (the paper's reference 3): rank-weighted pairing, one crossover gene blended with a random beta and
 the genes after it swapped, mutation replacing random genes of all but the best chromosome with
-random values. `skyview.identify.genetic_map` reproduces the paper on its own synthetic map.
+random values. `skyview.experiments.genetic_map` reproduces the paper on its own synthetic map.
 
 The real sky (the paper's future work). Stage 1 chromosomes are (RA, Dec) boresights over the whole
 sphere (Dec sampled uniformly in sin Dec, so the population is uniform on the sky). The image side
@@ -81,6 +81,11 @@ boresight, one per roll chromosome, with roll_rad the rolls (skyview's conventio
 a failing 600-generation stage small, the population is attached to generations 0-20, every 10th,
 those that improve the best cost or converge, and the last of each stage (the generations in
 between show none). Steps "converged", "restart", "answer" and "verify" mark the stages.
+
+Length (~1,050 lines, a third of them this description): the paper's encoding and fitness on the sky
+(eqs. 3 and 4, the sky field with its brightness cut and outliers, the merged catalog) and its staged
+search are one method; the GA engine itself is `skyview.identify.genetic_engine`, the common path
+(verification, acceptance, timing) the template of `skyview.identify.base`.
 """
 
 from __future__ import annotations
@@ -90,7 +95,7 @@ import multiprocessing
 import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -102,11 +107,11 @@ from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, chord, radec_to_vec, vec_to_radec
 from skyview.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
-                                   Step)
+from skyview.identify.base import Hypothesis, Identifier, Search, Step
+from skyview.identify.genetic_engine import GAResult, GeneSpace, Sizes, run_ga
 from skyview.identify.layers import Attitudes, Hypotheses, Population, SearchRegion
-from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_one_to_one,
-                                     match_radius, verify)
+from skyview.identify.params import MethodParams, one_of
+from skyview.identify.verify import RADIUS_SIGMAS, angular_distance, match_one_to_one, match_radius
 
 # ------------------------------------------------------------------ the paper's parameters
 PAPER_M = 20  # stars in the distance vector (the paper: m = 15 to 20; its example uses 20)
@@ -125,8 +130,6 @@ PAPER_MAG_TOLERANCE = 1.0  # the pre-filter's +-1 magnitude
 # a stage whose best cost has not improved for 60 generations restarts at once instead of waiting
 # for generation 600; with 10 stars or more in the distance vector, eq. 3 forgives one false or
 # missing star (outliers=1); the magnitude pre-filter the paper only proposes (mag_tolerance=1).
-IMPROVED_PARAMS = {"seeding": "rings", "initial": 60_000, "stall_generations": 60, "max_restarts": 30,
-                   "outliers": 1, "mag_tolerance": PAPER_MAG_TOLERANCE}
 SEEDINGS = ("uniform", "rings")
 # step record: the population is kept for generations 0-20, every 10th, those that improve the best
 # cost or converge, and the last of each stage (a failing 600-generation stage keeps ~100, not 600)
@@ -135,155 +138,6 @@ RECORD_EVERY = 10
 DATABASE_VERSION = 1
 HALF_NORMAL_MEAN = math.sqrt(2.0 / math.pi)
 HALF_NORMAL_SD = math.sqrt(1.0 - 2.0 / math.pi)
-
-
-# ================================================================== the continuous GA (Haupt & Haupt)
-
-@dataclass(frozen=True)
-class Sizes:
-    """Population sizes of one GA: initial random chromosomes, steady-state population, survivors."""
-
-    initial: int
-    population: int
-    survivors: int
-
-    def __post_init__(self):
-        if not (2 <= self.survivors < self.population <= self.initial):
-            raise BadInput(f"GA sizes need 2 <= survivors < population <= initial, got {self.initial} / "
-                           f"{self.population} / {self.survivors}")
-
-
-@dataclass(frozen=True)
-class GeneSpace:
-    """Where the genes live: a box [lo, hi] per gene; periodic genes wrap (RA, roll); `sine` genes are
-    latitudes sampled uniformly in sin (uniform on the sphere)."""
-
-    lo: tuple[float, ...]
-    hi: tuple[float, ...]
-    periodic: tuple[bool, ...] = ()
-    sine: tuple[bool, ...] = ()
-
-    @property
-    def d(self) -> int:
-        return len(self.lo)
-
-    def _flag(self, flags, j) -> bool:
-        return bool(flags[j]) if len(flags) > j else False
-
-    def sample_gene(self, j: int, n: int, rng: np.random.Generator) -> np.ndarray:
-        lo, hi = self.lo[j], self.hi[j]
-        if self._flag(self.sine, j):
-            return np.arcsin(rng.uniform(np.sin(lo), np.sin(hi), size=n))
-        return rng.uniform(lo, hi, size=n)
-
-    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        return np.stack([self.sample_gene(j, n, rng) for j in range(self.d)], axis=1)
-
-    def blend(self, a: np.ndarray, b: np.ndarray, beta: np.ndarray, j: np.ndarray) -> np.ndarray:
-        """a - beta (a - b) for gene j of each pair (the shorter way round for periodic genes)."""
-        diff = a - b
-        if not any(self.periodic):
-            return a - beta * diff
-        per = np.array([self._flag(self.periodic, k) for k in range(self.d)])[j]
-        lo = np.asarray(self.lo)[j]
-        span = (np.asarray(self.hi) - np.asarray(self.lo))[j]
-        diff = np.where(per, (diff + span / 2) % span - span / 2, diff)
-        out = a - beta * diff
-        return np.where(per, lo + (out - lo) % span, out)
-
-
-@dataclass
-class GAResult:
-    genes: np.ndarray  # the best chromosome
-    cost: float
-    converged: bool
-    generations: int
-    evaluations: int
-    history: list[float]  # best cost after the initial population (index 0) and each generation
-    population: np.ndarray  # final population, best first
-    costs: np.ndarray
-    stalled: bool = False
-
-
-def run_ga(cost: Callable[[np.ndarray], np.ndarray], space: GeneSpace, sizes: Sizes, rng: np.random.Generator, *,
-           mutation_rate: float, threshold: float, max_generations: int, stall_generations: int | None = None,
-           initial: np.ndarray | None = None, stop: Callable[[], bool] | None = None,
-           on_generation: Callable[[int, np.ndarray, np.ndarray, int], None] | None = None) -> GAResult:
-    """Minimise `cost` (population (P, d) -> (P,)) with Haupt & Haupt's continuous GA.
-
-    The initial `sizes.initial` random chromosomes (or the given `initial` ones) are evaluated and the
-    best `sizes.population` kept. Each generation the best `sizes.survivors` survive; the rest of the
-    population are offspring of pairs drawn by rank weighting (P_n = (N_keep - n + 1) / sum); a
-    pair's crossover gene is blended with a random beta and the genes after it are swapped; then
-    ceil(mutation_rate x (population - 1) x genes) genes of all but the best chromosome (drawn with
-    replacement, as Haupt's code) are replaced by random values. Only new or changed chromosomes are
-    evaluated. Converged when the best cost is <= threshold (checked after the initial population and
-    after every generation). stall_generations: give up when the best cost has not improved for that
-    many generations. stop(): checked every generation, True abandons the run (not converged).
-    on_generation(g, population, costs, evaluations) sees every generation, best first.
-    """
-    d = space.d
-    pop = space.sample(sizes.initial, rng) if initial is None else np.asarray(initial, dtype=np.float64)
-    c = np.asarray(cost(pop), dtype=np.float64)
-    evaluations = len(pop)
-    order = np.argsort(c, kind="stable")[:sizes.population]
-    pop, c = pop[order], c[order]
-    history = [float(c[0])]
-    if on_generation is not None:
-        on_generation(0, pop, c, evaluations)
-    keep = sizes.survivors
-    n_off = sizes.population - keep
-    n_pairs = (n_off + 1) // 2
-    ranks = np.arange(1, keep + 1)
-    cdf = np.cumsum((keep - ranks + 1) / np.sum(ranks))
-    cdf[-1] = 1.0
-    n_mut = int(math.ceil(mutation_rate * (sizes.population - 1) * d))
-    rows = np.arange(n_pairs)
-    gene_index = np.arange(d)[None, :]
-    gen = 0
-    best_at = 0
-    stalled = False
-    while c[0] > threshold and gen < max_generations:
-        if stall_generations is not None and gen - best_at >= stall_generations:
-            stalled = True
-            break
-        if stop is not None and stop():
-            break
-        gen += 1
-        u = rng.random((2, n_pairs))
-        mom, dad = pop[np.searchsorted(cdf, u[0])], pop[np.searchsorted(cdf, u[1])]
-        alpha = rng.integers(0, d, size=n_pairs) if d > 1 else np.zeros(n_pairs, dtype=np.int64)
-        beta = rng.random(n_pairs)
-        after = gene_index > alpha[:, None]
-        k1 = np.where(after, dad, mom)
-        k2 = np.where(after, mom, dad)
-        ma_, da_ = mom[rows, alpha], dad[rows, alpha]
-        k1[rows, alpha] = space.blend(ma_, da_, beta, alpha)
-        k2[rows, alpha] = space.blend(da_, ma_, -beta, alpha)  # d + beta (m - d)
-        pop = np.concatenate([pop[:keep], k1, k2[:n_off - n_pairs]])
-        changed = np.zeros(sizes.population, dtype=bool)
-        changed[keep:] = True
-        if n_mut:
-            mr = rng.integers(1, sizes.population, size=n_mut)
-            mg = rng.integers(0, d, size=n_mut) if d > 1 else np.zeros(n_mut, dtype=np.int64)
-            for j in range(d):
-                sel = mr[mg == j]
-                if len(sel):
-                    pop[sel, j] = space.sample_gene(j, len(sel), rng)
-            changed[mr] = True
-        todo = np.flatnonzero(changed)
-        c = c.copy()
-        c[todo] = cost(pop[todo])
-        evaluations += len(todo)
-        order = np.argsort(c, kind="stable")
-        pop, c = pop[order], c[order]
-        if c[0] < history[-1]:
-            best_at = gen
-        history.append(float(c[0]))
-        if on_generation is not None:
-            on_generation(gen, pop, c, evaluations)
-    return GAResult(genes=pop[0].copy(), cost=float(c[0]), converged=bool(c[0] <= threshold), generations=gen,
-                    evaluations=evaluations, history=history, population=pop, costs=c, stalled=stalled)
 
 
 # ================================================================== the costs (eq. 3 and eq. 4)
@@ -676,96 +530,119 @@ class _Attempt:
     time_s: float = 0.0
 
 
+@dataclass(frozen=True)
+class GeneticParams(MethodParams):
+    """The genetic method's parameters: the paper's GA sizes, rates and convergence costs, and the options
+    beyond it (the module docstring explains each)."""
+
+    m: int = PAPER_M
+    initial: int = PAPER_FIRST[0]
+    population: int = PAPER_FIRST[1]
+    survivors: int = PAPER_FIRST[2]
+    spiral_initial: int = PAPER_SPIRAL[0]
+    spiral_population: int = PAPER_SPIRAL[1]
+    spiral_survivors: int = PAPER_SPIRAL[2]
+    roll_initial: int = PAPER_ROLL[0]
+    roll_population: int = PAPER_ROLL[1]
+    roll_survivors: int = PAPER_ROLL[2]
+    mutation_rate: float = PAPER_MUTATION_RATE
+    max_generations: int = PAPER_MAX_GENERATIONS
+    deltas: tuple[float, ...] = PAPER_DELTAS
+    delta_fov: float = PAPER_FOV
+    box_factor: float = PAPER_BOX_FACTOR
+    mag_tolerance: float | None = None
+    max_restarts: int = 20
+    stall_generations: int | None = None
+    seeding: str = "uniform"
+    outliers: int = 0
+    outlier_min_stars: int = 10
+    min_stars: int = 3
+    complete_below: int = 40
+    merge_px: float = 3.0
+    seed: int = 0
+    workers: int = 1
+
+    def __post_init__(self):
+        if int(self.m) < 2:
+            raise BadInput("m (stars in the distance vector) must be at least 2")
+        if not (0.0 <= float(self.mutation_rate) <= 1.0):
+            raise BadInput("mutation_rate must be in [0, 1]")
+        if int(self.max_generations) < 1:
+            raise BadInput("max_generations must be at least 1")
+        deltas = tuple(float(x) for x in np.atleast_1d(self.deltas))
+        if not deltas or any(not (np.isfinite(x) and x > 0) for x in deltas):
+            raise BadInput("deltas must be one or more positive convergence costs")
+        object.__setattr__(self, "deltas", deltas)
+        if not (np.isfinite(self.delta_fov) and self.delta_fov > 0):
+            raise BadInput("delta_fov must be positive")
+        if not (np.isfinite(self.box_factor) and self.box_factor > 0):
+            raise BadInput("box_factor must be positive")
+        if self.mag_tolerance is not None and not (np.isfinite(self.mag_tolerance) and self.mag_tolerance > 0):
+            raise BadInput("mag_tolerance must be positive or None (no magnitude pre-filter)")
+        if int(self.max_restarts) < 0:
+            raise BadInput("max_restarts must be >= 0")
+        if self.stall_generations is not None and int(self.stall_generations) < 1:
+            raise BadInput("stall_generations must be >= 1 or None")
+        one_of("seeding", self.seeding, SEEDINGS)
+        if int(self.outliers) not in (0, 1):
+            raise BadInput("outliers must be 0 or 1")
+        if int(self.outlier_min_stars) < 3:
+            raise BadInput("outlier_min_stars must be at least 3")
+        if not (np.isfinite(self.merge_px) and self.merge_px >= 0):
+            raise BadInput("merge_px must be >= 0")
+        if int(self.complete_below) < 1:
+            raise BadInput("complete_below must be at least 1")
+        if int(self.min_stars) < 2:
+            raise BadInput("min_stars must be at least 2")
+        if int(self.workers) not in (1, 2):
+            raise BadInput("workers must be 1 or 2")
+        super().__post_init__()
+        self.sizes()  # Sizes checks itself
+
+    def sizes(self) -> tuple[Sizes, Sizes, Sizes]:
+        """The population sizes of the first, spiral and roll GAs (each checked)."""
+        return (Sizes(int(self.initial), int(self.population), int(self.survivors)),
+                Sizes(int(self.spiral_initial), int(self.spiral_population), int(self.spiral_survivors)),
+                Sizes(int(self.roll_initial), int(self.roll_population), int(self.roll_survivors)))
+
+
+PAPER = GeneticParams()
+IMPROVED = replace(PAPER, seeding="rings", initial=60_000, stall_generations=60, max_restarts=30, outliers=1,
+                   mag_tolerance=PAPER_MAG_TOLERANCE)
+IMPROVED_PARAMS = IMPROVED.changed()
+
+
 class GeneticMethod(Identifier):
     """Paladugu, Williams & Schoen's spiral GA on the celestial sphere, ending in the shared verification."""
 
     name = "genetic"
+    title = "the genetic method"
+    Params = GeneticParams
     improved_params = IMPROVED_PARAMS
 
-    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *, m: int = PAPER_M,
-                 initial: int = PAPER_FIRST[0], population: int = PAPER_FIRST[1], survivors: int = PAPER_FIRST[2],
-                 spiral_initial: int = PAPER_SPIRAL[0], spiral_population: int = PAPER_SPIRAL[1],
-                 spiral_survivors: int = PAPER_SPIRAL[2], roll_initial: int = PAPER_ROLL[0],
-                 roll_population: int = PAPER_ROLL[1], roll_survivors: int = PAPER_ROLL[2],
-                 mutation_rate: float = PAPER_MUTATION_RATE, max_generations: int = PAPER_MAX_GENERATIONS,
-                 deltas: tuple[float, ...] = PAPER_DELTAS, delta_fov: float = PAPER_FOV,
-                 box_factor: float = PAPER_BOX_FACTOR, mag_tolerance: float | None = None,
-                 max_restarts: int = 20, stall_generations: int | None = None, seeding: str = "uniform",
-                 outliers: int = 0, outlier_min_stars: int = 10, min_stars: int = 3, complete_below: int = 40,
-                 merge_px: float = 3.0,
-                 seed: int = 0, workers: int = 1, statistic: str = CALIBRATED, threshold: float | None = None,
-                 radius_sigmas: float = RADIUS_SIGMAS):
-        if not (np.isfinite(sigma_rad) and sigma_rad > 0):
-            raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
-        if int(m) < 2:
-            raise BadInput("m (stars in the distance vector) must be at least 2")
-        if not (0.0 <= float(mutation_rate) <= 1.0):
-            raise BadInput("mutation_rate must be in [0, 1]")
-        if int(max_generations) < 1:
-            raise BadInput("max_generations must be at least 1")
-        deltas = tuple(float(x) for x in deltas)
-        if not deltas or any(not (np.isfinite(x) and x > 0) for x in deltas):
-            raise BadInput("deltas must be one or more positive convergence costs")
-        if not (np.isfinite(delta_fov) and delta_fov > 0):
-            raise BadInput("delta_fov must be positive")
-        if not (np.isfinite(box_factor) and box_factor > 0):
-            raise BadInput("box_factor must be positive")
-        if mag_tolerance is not None and not (np.isfinite(mag_tolerance) and mag_tolerance > 0):
-            raise BadInput("mag_tolerance must be positive or None (no magnitude pre-filter)")
-        if int(max_restarts) < 0:
-            raise BadInput("max_restarts must be >= 0")
-        if stall_generations is not None and int(stall_generations) < 1:
-            raise BadInput("stall_generations must be >= 1 or None")
-        if seeding not in SEEDINGS:
-            raise BadInput(f"unknown seeding {seeding!r}: choose from {', '.join(SEEDINGS)}")
-        if int(outliers) not in (0, 1):
-            raise BadInput("outliers must be 0 or 1")
-        if int(outlier_min_stars) < 3:
-            raise BadInput("outlier_min_stars must be at least 3")
-        if not (np.isfinite(merge_px) and merge_px >= 0):
-            raise BadInput("merge_px must be >= 0")
-        if int(complete_below) < 1:
-            raise BadInput("complete_below must be at least 1")
-        if int(min_stars) < 2:
-            raise BadInput("min_stars must be at least 2")
-        if int(workers) not in (1, 2):
-            raise BadInput("workers must be 1 or 2")
-        if statistic not in STATISTICS:
-            raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
-        if threshold is not None and not (0 < float(threshold) <= 1):
-            raise BadInput("threshold must be in (0, 1]")
-        if not (np.isfinite(radius_sigmas) and radius_sigmas > 0):
-            raise BadInput("radius_sigmas must be positive")
-        self.first = Sizes(int(initial), int(population), int(survivors))
-        self.spiral = Sizes(int(spiral_initial), int(spiral_population), int(spiral_survivors))
-        self.roll = Sizes(int(roll_initial), int(roll_population), int(roll_survivors))
-        self.catalog = catalog
-        self.camera = camera
-        self.sigma_rad = float(sigma_rad)
-        self.m = int(m)
-        self.mutation_rate = float(mutation_rate)
-        self.max_generations = int(max_generations)
-        self.deltas = deltas
-        self.delta_fov = float(delta_fov)
-        self.box_factor = float(box_factor)
-        self.mag_tolerance = None if mag_tolerance is None else float(mag_tolerance)
-        self.max_restarts = int(max_restarts)
-        self.stall_generations = None if stall_generations is None else int(stall_generations)
-        self.seeding = seeding
-        self.outliers = int(outliers)
-        self.outlier_min_stars = int(outlier_min_stars)
-        self.min_stars = int(min_stars)
-        self.complete_below = int(complete_below)
-        self.seed = int(seed)
-        self.workers = int(workers)
-        self.statistic = statistic
-        self.threshold = threshold
-        self.radius_sigmas = float(radius_sigmas)
+    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, **params):
+        p = self.configure(catalog, camera, sigma_rad, params)
+        self.first, self.spiral, self.roll = p.sizes()
+        self.m = int(p.m)
+        self.mutation_rate = float(p.mutation_rate)
+        self.max_generations = int(p.max_generations)
+        self.delta_fov = float(p.delta_fov)
+        self.box_factor = float(p.box_factor)
+        self.mag_tolerance = None if p.mag_tolerance is None else float(p.mag_tolerance)
+        self.max_restarts = int(p.max_restarts)
+        self.stall_generations = None if p.stall_generations is None else int(p.stall_generations)
+        self.outliers = int(p.outliers)
+        self.outlier_min_stars = int(p.outlier_min_stars)
+        self.min_stars = int(p.min_stars)
+        self.complete_below = int(p.complete_below)
+        self.seed = int(p.seed)
+        self.workers = int(p.workers)
+        self.radius_sigmas = float(p.radius_sigmas)
         self.r_circle = inscribed_radius(camera)
         self.fov_rad = float(np.radians(camera.fov_deg))
         self.max_sep_rad = 2.0 * camera.half_diagonal_rad
         # the GA's catalog: stars closer than merge_px are one blob for the centroider
-        self.merge_px = float(merge_px)
+        self.merge_px = float(p.merge_px)
         self.ga_catalog, self.ga_rows = merged_catalog(catalog, self.merge_px * camera.pixel_scale_rad)
         # the most catalog stars a circle around a chromosome may hold (a little wider than r_circle)
         gx = self.ga_catalog
@@ -818,93 +695,64 @@ class GeneticMethod(Identifier):
         floor = noise_floor(n, sigma)
         return [max(d * (n / PAPER_M) * self.fov_rad / self.delta_fov, floor) for d in self.deltas]
 
-    # ------------------------------------------------------------------ identify
-    def identify(self, obs: Observation) -> Identification:
-        t0 = time.perf_counter()
-        steps: list[Step] = []
-        n = len(obs)
-        sigma = float(obs.sigma_rad) if (obs.sigma_rad is not None and np.isfinite(obs.sigma_rad)
-                                         and obs.sigma_rad > 0) else self.sigma_rad
-        result = Identification(method=self.name, status=FAILED, matches={}, steps=steps,
-                                database_key=database.key_string(self.database_key))
-        V = np.asarray(obs.vectors, dtype=np.float64)
-        if n and (V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V))):
-            raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
-        sky = self._field(V, obs.brightness, sigma)
-        if n < 3 or sky.n < self.min_stars:
-            result.reason = (f"the genetic method needs at least {self.min_stars} stars within "
-                             f"{np.degrees(self.r_circle):.2f} deg of the centre and 3 in the image; the frame has "
-                             f"{sky.n} and {n}")
-            result.stats = {"stars": n, "stars_in_circle": sky.n_circle, "stars_in_vector": sky.n,
-                            "time_s": time.perf_counter() - t0}
-            return result
-        frame_key = zlib.crc32(np.ascontiguousarray(V).tobytes())
-        r = match_radius(sigma, self.radius_sigmas)
-        attempts: list[_Attempt] = []
-        reasons: list[str] = []
-        runs = self._attempts(V, obs.brightness, sigma, frame_key)
-        try:
-            n_hyp = self._search(runs, V, sigma, r, result, attempts, reasons)
-        finally:
-            runs.close()
-        first_answer = next((a for a in attempts if a.outcome == "answer"), None)
-        if result.status != IDENTIFIED:
-            result.status = INCONCLUSIVE
-            result.reason = (f"no verified answer in {len(attempts)} attempt(s): "
-                             + "; ".join(sorted(set(reasons), key=reasons.index)))
-        result.stats = {
-            "stars": n,
-            "stars_in_circle": sky.n_circle,
-            "stars_in_vector": sky.n,
-            "brightness_cut_mag": sky.cut_rel_mag,
-            "attempts": len(attempts),
-            "restarts": max(0, len(attempts) - 1),
-            "generations": int(sum(sum(a.generations) for a in attempts)),
-            "evaluations": int(sum(a.evaluations for a in attempts)),
-            "verifications": int(sum(1 for s in steps if s.kind == "verify")),
-            "n_hypotheses": n_hyp,
-            "thresholds_rad": self.thresholds(sky.n, sigma),
-            "first_chain": {"outcome": "answer" if first_answer is not None else "none",
-                            "matches": dict(first_answer.matches) if first_answer is not None else {}},
-            "time_s": time.perf_counter() - t0,
-        }
-        return result
+    @property
+    def n_patterns(self) -> int:
+        return len(self.separations)
 
-    def _search(self, runs, V: np.ndarray, sigma: float, r: float, result: Identification,
-                attempts: list[_Attempt], reasons: list[str]) -> int:
-        """Verify the attempts' answers in restart order until one passes; returns the hypotheses counted."""
-        steps = result.steps
-        n_hyp = 0
-        for att in runs:
-            attempts.append(att)
-            steps.extend(att.steps)
-            if att.outcome != "answer":
-                reasons.append(att.reason)
-                continue
-            hyp, n_pair = self._hypothesis(V, att.matches, r)
-            if hyp is None:
-                reasons.append("an answer matched fewer than two observed stars")
-                steps.append(Step("restart", f"attempt {att.index + 1}: the answer matched fewer than two stars",
-                                  numbers={"attempt": att.index}))
-                continue
-            n_hyp += n_pair
-            ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=n_hyp,
-                         n_patterns=len(self.separations), statistic=self.statistic, threshold=self.threshold,
-                         radius_rad=r)
-            vd = ver.to_dict()
-            shown = ver.matches or hyp
-            steps.append(Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
-                              observed=sorted(shown), catalog=[int(c) for _, c in sorted(shown.items())],
-                              numbers={k: vd[k] for k in ("n_agree", "n_tested", "p_false", "threshold_effective",
-                                                         "radius_arcsec", "n_hypotheses", "p_single")}
-                              | {"passed": float(ver.passed), "attempt": att.index, "pair_hypotheses": n_pair},
-                              layers=(Hypotheses.single(hyp),)))
-            result.verification = vd
-            if ver.passed:
-                result.accept(ver)
-                break
-            reasons.append(f"verification failed: {ver.reason}")
-        return n_hyp
+    # ------------------------------------------------------------------ identify (the template's parts)
+    def too_few(self, search: Search) -> str:
+        sky = search.data["sky"] = self._field(search.V, search.obs.brightness, search.sigma)
+        search.stats = {"stars_in_circle": sky.n_circle, "stars_in_vector": sky.n}
+        if search.n < 3 or sky.n < self.min_stars:
+            return (f"the genetic method needs at least {self.min_stars} stars within "
+                    f"{np.degrees(self.r_circle):.2f} deg of the centre and 3 in the image; the frame has "
+                    f"{sky.n} and {search.n}")
+        return ""
+
+    def failure_reason(self, search: Search) -> str:
+        reasons = search.reasons
+        return (f"no verified answer in {search.data['attempts']} attempt(s): "
+                + "; ".join(sorted(set(reasons), key=reasons.index)))
+
+    def hypotheses(self, search: Search):
+        """The attempts' answers in restart order, each as the hypothesis of its two brightest matched
+        stars (counted as every catalog pair of that separation), until one verifies."""
+        V, sigma, steps, reasons, sky = search.V, search.sigma, search.steps, search.reasons, search.data["sky"]
+        frame_key = zlib.crc32(np.ascontiguousarray(V).tobytes())
+        attempts: list[_Attempt] = []
+        runs = self._attempts(V, search.obs.brightness, sigma, frame_key)
+        try:
+            for att in runs:
+                attempts.append(att)
+                steps.extend(att.steps)
+                if att.outcome != "answer":
+                    reasons.append(att.reason)
+                    continue
+                hyp, n_pair = self._hypothesis(V, att.matches, search.radius)
+                if hyp is None:
+                    reasons.append("an answer matched fewer than two observed stars")
+                    steps.append(Step("restart", f"attempt {att.index + 1}: the answer matched fewer than two stars",
+                                      numbers={"attempt": att.index}))
+                    continue
+                ver = yield Hypothesis(hyp, count=n_pair, numbers={"attempt": att.index, "pair_hypotheses": n_pair},
+                                       layers=(Hypotheses.single(hyp),))
+                reasons.append(f"verification failed: {ver.reason}")
+        finally:  # also when the search ends at an accepted answer (the generator is closed)
+            runs.close()
+            first_answer = next((a for a in attempts if a.outcome == "answer"), None)
+            search.data["attempts"] = len(attempts)
+            search.stats.update({
+                "brightness_cut_mag": sky.cut_rel_mag,
+                "attempts": len(attempts),
+                "restarts": max(0, len(attempts) - 1),
+                "generations": int(sum(sum(a.generations) for a in attempts)),
+                "evaluations": int(sum(a.evaluations for a in attempts)),
+                "verifications": search.verifications,
+                "n_hypotheses": search.n_hypotheses,
+                "thresholds_rad": self.thresholds(sky.n, sigma),
+                "first_chain": {"outcome": "answer" if first_answer is not None else "none",
+                                "matches": dict(first_answer.matches) if first_answer is not None else {}},
+            })
 
     def _field(self, V: np.ndarray, brightness: np.ndarray, sigma: float) -> SkyField:
         margin = RADIUS_SIGMAS * sigma
@@ -1153,58 +1001,3 @@ def _set_worker_method(method: GeneticMethod, stop_event) -> None:
 
 def _attempt_in_worker(V, brightness, sigma, frame_key, k) -> _Attempt:
     return _WORKER_METHOD._attempt(V, brightness, sigma, frame_key, k)
-
-
-# ---------------------------------------------------------------------- every answer through verification
-
-def verify_every_answer(fov_deg: float = 8.0, frames: int = 300, attempts: int = 10, false_stars: int = 0,
-                        sigma_rad: float = 87e-6, mag_limit: float = 6.0, seed: int = 0,
-                        **params) -> dict:
-    """Vector-level check of the guard: random attitudes (Cole & Crassidis frames), `attempts` GA
-    attempts per frame with the improved parameters (and `params`), EVERY answer sent to the shared
-    verification (until one passes, counting hypotheses as identify does), each scored against the
-    truth. Returns the tally: answers, wrong answers, wrong answers that passed, right ones passed and
-    rejected."""
-    from skyview.attitude import random_attitudes
-    from skyview.catalog import load_guide_catalog
-    from skyview.identify.synthetic import synthetic_frame
-
-    cat = load_guide_catalog().brighter_than(mag_limit)
-    cam = Camera.from_fov(fov_deg, 1024)
-    g = GeneticMethod(cat, cam, sigma_rad, **{**IMPROVED_PARAMS, "max_restarts": attempts - 1, **params})
-    rng = np.random.default_rng(seed)
-    r = match_radius(sigma_rad, g.radius_sigmas)
-    tally = {"frames": 0, "answers": 0, "wrong_answers": 0, "wrong_passed": 0, "right_passed": 0,
-             "right_rejected": 0, "time_s": 0.0}
-    t0 = time.perf_counter()
-    for t in range(frames):
-        R = random_attitudes(1, rng)[0]
-        f = synthetic_frame(cat, cam, R, sigma_rad, rng, false_stars=false_stars)
-        V = f.obs.vectors
-        if len(V) < 3 or g._field(V, f.obs.brightness, sigma_rad).n < g.min_stars:
-            continue
-        tally["frames"] += 1
-        n_hyp = 0
-        for k in range(attempts):
-            att = g._attempt(V, f.obs.brightness, sigma_rad, t, k)
-            if att.outcome != "answer":
-                continue
-            hyp, n_pair = g._hypothesis(V, att.matches, r)
-            if hyp is None:
-                continue
-            n_hyp += n_pair
-            ver = verify(V, hyp, cat, cam, sigma_rad, n_hypotheses=n_hyp, radius_rad=r)
-            right = all(f.truth[o] == c for o, c in hyp.items())
-            tally["answers"] += 1
-            if not right:
-                tally["wrong_answers"] += 1
-                tally["wrong_passed"] += int(ver.passed)
-            elif ver.passed:
-                tally["right_passed"] += 1
-            else:
-                tally["right_rejected"] += 1
-            if ver.passed:
-                break
-    tally["time_s"] = time.perf_counter() - t0
-    return tally
-

@@ -82,10 +82,9 @@ def area_jacobian(a, b, c) -> np.ndarray:
     that a bound built on it accepts everything rather than nothing.
     """
     a, b, c = (np.asarray(x, dtype=np.float64) for x in (a, b, c))
-    t1, t2 = np.tan((a + b + c) / 4.0), np.tan((b + c - a) / 4.0)
-    t3, t4 = np.tan((a + c - b) / 4.0), np.tan((a + b - c) / 4.0)
-    s1, s2 = 1.0 / np.cos((a + b + c) / 4.0) ** 2, 1.0 / np.cos((b + c - a) / 4.0) ** 2
-    s3, s4 = 1.0 / np.cos((a + c - b) / 4.0) ** 2, 1.0 / np.cos((a + b - c) / 4.0) ** 2
+    q = np.stack([(a + b + c) / 4.0, (b + c - a) / 4.0, (a + c - b) / 4.0, (a + b - c) / 4.0])  # all four at once
+    t1, t2, t3, t4 = np.tan(q)
+    s1, s2, s3, s4 = 1.0 / np.cos(q) ** 2
     u1 = s1 * t2 * t3 * t4  # eq. 23a
     u2 = t1 * s2 * t3 * t4  # eq. 23b
     u3 = t1 * t2 * s3 * t4  # eq. 23c
@@ -106,16 +105,15 @@ def area_sigma_paper(a, b, c, sigma: float) -> np.ndarray:
 
 def vertex_angles(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """cos of the spherical angles at A, B and C (between the tangents towards the other two)."""
-
-    def cos_at(P, Q, R):
-        tq = Q - np.einsum("...i,...i->...", Q, P)[..., None] * P
-        tr = R - np.einsum("...i,...i->...", R, P)[..., None] * P
-        nq, nr = np.linalg.norm(tq, axis=-1), np.linalg.norm(tr, axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cs = np.einsum("...i,...i->...", tq, tr) / (nq * nr)
-        return np.clip(np.nan_to_num(cs, nan=1.0), -1.0, 1.0)
-
-    return cos_at(A, B, C), cos_at(B, C, A), cos_at(C, A, B)
+    A, B, C = (np.asarray(x, dtype=np.float64) for x in (A, B, C))
+    P, Q, R = np.stack([A, B, C]), np.stack([B, C, A]), np.stack([C, A, B])  # the three vertices at once
+    tq = Q - np.einsum("...i,...i->...", Q, P)[..., None] * P
+    tr = R - np.einsum("...i,...i->...", R, P)[..., None] * P
+    nq, nr = np.linalg.norm(tq, axis=-1), np.linalg.norm(tr, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cs = np.einsum("...i,...i->...", tq, tr) / (nq * nr)
+    cs = np.clip(np.nan_to_num(cs, nan=1.0), -1.0, 1.0)
+    return cs[0], cs[1], cs[2]
 
 
 def side_covariance(A: np.ndarray, B: np.ndarray, C: np.ndarray, sigma: float) -> np.ndarray:
@@ -271,13 +269,12 @@ def triple(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
 
 def triple_sigma(A: np.ndarray, B: np.ndarray, C: np.ndarray, sigma: float) -> np.ndarray:
     """1-sigma of the triple product for a tangent-plane error of sigma per axis on each vertex."""
-
-    def tangential(P, g):  # the part of the gradient g that a tangent-plane error of P sees
-        return g - np.einsum("...i,...i->...", g, P)[..., None] * P
-
-    gA, gB, gC = tangential(A, cross(B, C)), tangential(B, cross(C, A)), tangential(C, cross(A, B))
-    v = sum(np.einsum("...i,...i->...", g, g) for g in (gA, gB, gC))
-    return float(sigma) * np.sqrt(v)
+    A, B, C = (np.asarray(x, dtype=np.float64) for x in (A, B, C))
+    P = np.stack([A, B, C])  # the three vertices at once
+    g = cross(np.stack([B, C, A]), np.stack([C, A, B]))  # the gradient of the triple product at each
+    g = g - np.einsum("...i,...i->...", g, P)[..., None] * P  # the part a tangent-plane error sees
+    v = np.einsum("...i,...i->...", g, g)
+    return float(sigma) * np.sqrt(v[0] + v[1] + v[2])
 
 
 def enclosing_cap_radius(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:

@@ -82,12 +82,16 @@ registration="designated" (above). docs/stochastic.md has the reasons and the me
 The paper taken literally (hypothesis="boresight", for reproducing it): row r is "the boresight is on
 star r", the turns are the inertial rotations of the boresight, no roll is carried and no field is
 fitted; a row gets a roll (the vote) only when it goes to verification.
+
+Length (~890 lines): the statistics, the roll vote, the prediction with the known turn, the
+registration and the recursion are one method over a sequence; scoring against the truth (the true
+star's posterior) is `skyview.scoring.sequence_truth`, never here.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -99,10 +103,11 @@ from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, chord
 from skyview.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import FAILED, INCONCLUSIVE, Identification, Observation, SequenceIdentifier, Step
+from skyview.identify.base import (INCONCLUSIVE, Hypothesis, Identification, Observation, Search,
+                                   SequenceIdentifier, Step)
 from skyview.identify.layers import Posterior
-from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, frame_stars,
-                                     match_one_to_one, match_radius, verify, verification_step)
+from skyview.identify.params import MethodParams, one_of
+from skyview.identify.verify import angular_distance, frame_stars, match_one_to_one, match_radius
 
 STAT_NAMES = ("n", "mu_m", "sigma_m", "mu_d", "sigma_d", "sigma_theta")
 # The paper's Q (diagonal): star^2, mag^2, mag^2, deg^2, deg^2, rad^2 (see the module docstring)
@@ -125,7 +130,6 @@ N_BINS = 360  # roll histogram bins
 DATABASE_VERSION = 1
 MAG_CONSISTENCY_P = 1e-4  # a verified match whose magnitudes disagree more than this is refused
 MAG_CLIP = 4.0  # sigmas: one saturated or blended star cannot refuse a match on its own
-IMPROVED_PARAMS = {"verify_top": 3, "prediction_likelihood": True, "registration": "designated"}
 
 
 # ---------------------------------------------------------------------------- statistics (g)
@@ -264,7 +268,6 @@ class StochasticState:
     frames: int = 0  # frames absorbed (with at least one star)
     seen: int = 0  # frames given
     verifications: int = 0
-    true_start: int = -1  # the true designated star of frame 0 (its row is the true sequence), if known
     history: list[dict] = field(default_factory=list)
 
     @property
@@ -288,70 +291,76 @@ class _Field:
     x: np.ndarray
 
 
+@dataclass(frozen=True)
+class StochasticParams(MethodParams):
+    """The stochastic method's parameters (the paper's Q and rho -> 1; the module docstring explains each)."""
+
+    Q: tuple | None = None
+    p_identify: float = 0.95
+    mag_zero_point: float | None = None
+    mag_cut: float | None = None
+    sigma_mag: float = 0.6
+    n_roll: int = N_ROLL
+    max_verify: int = 3
+    verify_top: int = 0
+    prediction_likelihood: bool = False
+    registration: str = "boresight"
+    hypothesis: str = "attitude"
+
+    def __post_init__(self):
+        q = np.asarray(PAPER_Q if self.Q is None else self.Q, dtype=np.float64)
+        if q.shape != (6,) or not np.all(np.isfinite(q)) or np.any(q <= 0):
+            raise BadInput("Q must be six positive variances (star^2, mag^2, mag^2, deg^2, deg^2, rad^2)")
+        if not (0.0 < float(self.p_identify) <= 1.0):
+            raise BadInput("p_identify must be in (0, 1]")
+        if self.mag_zero_point is not None and not np.isfinite(self.mag_zero_point):
+            raise BadInput("mag_zero_point must be a finite number or None")
+        if self.mag_cut is not None and (self.mag_zero_point is None or not np.isfinite(self.mag_cut)):
+            raise BadInput("mag_cut needs a finite value and a mag_zero_point (magnitudes on the catalog's scale)")
+        if not (np.isfinite(self.sigma_mag) and self.sigma_mag > 0):
+            raise BadInput("sigma_mag must be positive")
+        if int(self.n_roll) < 1:
+            raise BadInput("n_roll must be at least 1")
+        if int(self.max_verify) < 1 or int(self.verify_top) < 0:
+            raise BadInput("max_verify must be >= 1 and verify_top >= 0")
+        one_of("registration", self.registration, REGISTRATIONS)
+        one_of("hypothesis", self.hypothesis, HYPOTHESES)
+        if self.hypothesis == "boresight" and (self.registration != "boresight" or self.prediction_likelihood):
+            raise BadInput("hypothesis='boresight' (the paper's literal model) goes with the paper variant only: "
+                           "it registers by the boresight and has no prediction likelihood")
+        super().__post_init__()
+
+
+PAPER = StochasticParams()
+IMPROVED = replace(PAPER, verify_top=3, prediction_likelihood=True, registration="designated")
+IMPROVED_PARAMS = IMPROVED.changed()
+
+
 class StochasticMethod(SequenceIdentifier):
     """Udomkesmalee et al.'s stochastic identification over a sequence of frames, ending in the
     shared verification. `identify(obs)` is one frame (the prior update only);
     `identify_sequence(observations, turns)` runs the recursion of eq. 3."""
 
     name = "stochastic"
+    Params = StochasticParams
     improved_params = IMPROVED_PARAMS
 
-    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *,
-                 Q: tuple | list | None = None, p_identify: float = 0.95, mag_zero_point: float | None = None,
-                 mag_cut: float | None = None, sigma_mag: float = 0.6, n_roll: int = N_ROLL,
-                 max_verify: int = 3, verify_top: int = 0, prediction_likelihood: bool = False,
-                 registration: str = "boresight", hypothesis: str = "attitude",
-                 statistic: str = CALIBRATED, threshold: float | None = None,
-                 radius_sigmas: float = RADIUS_SIGMAS):
-        if not (np.isfinite(sigma_rad) and sigma_rad > 0):
-            raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
-        q = np.asarray(PAPER_Q if Q is None else Q, dtype=np.float64)
-        if q.shape != (6,) or not np.all(np.isfinite(q)) or np.any(q <= 0):
-            raise BadInput("Q must be six positive variances (star^2, mag^2, mag^2, deg^2, deg^2, rad^2)")
-        if not (0.0 < float(p_identify) <= 1.0):
-            raise BadInput("p_identify must be in (0, 1]")
-        if mag_zero_point is not None and not np.isfinite(mag_zero_point):
-            raise BadInput("mag_zero_point must be a finite number or None")
-        if mag_cut is not None and (mag_zero_point is None or not np.isfinite(mag_cut)):
-            raise BadInput("mag_cut needs a finite value and a mag_zero_point (magnitudes on the catalog's scale)")
-        if not (np.isfinite(sigma_mag) and sigma_mag > 0):
-            raise BadInput("sigma_mag must be positive")
-        if int(n_roll) < 1:
-            raise BadInput("n_roll must be at least 1")
-        if int(max_verify) < 1 or int(verify_top) < 0:
-            raise BadInput("max_verify must be >= 1 and verify_top >= 0")
-        if registration not in REGISTRATIONS:
-            raise BadInput(f"unknown registration {registration!r}: choose from {', '.join(REGISTRATIONS)}")
-        if hypothesis not in HYPOTHESES:
-            raise BadInput(f"unknown hypothesis {hypothesis!r}: choose from {', '.join(HYPOTHESES)}")
-        if hypothesis == "boresight" and (registration != "boresight" or prediction_likelihood):
-            raise BadInput("hypothesis='boresight' (the paper's literal model) goes with the paper variant only: "
-                           "it registers by the boresight and has no prediction likelihood")
-        if statistic not in STATISTICS:
-            raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
-        if threshold is not None and not (0 < float(threshold) <= 1):
-            raise BadInput("threshold must be in (0, 1]")
-        if not (np.isfinite(radius_sigmas) and radius_sigmas > 0):
-            raise BadInput("radius_sigmas must be positive")
+    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, **params):
+        p = self.configure(catalog, camera, sigma_rad, params)
         if len(catalog) < 2:
             raise BadInput("the stochastic method needs a catalog of at least two stars")
-        self.catalog = catalog
-        self.camera = camera
-        self.sigma_rad = float(sigma_rad)
+        n_roll = p.n_roll
+        q = np.asarray(PAPER_Q if p.Q is None else p.Q, dtype=np.float64)
         self.Q = tuple(float(v) for v in q)
         self.q_inv = 1.0 / (q * _Q_TO_INTERNAL)
-        self.p_identify = float(p_identify)
-        self.mag_zero_point = None if mag_zero_point is None else float(mag_zero_point)
-        self.mag_cut = None if mag_cut is None else float(mag_cut)
-        self.sigma_mag = float(sigma_mag)
-        self.max_verify = int(max_verify)
-        self.verify_top = int(verify_top)
-        self.prediction_likelihood = bool(prediction_likelihood)
-        self.registration = registration
-        self.hypothesis = hypothesis
-        self.statistic = statistic
-        self.threshold = threshold
-        self.radius_sigmas = float(radius_sigmas)
+        self.p_identify = float(p.p_identify)
+        self.mag_zero_point = None if p.mag_zero_point is None else float(p.mag_zero_point)
+        self.mag_cut = None if p.mag_cut is None else float(p.mag_cut)
+        self.sigma_mag = float(p.sigma_mag)
+        self.max_verify = int(p.max_verify)
+        self.verify_top = int(p.verify_top)
+        self.prediction_likelihood = bool(p.prediction_likelihood)
+        self.radius_sigmas = float(p.radius_sigmas)
 
         self.neighbour_radius_rad = NEIGHBOUR_RADIUS_FACTOR * camera.half_diagonal_rad
         params = {"n_roll": int(n_roll), "neighbour_radius_rad": self.neighbour_radius_rad,
@@ -385,6 +394,10 @@ class StochasticMethod(SequenceIdentifier):
     def n_catalog(self) -> int:
         return len(self.catalog)
 
+    @property
+    def n_patterns(self) -> int:
+        return self.n_catalog
+
     # ------------------------------------------------------------------ public API
     def start(self) -> StochasticState:
         """Equal priors 1/N: row r starts at catalog star r (attitudes are set by the first frame)."""
@@ -392,75 +405,44 @@ class StochasticMethod(SequenceIdentifier):
         return StochasticState(rows=np.arange(N), R=np.tile(np.eye(3), (N, 1, 1)),
                                log_post=np.full(N, -np.log(N)))
 
-    def identify(self, obs: Observation) -> Identification:
-        """One frame: the prior update of eq. 3 (equal priors), then identification if one row
-        dominates (or, with verify_top, if one of the leading rows verifies)."""
-        state = self.start()
-        return self.update(state, obs, None)
-
     def identify_sequence(self, observations: list[Observation], turns: list[np.ndarray] | None = None,
-                          truth: list[np.ndarray | None] | None = None,
                           designated: list[int | None] | None = None) -> list[Identification]:
         """Frames k = 0..K-1 with turns[k] = dR_cam from frame k to k+1 (v_cam_{k+1} = dR_cam v_cam_k),
         or, with hypothesis="boresight", the inertial turn T of the boresight (b_{k+1} = T b_k, i.e.
         R_{k+1} = R_k T^T).
 
-        truth (optional, for the record only): per frame, the true catalog row of every observed star
-        (-1 for a false star); every step then reports the posterior of the designated star's true
-        identity. designated (optional): per frame, the observed index to use as the designated star
-        instead of the one nearest the boresight (None: the rule f). Returns one Identification per frame; frame k's steps cover that frame, its stats
-        hold the posterior summary.
+        designated (optional): per frame, the observed index to use as the designated star instead of
+        the one nearest the boresight (None: the rule f). Returns one Identification per frame; frame
+        k's steps cover that frame (its 'update' step carries the posterior as a `Posterior` layer:
+        `skyview.scoring.sequence_truth` scores it against the truth), its stats hold the posterior
+        summary.
         """
         observations = list(observations)
         turns = [] if turns is None else [np.asarray(t, dtype=np.float64) for t in turns]
-        if len(turns) != max(len(observations) - 1, 0):
-            raise BadInput(f"{len(observations)} frames need {max(len(observations) - 1, 0)} turns, "
-                           f"got {len(turns)}")
         for t in turns:
             if t.shape != (3, 3) or not np.all(np.isfinite(t)) or np.abs(t @ t.T - np.eye(3)).max() > 1e-6 \
                     or np.linalg.det(t) < 0:
                 raise BadInput("every turn must be a proper 3x3 rotation matrix (dR_cam)")
-        if truth is not None and len(truth) != len(observations):
-            raise BadInput("truth must have one entry per frame")
         if designated is not None and len(designated) != len(observations):
             raise BadInput("designated must have one entry per frame")
-        state = self.start()
-        out = []
-        for k, obs in enumerate(observations):
-            out.append(self.update(state, obs, turns[k - 1] if k > 0 else None,
-                                   truth=None if truth is None else truth[k],
-                                   designated=None if designated is None else designated[k]))
-        return out
+        return super().identify_sequence(observations, turns, designated=designated)
 
     # ------------------------------------------------------------------ one frame
     def update(self, state: StochasticState, obs: Observation, dR_cam: np.ndarray | None,
-               truth: np.ndarray | None = None, designated: int | None = None) -> Identification:
+               designated: int | None = None) -> Identification:
         """Absorb one frame into `state` (in place): predict with the turn, update the posterior,
         and try to identify. dR_cam: the turn from the previous frame (None for the first frame);
-        truth: the true catalog row of every observed star (-1: false star), for the record only.
         designated: the observed index of the designated star (default: the rule f, the observed star
         nearest the boresight)."""
-        t0 = time.perf_counter()
-        steps: list[Step] = []
         k = state.seen  # this frame's number
         first = state.frames == 0  # no star seen yet: the prior update (a turn before it is moot)
-        sigma = float(obs.sigma_rad) if (obs.sigma_rad is not None and np.isfinite(obs.sigma_rad)
-                                         and obs.sigma_rad > 0) else self.sigma_rad
-        result = Identification(method=self.name, status=FAILED, matches={}, steps=steps,
-                                database_key=self.database_key_string)
-        V = np.asarray(obs.vectors, dtype=np.float64).reshape(-1, 3)
-        if not np.all(np.isfinite(V)):
-            raise BadInput("observed vectors must be finite")
         if k > 0 and dR_cam is None:
             raise BadInput("a frame after the first needs the turn from the previous frame (dR_cam)")
+        search = self.begin(obs)
+        search.n_hypotheses = state.verifications  # the Bonferroni factor runs over the whole sequence
+        V, sigma, steps, result = search.V, search.sigma, search.steps, search.result
         fld = self._field(obs, V, designated)
         state.seen += 1
-        true_row = -1
-        if truth is not None and fld is not None:
-            tr = np.asarray(truth).reshape(-1)
-            if len(tr) != len(V):
-                raise BadInput("truth must give one catalog row per observed star")
-            true_row = int(tr[fld.designated])
 
         if fld is None:  # nothing to see: carry the rows with the turn only
             if not first:
@@ -470,7 +452,7 @@ class StochasticMethod(SequenceIdentifier):
             steps.append(Step("skip", f"frame {k}: no star to designate; the posterior is unchanged",
                               numbers={"frame": k}))
             result.reason = "no star in the frame"
-            self._finish_stats(state, result, fld, true_row, t0, sigma)
+            self._finish_stats(state, search, fld)
             return result
 
         steps.append(Step("statistics",
@@ -498,12 +480,15 @@ class StochasticMethod(SequenceIdentifier):
         lp = loglik + state.log_post
         state.log_post = lp - logsumexp(lp)
         state.frames += 1
-        self._posterior_step(state, fld, steps, k, true_row)
+        self._posterior_step(state, fld, steps, k)
         self._refine(state, V, fld, sigma)
 
         # identification
-        self._conclude(state, obs, V, fld, sigma, steps, result, k)
-        self._finish_stats(state, result, fld, true_row, t0, sigma)
+        result.status = INCONCLUSIVE
+        if not self.drive(search, self._candidates(search, state, fld, k)):
+            result.reason = self.failure_reason(search)
+        state.verifications = search.n_hypotheses
+        self._finish_stats(state, search, fld)
         return result
 
     def designated_star(self, R: np.ndarray) -> int:
@@ -764,27 +749,15 @@ class StochasticMethod(SequenceIdentifier):
         o = np.argsort(-mass, kind="stable")
         return stars[o], mass[o], best[o]
 
-    def _posterior_step(self, state: StochasticState, fld: _Field, steps: list[Step], k: int,
-                        true_row: int) -> None:
+    def _posterior_step(self, state: StochasticState, fld: _Field, steps: list[Step], k: int) -> None:
         N = self.n_catalog
         stars, mass, best = self.marginal(state)
         top = slice(0, TOP_K)
         above = int(np.sum(mass > 1.0 / N))
         numbers = {"frame": k, "above_prior": above, "top_posterior": float(mass[0]),
                    "top_row": int(stars[0]), "top_hip": int(self.catalog.hip[stars[0]])}
-        if state.frames == 1 and true_row >= 0:  # the first frame: its row is the true sequence
-            state.true_start = true_row
-        p_true = None
-        if true_row >= 0:
-            hit = np.flatnonzero(stars == true_row)
-            p_true = float(mass[hit[0]]) if len(hit) else 0.0
-            numbers["true_posterior"] = p_true
-            numbers["true_rank"] = int(hit[0]) if len(hit) else -1
-        if state.true_start >= 0:
-            numbers["true_sequence_posterior"] = float(np.exp(state.log_post[state.true_start]))
         note = (f"frame {k}: {above} of {N} stars above the prior 1/{N}; leading HIP "
-                f"{numbers['top_hip']} at {numbers['top_posterior']:.3f}"
-                + (f"; the true star at {p_true:.3f}" if p_true is not None else ""))
+                f"{numbers['top_hip']} at {numbers['top_posterior']:.3f}")
         steps.append(Step("update", note, observed=[fld.designated],
                           catalog=[int(c) for c in stars[top]],
                           numbers=numbers,
@@ -792,8 +765,9 @@ class StochasticMethod(SequenceIdentifier):
                                             stars[top].copy(), mass[top].copy(), self._xi(stars[top])),)))
         state.history.append({kk: v for kk, v in numbers.items()} | {"designated": fld.designated})
 
-    def _conclude(self, state: StochasticState, obs: Observation, V: np.ndarray, fld: _Field, sigma: float,
-                  steps: list[Step], result: Identification, k: int) -> None:
+    def _candidates(self, search: Search, state: StochasticState, fld: _Field, k: int):
+        """The leading star when it dominates (and, with verify_top, the leading stars once a known turn
+        has been survived): each one's hypotheses (`_match`), for the shared verification."""
         stars, mass, best = self.marginal(state)
         cand = [0] if mass[0] >= self.p_identify else []
         if state.frames >= 2:  # verify_top: only hypotheses that have survived a known turn
@@ -801,18 +775,13 @@ class StochasticMethod(SequenceIdentifier):
                 if j not in cand:
                     cand.append(j)
         if not cand:
-            result.status = INCONCLUSIVE
-            result.reason = (f"no star dominates yet: the leading one, HIP {int(self.catalog.hip[stars[0]])}, "
-                             f"has posterior {mass[0]:.3f} < p_identify {self.p_identify:g}")
+            search.reasons.append(f"no star dominates yet: the leading one, HIP {int(self.catalog.hip[stars[0]])}, "
+                                  f"has posterior {mass[0]:.3f} < p_identify {self.p_identify:g}")
             return
-        reasons = []
-        m_obs = self._magnitudes(obs)
+        m_obs = self._magnitudes(search.obs)
         for j in cand:
-            if self._match_and_verify(state, int(best[j]), V, m_obs, fld, sigma, steps, result, k, float(mass[j])):
-                return
-            reasons.append(result.reason)
-        result.status = INCONCLUSIVE
-        result.reason = "; ".join(reasons)
+            why = yield from self._match(search, state, int(best[j]), m_obs, fld, k, float(mass[j]))
+            search.reasons.append(why)
 
     def _pair_count(self, s: int, fld: _Field, sigma: float) -> int:
         """How many two-star hypotheses (the designated star on s, one observed neighbour on one of
@@ -845,12 +814,13 @@ class StochasticMethod(SequenceIdentifier):
             return 1.0
         return float(chi2.sf(np.sum(np.minimum((dm / self.sigma_mag) ** 2, MAG_CLIP ** 2)), dof))
 
-    def _match_and_verify(self, state: StochasticState, r: int, V: np.ndarray, m_obs: np.ndarray, fld: _Field,
-                          sigma: float, steps: list[Step], result: Identification, k: int, p: float) -> bool:
-        """Match the neighbours with the attitude of row r and verify (the designated star and the
-        farthest matched neighbour form the hypothesis; the other stars test it). The Bonferroni
-        factor grows by the row's two-star hypotheses (`_pair_count`), and a verified match must also
-        agree in magnitude (`magnitude_consistency`)."""
+    def _match(self, search: Search, state: StochasticState, r: int, m_obs: np.ndarray, fld: _Field, k: int,
+               p: float):
+        """Match the neighbours with the attitude of row r and yield the hypotheses (the designated star
+        and a matched neighbour, farthest first; the other stars test it). The Bonferroni factor grows
+        by the row's two-star hypotheses (`_pair_count`), and a verified match must also agree in
+        magnitude (`magnitude_consistency`). Returns why the row did not verify."""
+        V, sigma, steps = search.V, search.sigma, search.steps
         s = int(state.rows[r])
         R = state.R[r]
         if self.hypothesis == "boresight":  # no roll yet: put s on the designated star, roll from the field
@@ -876,39 +846,35 @@ class StochasticMethod(SequenceIdentifier):
                           observed=sorted(matches), catalog=[matches[o] for o in sorted(matches)],
                           numbers={"frame": k, "row": r, "posterior": p, "matched": len(matches)}))
         if not others:
-            result.reason = f"HIP {int(self.catalog.hip[s])}: no neighbour matches its attitude"
-            return False
+            return f"HIP {int(self.catalog.hip[s])}: no neighbour matches its attitude"
         dist = angular_distance(V[others], fld.v_d[None, :])
-        state.verifications += max(self._pair_count(s, fld, sigma), self.max_verify)
+        count = max(self._pair_count(s, fld, sigma), self.max_verify)  # counted once for the row's pairs
+
+        def magnitudes(ver):  # a verified match must also agree in magnitude
+            if not ver.passed:
+                return {"frame": k, "p_magnitudes": float("nan")}, {}
+            p_mag = self.magnitude_consistency(m_obs, ver.matches)
+            if p_mag < MAG_CONSISTENCY_P:
+                ver.passed = False
+                ver.reason = (f"the geometry agrees ({ver.reason}) but the magnitudes do not: "
+                              f"P(chi^2) = {p_mag:.1e} < {MAG_CONSISTENCY_P:g}")
+            return {"frame": k, "p_magnitudes": p_mag}, {"p_magnitudes": p_mag}
+
+        def carry(ver):  # the verified attitude carries on to the next frame
+            state.R[r] = ver.R
+
+        why = ""
         for j in np.argsort(-dist)[:self.max_verify]:
             o2 = int(others[j])
-            hyp = {fld.designated: s, o2: matches[o2]}
-            ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=state.verifications,
-                         n_patterns=self.n_catalog, statistic=self.statistic, threshold=self.threshold,
-                         radius_rad=rad)
-            vd = ver.to_dict()
-            if ver.passed:
-                vd["p_magnitudes"] = self.magnitude_consistency(m_obs, ver.matches)
-                if vd["p_magnitudes"] < MAG_CONSISTENCY_P:
-                    ver.passed = False
-                    ver.reason = (f"the geometry agrees ({ver.reason}) but the magnitudes do not: "
-                                  f"P(chi^2) = {vd['p_magnitudes']:.1e} < {MAG_CONSISTENCY_P:g}")
-                    vd.update(passed=False, reason=ver.reason)
-            steps.append(verification_step(ver, hyp, numbers={"frame": k,
-                                                              "p_magnitudes": vd.get("p_magnitudes", float("nan"))}))
-            result.verification = vd
-            if ver.passed:
-                result.accept(ver)
-                state.R[r] = ver.R  # the verified attitude carries on to the next frame
-                return True
-            result.reason = f"HIP {int(self.catalog.hip[s])}: verification failed: {ver.reason}"
-        return False
+            ver = yield Hypothesis({fld.designated: s, o2: matches[o2]}, count=count, judge=magnitudes, on_accept=carry)
+            count = 0
+            why = f"HIP {int(self.catalog.hip[s])}: verification failed: {ver.reason}"
+        return why
 
-    def _finish_stats(self, state: StochasticState, result: Identification, fld: _Field | None, true_row: int,
-                      t0: float, sigma: float) -> None:
+    def _finish_stats(self, state: StochasticState, search: Search, fld: _Field | None) -> None:
         stars, mass, _ = self.marginal(state)
         top = slice(0, TOP_K)
-        result.stats = {
+        search.result.stats = {
             "frame": state.seen - 1,
             "stars": 0 if fld is None else int(len(fld.used)),
             "designated": None if fld is None else fld.designated,
@@ -919,12 +885,6 @@ class StochasticMethod(SequenceIdentifier):
             "top_hips": [int(self.catalog.hip[c]) for c in stars[top]],
             "posterior_top": [float(p) for p in mass[top]],
             "verifications": state.verifications,
-            "sigma_rad": sigma,
-            "time_s": time.perf_counter() - t0,
+            "sigma_rad": search.sigma,
+            "time_s": time.perf_counter() - search.t0,
         }
-        if true_row >= 0:
-            hit = np.flatnonzero(stars == true_row)
-            result.stats["true_row"] = true_row
-            result.stats["true_posterior"] = float(mass[hit[0]]) if len(hit) else 0.0
-        if state.true_start >= 0:
-            result.stats["true_sequence_posterior"] = float(np.exp(state.log_post[state.true_start]))

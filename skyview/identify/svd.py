@@ -89,7 +89,8 @@ stats: "failure_causes" counts the outcome of every attempt, "cause" is the fram
 any attempt got: ambiguous > rejected > ranking > missing_set > too_few_stars), "attempts" lists
 them, "first_chain" the paper's answer before verification (the first boresight whose set survived
 the singular-vector filter, when unique). Without the truth "missing set" cannot be told from a
-ranking error; `diagnose` does it with the truth of a simulated frame, in the paper's words:
+ranking error; `skyview.diagnose_svd.diagnose` does it with the truth of a simulated frame (truth never
+enters the method), in the paper's words:
 ranking error, missing boresight set (lack of boresight directions, Fig. 5: the boresight's catalog
 set reaches off the sensor, or the boresight is no reference star), too few stars.
 
@@ -113,13 +114,16 @@ Improvements (options, all off in the paper's method; IMPROVED_PARAMS turns them
 
 Measured: docs/methods.md and docs/benchmarks.md (`skyview bench --compare` and
 `skyview bench --method svd`, with their seeds).
+
+Length (~850 lines, 120 of them this description): the mission catalog, the first-order bounds on
+singular values and vectors and the recognition are one paper's method; the failure causes against the
+truth are `skyview.diagnose_svd`, the common path the template of `skyview.identify.base`.
 """
 
 from __future__ import annotations
 
 import itertools
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -130,18 +134,15 @@ from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, chord
 from skyview.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
-                                   Step)
+from skyview.identify.base import Hypothesis, Identifier, Observation, Search, Step
 from skyview.identify.kvector import KVector
 from skyview.identify.layers import Attitudes, StarSets
-from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius,
-                                     verification_step, verify)
+from skyview.identify.params import MethodParams, at_least, one_of, positive
+from skyview.identify.verify import angular_distance, match_radius
 
 SIGN_RULES = ("max", "dot")
 BORESIGHT_ORDERS = ("brightness", "inside")
 CAUSES = ("too_few_stars", "missing_set", "ranking", "rejected", "ambiguous")
-IMPROVED_PARAMS = {"rank_swaps": True, "boresight_order": "inside", "sign_rule": "dot", "fov_radius_factor": 0.75,
-                   "N": 3, "delta_m_catalog": 0.0}
 # the delta_m rule: delete one of every close pair walking from the brightest ("thin", the paper's, on
 # both sides) or both stars of a close pair ("pairs")
 DELTA_M_RULES = ("thin", "pairs")
@@ -446,6 +447,56 @@ def paper_storage_bytes(M: int, L: int, N: int = 4) -> int:
 
 # ---------------------------------------------------------------------- the method
 
+@dataclass(frozen=True)
+class SVDParams(MethodParams):
+    """The svd method's parameters (the paper's defaults; the module docstring explains each).
+
+    fov_radius_rad None: fov_radius_factor x half the horizontal FOV; min_separation_rad None:
+    MIN_SEPARATION_PX pixels of the camera."""
+
+    N: int = 4
+    fov_radius_rad: float | None = None
+    fov_radius_factor: float = 1.0
+    delta_m: float = 0.2
+    delta_m_catalog: float = 0.2
+    delta_m_rule: str = "thin"
+    mag_step: float = 0.01
+    min_separation_rad: float | None = None
+    beta: float = 3.0
+    sign_rule: str = "max"
+    boresight_order: str = "brightness"
+    max_boresights: int | None = None
+    rank_swaps: bool = False
+    max_sets: int = 8
+    kvector_fit: str = "line"
+
+    def __post_init__(self):
+        super().__post_init__()
+        at_least("N", self.N, 3, " (stars per set)")
+        positive("fov_radius_factor", self.fov_radius_factor)
+        if self.fov_radius_rad is not None and not (np.isfinite(self.fov_radius_rad)
+                                                    and 0 < self.fov_radius_rad < np.pi / 2):
+            raise BadInput(f"fov_radius_rad must be in (0, pi/2), not {self.fov_radius_rad!r}")
+        for name in ("delta_m", "delta_m_catalog", "mag_step"):
+            positive(name, getattr(self, name), allow_zero=True)
+        one_of("delta_m_rule", self.delta_m_rule, DELTA_M_RULES)
+        if self.min_separation_rad is not None:
+            positive("min_separation_rad", self.min_separation_rad, allow_zero=True)
+        positive("beta", self.beta)
+        one_of("sign rule", self.sign_rule, SIGN_RULES)
+        one_of("boresight order", self.boresight_order, BORESIGHT_ORDERS)
+        if self.max_boresights is not None and not (isinstance(self.max_boresights, int) and self.max_boresights >= 1):
+            raise BadInput("max_boresights must be >= 1 or None (all)")
+        at_least("max_sets", self.max_sets, 1)
+        one_of("kvector_fit", self.kvector_fit, ("line", "parabola"))
+
+
+PAPER = SVDParams()
+IMPROVED = replace(PAPER, rank_swaps=True, boresight_order="inside", sign_rule="dot", fov_radius_factor=0.75, N=3,
+                   delta_m_catalog=0.0)
+IMPROVED_PARAMS = IMPROVED.changed()
+
+
 @dataclass
 class _Attempt:
     boresight: int
@@ -464,77 +515,32 @@ class SVDMethod(Identifier):
     """Juang, Kim & Junkins' singular value method, ending in the shared verification."""
 
     name = "svd"
+    title = "the SVD method"
+    Params = SVDParams
     improved_params = IMPROVED_PARAMS
 
-    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *, N: int = 4,
-                 fov_radius_rad: float | None = None, fov_radius_factor: float = 1.0, delta_m: float = 0.2,
-                 delta_m_catalog: float = 0.2, delta_m_rule: str = "thin",
-                 mag_step: float = 0.01, min_separation_rad: float | None = None, beta: float = 3.0,
-                 sign_rule: str = "max", boresight_order: str = "brightness", max_boresights: int | None = None,
-                 rank_swaps: bool = False, max_sets: int = 8, statistic: str = CALIBRATED,
-                 threshold: float | None = None, radius_sigmas: float = RADIUS_SIGMAS, kvector_fit: str = "line"):
-        if not (np.isfinite(sigma_rad) and sigma_rad > 0):
-            raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
-        if int(N) != N or N < 3:
-            raise BadInput(f"N (stars per set) must be an integer >= 3, not {N!r}")
-        if not (np.isfinite(fov_radius_factor) and fov_radius_factor > 0):
-            raise BadInput(f"fov_radius_factor must be positive, not {fov_radius_factor!r}")
+    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, **params):
+        p = self.configure(catalog, camera, sigma_rad, params)
+        fov_radius_rad = p.fov_radius_rad
         if fov_radius_rad is None:
-            fov_radius_rad = float(fov_radius_factor * np.radians(camera.fov_deg) / 2.0)
+            fov_radius_rad = float(p.fov_radius_factor * np.radians(camera.fov_deg) / 2.0)
         if not (np.isfinite(fov_radius_rad) and 0 < fov_radius_rad < np.pi / 2):
             raise BadInput(f"fov_radius_rad must be in (0, pi/2), not {fov_radius_rad!r}")
-        if not (np.isfinite(delta_m) and delta_m >= 0):
-            raise BadInput(f"delta_m must be >= 0, not {delta_m!r}")
-        if not (np.isfinite(delta_m_catalog) and delta_m_catalog >= 0):
-            raise BadInput(f"delta_m_catalog must be >= 0, not {delta_m_catalog!r}")
-        if not (np.isfinite(mag_step) and mag_step >= 0):
-            raise BadInput(f"mag_step must be >= 0, not {mag_step!r}")
-        if delta_m_rule not in DELTA_M_RULES:
-            raise BadInput(f"unknown delta_m_rule {delta_m_rule!r}: choose from {', '.join(DELTA_M_RULES)}")
+        min_separation_rad = p.min_separation_rad
         if min_separation_rad is None:
             min_separation_rad = MIN_SEPARATION_PX * camera.pixel_scale_rad
-        if not (np.isfinite(min_separation_rad) and min_separation_rad >= 0):
-            raise BadInput(f"min_separation_rad must be >= 0, not {min_separation_rad!r}")
-        if not (np.isfinite(beta) and beta > 0):
-            raise BadInput(f"beta must be positive, not {beta!r}")
-        if sign_rule not in SIGN_RULES:
-            raise BadInput(f"unknown sign rule {sign_rule!r}: choose from {', '.join(SIGN_RULES)}")
-        if boresight_order not in BORESIGHT_ORDERS:
-            raise BadInput(f"unknown boresight order {boresight_order!r}: choose from {', '.join(BORESIGHT_ORDERS)}")
-        if max_boresights is not None and int(max_boresights) < 1:
-            raise BadInput("max_boresights must be >= 1 or None (all)")
-        if int(max_sets) < 1:
-            raise BadInput("max_sets must be >= 1")
-        if statistic not in STATISTICS:
-            raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
-        if threshold is not None and not (0 < float(threshold) <= 1):
-            raise BadInput("threshold must be in (0, 1]")
-        if not (np.isfinite(radius_sigmas) and radius_sigmas > 0):
-            raise BadInput("radius_sigmas must be positive")
-        if kvector_fit not in ("line", "parabola"):
-            raise BadInput("kvector_fit must be 'line' or 'parabola'")
-        self.catalog = catalog
-        self.camera = camera
-        self.sigma_rad = float(sigma_rad)
-        self.N = int(N)
+        self.N = self.min_stars = int(p.N)
         self.fov_radius_rad = float(fov_radius_rad)
-        self.delta_m = float(delta_m)
-        self.delta_m_catalog = float(delta_m_catalog)
-        self.delta_m_rule = delta_m_rule
-        self.mag_step = float(mag_step)
+        self.delta_m = float(p.delta_m)
+        self.delta_m_catalog = float(p.delta_m_catalog)
+        self.mag_step = float(p.mag_step)
         self.min_separation_rad = float(min_separation_rad)
-        self.beta = float(beta)
+        self.beta = float(p.beta)
         # the same chance of rejecting the true set as one beta-sigma bound, shared by the numbers tested
         self.beta_s = bonferroni_bound(self.beta, 3)
         self.beta_q = bonferroni_bound(self.beta, 3 * self.N)
-        self.sign_rule = sign_rule
-        self.boresight_order = boresight_order
-        self.max_boresights = None if max_boresights is None else int(max_boresights)
-        self.rank_swaps = bool(rank_swaps)
-        self.max_sets = int(max_sets)
-        self.statistic = statistic
-        self.threshold = threshold
-        self.radius_sigmas = float(radius_sigmas)
+        self.radius_sigmas = float(p.radius_sigmas)
+        kvector_fit, delta_m_rule = p.kvector_fit, p.delta_m_rule
 
         params = {"N": self.N, "fov_radius_rad": self.fov_radius_rad, "delta_m": self.delta_m_catalog,
                   "mag_step": self.mag_step, "min_separation_rad": self.min_separation_rad,
@@ -565,8 +571,8 @@ class SVDMethod(Identifier):
         self.database_info = info
 
     @property
-    def database_key_string(self) -> str:
-        return database.key_string(self.database_key)
+    def n_patterns(self) -> int:
+        return len(self.sets)
 
     def catalog_sets_of(self, row: int) -> list[tuple[int, ...]]:
         """The set(s) the mission catalog makes for catalog star `row` as boresight (before duplicate
@@ -586,26 +592,23 @@ class SVDMethod(Identifier):
         q = np.round(m / self.mag_step) if self.mag_step > 0 else m
         return _tie_sets(q, near, self.N)
 
-    # ------------------------------------------------------------------ identify
-    def identify(self, obs: Observation) -> Identification:
-        t0 = time.perf_counter()
-        steps: list[Step] = []
-        n = len(obs)
+    # ------------------------------------------------------------------ identify (the template's parts)
+    def too_few(self, search: Search) -> str:
+        reason = super().too_few(search)
+        if reason:
+            reason = f"the SVD method needs at least N = {self.N} stars, the frame has {search.n}"
+            search.stats = {"boresights_tried": 0,
+                            "failure_causes": {c: int(c == "too_few_stars") for c in CAUSES},
+                            "cause": "too_few_stars", "first_chain": {"outcome": "empty", "matches": {}}}
+        return reason
+
+    def hypotheses(self, search: Search):
+        """Boresight by boresight, the measured set(s) -> catalog sets -> verification (`_attempt`); the
+        first verified set (or an ambiguous one) ends the search."""
+        obs, V, sigma, steps = search.obs, search.V, search.sigma, search.steps
+        n = search.n
         N = self.N
-        sigma = float(obs.sigma_rad) if (obs.sigma_rad is not None and np.isfinite(obs.sigma_rad)
-                                         and obs.sigma_rad > 0) else self.sigma_rad
-        result = Identification(method=self.name, status=FAILED, matches={}, steps=steps,
-                                database_key=self.database_key_string)
         causes = {c: 0 for c in CAUSES}
-        if n < N:
-            result.reason = f"the SVD method needs at least N = {N} stars, the frame has {n}"
-            causes["too_few_stars"] += 1
-            result.stats = {"stars": n, "boresights_tried": 0, "failure_causes": causes, "cause": "too_few_stars",
-                            "first_chain": {"outcome": "empty", "matches": {}}, "time_s": time.perf_counter() - t0}
-            return result
-        V = np.asarray(obs.vectors, dtype=np.float64)
-        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
-            raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
         mag = relative_magnitudes(obs.brightness)
         by_brightness = np.lexsort((np.arange(n), mag))  # brightest first, ties by index
         cos_r = np.cos(self.fov_radius_rad)
@@ -619,7 +622,6 @@ class SVDMethod(Identifier):
 
         attempts: list[_Attempt] = []
         tried: dict[tuple[int, ...], _Attempt] = {}
-        counter = [0]  # verifications so far (the Bonferroni factor)
         done = False
         verified_any: list[tuple] = []
         for b in boresights.tolist():
@@ -658,7 +660,7 @@ class SVDMethod(Identifier):
                                       observed=list(S), numbers={"boresight": b}))
                     continue
                 tried[S] = a
-                passed = self._attempt(V, np.array(S), a, sigma, counter, steps)
+                passed = yield from self._attempt(V, np.array(S), a, sigma, steps)
                 if a.cause == "missing_set" and changed:
                     a.cause = "ranking"  # the delta_m rule took a star out of the set
                 if a.cause:
@@ -670,49 +672,35 @@ class SVDMethod(Identifier):
                     break
             if done:
                 break
-        n_verified = counter[0]
 
-        reasons = []
-        if verified_any:
-            ver, S_used, rows, C_eq24 = verified_any[0]
-            result.accept(ver)
-            result.verification = ver.to_dict()
-        else:
-            result.status = INCONCLUSIVE
-            for a in attempts:
-                reasons.append(f"boresight {a.boresight} set {a.stars}: {a.cause}")
-            result.reason = ("no boresight star gave a verified set (" + "; ".join(reasons[:6])
-                             + ("; ..." if len(reasons) > 6 else "") + ")") if reasons else "no boresight to try"
-            last_ver = [a.verification for a in attempts if a.verification]
-            if last_ver:
-                result.verification = dict(last_ver[-1])
+        if not verified_any:
+            reasons = [f"boresight {a.boresight} set {a.stars}: {a.cause}" for a in attempts]
+            search.reasons = [("no boresight star gave a verified set (" + "; ".join(reasons[:6])
+                               + ("; ..." if len(reasons) > 6 else "") + ")") if reasons else "no boresight to try"]
         first = next((a for a in attempts if a.survivors > 0), None)
-        frame_cause = ""
-        if result.status != IDENTIFIED:
-            frame_cause = _frame_cause(attempts)
         eq24 = {}
         if verified_any:
+            ver, S_used, rows, C_eq24 = verified_any[0]
             eq24 = {"set_observed": [int(i) for i in S_used], "set_catalog": [int(r) for r in rows],
                     "C": C_eq24.tolist(),
-                    "C_vs_verified_arcsec": _rotation_angle(C_eq24 @ result.R.T) * RAD_TO_ARCSEC}
-        result.stats = {
-            "stars": n,
+                    "C_vs_verified_arcsec": _rotation_angle(C_eq24 @ ver.R.T) * RAD_TO_ARCSEC}
+        search.stats = {
             "attitude_eq24": eq24,
             "boresights_tried": len({a.boresight for a in attempts}),
             "sets_tried": len(attempts),
             "candidates": [a.candidates for a in attempts],
             "survivors": [a.survivors for a in attempts],
-            "verifications": n_verified,
+            "verifications": search.verifications,
             "failure_causes": causes,
-            "cause": frame_cause,
+            "cause": "" if verified_any else _frame_cause(attempts),
             "attempts": [{"boresight": a.boresight, "stars": a.stars, "within": a.within, "changed": a.changed,
                           "cause": a.cause, "candidates": a.candidates, "survivors": a.survivors} for a in attempts],
             "first_chain": {"outcome": ("unique" if first is not None and first.survivors == 1 else
                                         "ambiguous" if first is not None else "empty"),
                             "matches": dict(first.matches) if first is not None and first.survivors == 1 else {}},
-            "time_s": time.perf_counter() - t0,
         }
-        return result
+        if verified_any:
+            yield verified_any[0][0]  # the chosen set's verification: accepted
 
     # ------------------------------------------------------------------ one measured set
     def _measured_sets(self, kept: np.ndarray, mag: np.ndarray) -> list[tuple[int, ...]]:
@@ -744,9 +732,9 @@ class SVDMethod(Identifier):
                     return out
         return out
 
-    def _attempt(self, V: np.ndarray, S: np.ndarray, a: _Attempt, sigma: float, counter: list[int],
-                 steps: list[Step]):
-        """Singular values -> catalog candidates -> right singular vectors -> eq. 24 -> verification.
+    def _attempt(self, V: np.ndarray, S: np.ndarray, a: _Attempt, sigma: float, steps: list[Step]):
+        """Singular values -> catalog candidates -> right singular vectors -> eq. 24 -> verification (a
+        generator: it yields the hypotheses of the surviving sets; the method chooses among the verified).
 
         Sets a.cause on failure; returns (verification, S, catalog rows, C) of the verified set, or None.
         """
@@ -814,13 +802,8 @@ class SVDMethod(Identifier):
                                        "L1": Ls[j, 0], "L2": Ls[j, 1], "L3": Ls[j, 2]},
                               layers=(Attitudes.of(Cj, name="eq. 24 attitude"),)))
             hyp = {int(o): int(r) for o, r in zip(S.tolist(), rows.tolist())}
-            counter[0] += 1
-            ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=counter[0],
-                         n_patterns=len(self.sets), statistic=self.statistic, threshold=self.threshold,
-                         radius_rad=match_radius(sigma, self.radius_sigmas))
-            vd = ver.to_dict()
-            steps.append(verification_step(ver, hyp, cap=CAP))
-            a.verification = vd
+            ver = yield Hypothesis(hyp, accept=False)
+            a.verification = ver.to_dict()
             a.verified += 1
             untestable += ver.n_tested == 0
             if ver.passed:
@@ -872,98 +855,3 @@ def _rotation_angle(R: np.ndarray) -> float:
 
 def _distinct(H: np.ndarray) -> list[int]:
     return np.unique(H).astype(int)[:CAP].tolist() if H.size else []
-
-
-# ---------------------------------------------------------------------- failure causes with the truth
-
-def diagnose(method: SVDMethod, result: Identification, truth_rows: np.ndarray, R_true: np.ndarray) -> dict:
-    """The failure causes the paper names, for one frame whose truth is known (a simulation).
-
-    truth_rows: the catalog row of each observed star (-1: a false star, a hot pixel, or a star not in
-    the catalog). R_true: the true attitude. Each attempt of `result.stats["attempts"]` gets a cause:
-
-    - "too_few_stars": fewer than N stars in the boresight's circle (after the delta_m rule), or
-      no star left to verify with (lack of measurements);
-    - "missing_set" (the paper's lack of boresight direction, Fig. 5): the boresight is not a
-      reference star (a false star, a removed close pair), or its catalog set has a star off the
-      sensor, so the set seen is in no catalog row;
-    - "ranking": the catalog set is on the sensor but the measured set differs from it: an order
-      swap, a rank swap at the N/N+1 boundary, a star deleted by the delta_m rule, a false star in
-      the set, a catalog star not detected;
-    - "noise": the measured set is the catalog set in the right order, and still failed (a bound or
-      the sign rule rejected it, or the verification did).
-
-    Returns {"outcome", "first": cause of the first attempt, "frame": the frame's cause (noise >
-    ranking > missing_set > too_few_stars: the cause nearest to success), "counts": per cause}.
-    """
-    truth_rows = np.asarray(truth_rows, dtype=np.int64)
-    if result.identified:
-        return {"outcome": "identified", "first": "", "frame": "", "counts": {}}
-    attempts = result.stats.get("attempts", [])
-    if not attempts:
-        return {"outcome": result.status, "first": "too_few_stars", "frame": "too_few_stars",
-                "counts": {"too_few_stars": 1}}
-    causes = []
-    cat = method.catalog
-    for a in attempts:
-        stars = list(a["stars"])
-        if a.get("within", len(stars)) < method.N:
-            causes.append("too_few_stars")
-            continue
-        b = int(truth_rows[a["boresight"]])
-        expected = method.catalog_sets_of(b) if b >= 0 else []
-        if not expected:
-            causes.append("missing_set")
-            continue
-        on_sensor = set(cat_rows_on_sensor(method.camera, cat, R_true, {r for e in expected for r in e}))
-        if all(any(r not in on_sensor for r in e) for e in expected):
-            causes.append("missing_set")
-            continue
-        seen = tuple(int(truth_rows[i]) for i in stars)
-        if seen in expected:
-            causes.append("too_few_stars" if a["cause"] == "too_few_stars" else "noise")
-        else:
-            causes.append("ranking")
-    counts = {c: causes.count(c) for c in sorted(set(causes))}
-    frame = next(c for c in ("noise", "ranking", "missing_set", "too_few_stars") if c in causes)
-    return {"outcome": result.status, "first": causes[0], "frame": frame, "counts": counts}
-
-
-def cat_rows_on_sensor(camera: Camera, catalog: GuideCatalog, R: np.ndarray, rows) -> list[int]:
-    """The catalog rows among `rows` that project onto the sensor at attitude R."""
-    rows = np.array(sorted(rows), dtype=np.int64)
-    if len(rows) == 0:
-        return []
-    uv, front = camera.project(catalog.xyz[rows] @ np.asarray(R).T)
-    return rows[front & camera.in_image(uv)].tolist()
-
-
-def truth_rows(result, truth: dict, catalog: GuideCatalog) -> np.ndarray:
-    """The catalog row of each observed star of a pipeline result (-1: nothing rendered there, a false
-    star, or a star not in `catalog`), from a simulator truth sidecar."""
-    from skyview.truth import centroid_truth
-
-    uv = np.asarray(result.centroids.uv, dtype=np.float64)
-    rows = []
-    for hip in centroid_truth(uv, truth):
-        try:
-            rows.append(catalog.index_of(hip) if hip is not None and hip >= 0 else -1)
-        except KeyError:
-            rows.append(-1)
-    return np.array(rows, dtype=np.int64)
-
-
-def bench_trial_hook(trial: dict, frame, result, solver) -> None:
-    """For `skyview.bench.run_bench(on_trial=...)`: adds the paper's failure cause of an unsolved
-    SVD trial to the trial record, "svd_cause" (with the truth, `diagnose`'s frame cause) and
-    "svd_cause_untruthed" (the method's own stats["cause"]); other methods are left alone."""
-    ident = result.identification
-    if ident is None:
-        if not result.solved:
-            trial["svd_cause"] = trial["svd_cause_untruthed"] = "too_few_stars"
-        return
-    if ident.method != SVDMethod.name or ident.identified:
-        return
-    rows = truth_rows(result, frame.truth, solver.catalog)
-    trial["svd_cause"] = diagnose(solver.identifier, ident, rows, np.asarray(frame.truth["R"]))["frame"]
-    trial["svd_cause_untruthed"] = ident.stats.get("cause", "")

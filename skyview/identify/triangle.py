@@ -1,21 +1,46 @@
 """The spherical-triangle method with pivoting (Cole & Crassidis 2006, section III).
 
-Database. Every catalog star triangle that can appear in one image. The paper keeps the triangles
-that fit its circular 8 deg FOV; our sensor is a rectangle, and a triangle that appears on it lies
-inside the rectangle's circumscribed circle. So the database holds the triangles whose smallest
-enclosing cap has a radius <= camera.half_diagonal_rad: complete for the sensor, and 4 % smaller
-than "all three sides <= the diagonal", the angle method's rule for pairs. At 8 deg / Hp <= 6.0
-(4,559 stars): 1,364,753 triangles, against 1,417,308 with all sides <= the diagonal; the paper's
-circle (a cap of radius 4 deg) would hold 369,104 and "all sides <= 8 deg" 383,243 (the paper
-counted 662,779 from a catalog with more mag-6 stars). Built vectorised: catalog pairs up to the
-diagonal (cKDTree), triangles from the pair adjacency (i < j < k with (i, j), (i, k), (j, k) all
-pairs), the cap test, then for each triangle the area (L'Huilier, eqs. 15-16) and the polar moment
-about the centroid (recursive subdivision to depth 3 = 64 pieces, eq. 25), from
-`skyview.identify.spherical`. Stored sorted by area: star rows as int16, area and polar moment as
-float32 (their rounding, 6e-8 relative, is 10^4 times below the smallest 3-sigma bound), a k-vector
-on the area (parabola fit, as the paper) and one on the polar moment through a sort permutation (the
-paper's "two linked lists"), and each triangle's rank in polar-moment order. Cached with
-`skyview.identify.database` (41 MB, loaded in ~25 ms; built in ~15 s).
+Databases: which variant reads what, and why.
+
+- database="triangles" (the paper's, default): every catalog star triangle that can appear in one
+  image. The paper keeps the triangles that fit its circular 8 deg FOV; our sensor is a rectangle, and
+  a triangle that appears on it lies inside the rectangle's circumscribed circle. So the database
+  holds the triangles whose smallest enclosing cap has a radius <= R, R = camera.half_diagonal_rad
+  rounded UP on the 5 % grid of `database.angular_range`: the database belongs to the sky (catalog,
+  depth, R), not to one camera, and one file serves every camera whose half-diagonal is below R
+  (as the angle database); each triangle's cap radius is stored (float32) and a look-up keeps the
+  candidates whose cap fits the camera's own circle, so every camera gets the candidates a database
+  of its own would give. At 8 deg / Hp <= 6.0 (4,559 stars, R = 5.74 deg): 1,450,092 triangles
+  (1,506,879 with all sides <= 2R; `report` gives the counts for the paper's circle). Built
+  vectorised and in chunks (`_triangle_chunks`, CHUNK_CANDIDATES candidate third stars at a time):
+  catalog pairs up to 2R (cKDTree), triangles from the pair adjacency (i < j < k with (i, j), (i, k),
+  (j, k) all pairs), the cap test, then for each kept triangle the area (L'Huilier, eqs. 15-16) and
+  the polar moment about the centroid (recursive subdivision to depth 3 = 64 pieces, eq. 25), from
+  `skyview.identify.spherical`; only the kept rows are collected. Stored sorted by area: star rows
+  as int16 (int32 beyond 32,767 stars), area and polar moment as float32 (their rounding, 6e-8
+  relative, is 10^4 times below the smallest 3-sigma bound), a k-vector on the area (parabola fit,
+  as the paper) and one on the polar moment through a sort permutation (the paper's "two linked
+  lists"), each triangle's rank in polar-moment order and those ranks sorted within blocks (the
+  counter below): 38 bytes a triangle, 55 MB at 8 deg, memory-mapped on load (~5 ms). The build
+  holds about BUILD_FIXED_BYTES + BYTES_PER_TRIANGLE bytes a triangle at its peak (400 MB + 52 B),
+  the estimate checked against the memory budget (`database.check_memory`, 4 GB by default) before
+  it starts. Measured peak RSS (/usr/bin/time -v, the whole process): 447 MB for 8 deg / Hp 6
+  (1.45 M triangles, built in 11 s at load 1.6 on the shared 2-core machine, 21 s at load 5) and
+  616 MB for 11 deg / Hp 6 (5.3 M triangles, 142 s at load 5), i.e. ~380 MB + 45 bytes a triangle.
+  At 20 deg / Hp 6 the
+  database would hold ~54 M triangles: ~3 GB at the peak (within the 4 GB budget, where the
+  former one-piece build needed an estimated 12.9 GB), 2 GB on disk and ~10 minutes of polar
+  moments. The paper variant still builds it when asked; the improved variant does not need it.
+- database="pairs" (the improved variant): no triangle database at all. The candidates of an
+  observed triangle are joined from the angle method's pair database (`angle.load_pair_database`,
+  the same cached file the angle method reads: ~683,000 pairs, 11 MB at 20 deg / Hp 6) and then
+  filtered by handedness, area and polar moment (`join_pairs`): with vertex_order="sides" the stored
+  path keeps exactly the oriented triangles whose three sides match within beta sigma_p, so joining
+  the sides first gives the same candidates (tests/test_triangle.py checks this triangle by
+  triangle) without storing 54 M triangles at 20 deg. The polar-moment sigma line (below) comes from
+  the same simulation on ~20,000 random catalog triangles (`build_moment_sigma`, a small cached
+  database of its own). The join costs about what the stored look-up costs at 8 deg and is what
+  makes the method usable at 20 deg.
 
 Bounds (beta = 3). Area: beta sigma_A with sigma_A from eqs. 20-24 (area_sigma="paper": H H^T with
 the three sides independent, each with the variance of an angle between two stars, sigma_p^2 = 2 sigma^2
@@ -23,7 +48,10 @@ the three sides independent, each with the variance of an angle between two star
 "star-sigma": the star's sigma^2, 1.8 % outside; docs/methods.md), or with the covariance of the
 sides of noisy stars (area_sigma="stars"; see `spherical`: eq. 24 under-states sigma_A by a median
 factor 1.2 and up to 2, and over-states it for slivers). Polar moment: as the paper, a bound from
-simulation stored with the database: MOMENT_SIGMA_TRIANGLES = 1000 random catalog triangles x
+simulation, cached beside the database (a small file per camera circle: drawn from the stored
+triangles that fit the camera, in their stored order, it is the line a database built for that camera
+alone would hold; with database="pairs" from ~20,000 random catalog triangles, `build_moment_sigma`):
+MOMENT_SIGMA_TRIANGLES = 1000 random catalog triangles x
 MOMENT_SIGMA_TRIALS = 100 noisy measurements (tangent-plane error sigma_ref per axis), the standard
 deviation of each one's polar moment over sigma_ref, and the lowest line sigma_I / sigma = c0 + c1 I
 lying MOMENT_SIGMA_MARGIN = 10 % above all of them (a linear program): "a line slightly above the
@@ -84,7 +112,8 @@ close_triangles, backtrack, max_stars=12; the paper's method is the default):
 
 Not in the paper, in IMPROVED_PARAMS: max_stars = 12 caps the stars that form triangles (the brightest;
 every star still takes part in verification): the paper's CPU time grew to 400 s with more than 20
-stars in the FOV. The paper variant forms triangles from every star (max_stars=None).
+stars in the FOV. The paper variant forms triangles from every star (max_stars=None). database="pairs"
+(above) is in IMPROVED_PARAMS too; it needs vertex_order="sides" and pivoting="join".
 """
 
 from __future__ import annotations
@@ -101,10 +130,11 @@ from skyview.attitude import svd_attitude
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog
 from skyview.errors import BadInput
-from skyview.identify import database
+from skyview.identify import database as database_module
 from skyview.identify import spherical as sph
 from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
                                    Step)
+from skyview.identify.angle import _by_star, _pair_indices, load_pair_database
 from skyview.identify.kvector import KVector
 from skyview.identify.layers import Hypotheses
 from skyview.identify.synthetic import add_noise
@@ -116,15 +146,23 @@ ORDERS = ("largest", "fewest")
 # ("star-sigma", the print's other reading), or the full covariance of the sides ("stars")
 AREA_SIGMAS = ("paper", "star-sigma", "stars")
 VERTEX_ORDERS = ("paper", "sides")
+# where the candidates of an observed triangle come from: the stored triangle database ("triangles", the
+# paper's), or joined from the angle database's pairs and then filtered by area and polar moment ("pairs")
+DATABASES = ("triangles", "pairs")
 IMPROVED_PARAMS = {"vertex_order": "sides", "close_triangles": True, "backtrack": True, "area_sigma": "stars",
-                   "pivoting": "join", "max_stars": 12}
+                   "pivoting": "join", "max_stars": 12, "database": "pairs"}
 # the paper's pairwise list pruning: two common stars anywhere ("lists") or on the two shared observed
 # stars ("shared-star"); beyond the paper: full assignments joined on the shared stars ("join")
 PIVOTINGS = ("shared-star", "lists", "join")
 CAP = 200  # catalog rows / groups kept in one step
 MAX_EQUIVALENT = 16  # at most this many hypotheses are compared for unresolved close pairs
-DATABASE_VERSION = 2
+DATABASE_VERSION = 5
+MOMENT_SIGMA_VERSION = 1
+BYTES_PER_TRIANGLE = 52  # peak memory of the chunked build per kept triangle (arrays, the sort, the k-vectors)
+BUILD_FIXED_BYTES = 400 * 2 ** 20  # and what it holds whatever the size (Python, one chunk, the moment fit)
+CHUNK_CANDIDATES = 1_000_000  # candidate third stars made and tested at once while building (~100 MB)
 BLOCK = 256  # triangles per block of the candidate counter
+MEASURE_BATCH = 16  # observed triangles measured at once when the search reaches an unmeasured one
 SCAN_LIMIT = 65536  # a triangle looked up alone is counted by listing its candidates up to this range
 MOMENT_SIGMA_TRIANGLES = 1000
 MOMENT_SIGMA_TRIALS = 100
@@ -140,13 +178,24 @@ _SIDE = np.array([[-1, 0, 2], [0, -1, 1], [2, 1, -1]])  # side index of vertex p
 
 # ---------------------------------------------------------------------- database
 
-def catalog_triangles(xyz: np.ndarray, max_side_rad: float, pairs: np.ndarray | None = None) -> np.ndarray:
+def catalog_triangles(xyz: np.ndarray, max_side_rad: float, pairs: np.ndarray | None = None,
+                      first: np.ndarray | None = None) -> np.ndarray:
     """All (i < j < k) whose three sides are <= max_side_rad, shape (T, 3) int64, vectorised.
 
     pairs: the unordered catalog pairs within max_side_rad (i < j), e.g. GuideCatalog.pairs_within.
     From the pair adjacency: for each pair (i, j), every k > j that is a neighbour of i, kept when
-    (j, k) is a pair too.
+    (j, k) is a pair too. first: a mask of the stars allowed as the first (lowest) vertex i, or None.
     """
+    for lo, hi, tri in _triangle_chunks(xyz, max_side_rad, pairs, first, chunk=None):
+        return tri
+    return np.zeros((0, 3), dtype=np.int64)
+
+
+def _triangle_chunks(xyz: np.ndarray, max_side_rad: float, pairs: np.ndarray | None, first: np.ndarray | None,
+                     chunk: int | None):
+    """catalog_triangles in pieces: (first pair, last pair, triangles) for consecutive sorted pairs
+    (i, j) with about `chunk` candidate third stars at a time (None: all at once), so that a large sky
+    is never held as one list of candidate third stars."""
     xyz = np.asarray(xyz, dtype=np.float64)
     n = len(xyz)
     if pairs is None:
@@ -159,19 +208,30 @@ def catalog_triangles(xyz: np.ndarray, max_side_rad: float, pairs: np.ndarray | 
     o = np.lexsort((j, i))
     i, j = i[o], j[o]
     if len(i) == 0:
-        return np.zeros((0, 3), dtype=np.int64)
+        yield 0, 0, np.zeros((0, 3), dtype=np.int64)
+        return
     row_start = np.searchsorted(i, np.arange(n + 1))
     after = row_start[i + 1] - np.arange(len(i)) - 1  # neighbours of i beyond j (sorted rows)
-    total = int(after.sum())
-    src = np.repeat(np.arange(len(i)), after)
-    offs = np.arange(total) - np.repeat(np.cumsum(after) - after, after)
-    k = j[src + 1 + offs]
-    a, b = i[src], j[src]
+    if first is not None:
+        after = np.where(np.asarray(first, dtype=bool)[i], after, 0)
     keys = i * n + j  # sorted (lexsort above)
-    q = b * n + k
-    pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
-    keep = keys[pos] == q
-    return np.stack([a[keep], b[keep], k[keep]], axis=1)
+    if chunk is None:
+        bounds = [0, len(i)]
+    else:  # cut where the running count of candidates crosses a multiple of chunk
+        cum = np.cumsum(after)
+        cuts = np.searchsorted(cum, np.arange(1, int(cum[-1]) // max(1, int(chunk)) + 1) * int(chunk), side="right")
+        bounds = np.unique(np.concatenate([[0], cuts, [len(i)]])).tolist()
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        aft = after[lo:hi]
+        total = int(aft.sum())
+        src = lo + np.repeat(np.arange(hi - lo), aft)
+        offs = np.arange(total) - np.repeat(np.cumsum(aft) - aft, aft)
+        k = j[src + 1 + offs]
+        a, b = i[src], j[src]
+        q = b * n + k
+        pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
+        keep = keys[pos] == q
+        yield lo, hi, np.stack([a[keep], b[keep], k[keep]], axis=1)
 
 
 def fit_moment_sigma(xyz: np.ndarray, tri: np.ndarray, depth: int, rng: np.random.Generator,
@@ -209,48 +269,113 @@ def upper_line(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.array([c0 * sy * (1.0 + 1e-9), c1 * sy / sx * (1.0 + 1e-9)])
 
 
-COUNT_NAMES = ("sides_within_diagonal", "cap_within_half_diagonal", "sides_within_fov", "cap_within_half_fov")
+COUNT_NAMES = ("sides_within_diameter", "cap_within_radius")
 
 
 def build_triangle_database(catalog: GuideCatalog, max_radius_rad: float, depth: int = sph.MOMENT_DEPTH,
-                            fit: str = "parabola", fov_rad: float | None = None) -> dict[str, np.ndarray]:
+                            fit: str = "parabola") -> dict[str, np.ndarray]:
     """Catalog triangles whose enclosing cap radius is <= max_radius_rad, with area, polar moment,
     their k-vectors and the polar-moment sigma line.
 
-    `counts` records how many triangles other rules would keep (COUNT_NAMES): all sides <= the
-    diameter 2 max_radius_rad, the cap rule itself, and for fov_rad (the paper's circular FOV) all
-    sides <= fov_rad and an enclosing cap <= fov_rad / 2.
+    Built in chunks of CHUNK_PAIRS catalog pairs: each chunk's triangles are made, cap-tested and
+    measured (area, polar moment) in float64, and only the kept rows (star indices, float32 area and
+    moment) are collected, so the peak memory is about BYTES_PER_TRIANGLE bytes a kept triangle.
+    `counts` records how many triangles have all sides <= the diameter 2 max_radius_rad and how many
+    pass the cap rule itself (COUNT_NAMES).
     """
     xyz = catalog.xyz
     pairs = catalog.pairs_within(2.0 * max_radius_rad)
-    tri = catalog_triangles(xyz, 2.0 * max_radius_rad, pairs)
-    A, B, C = xyz[tri[:, 0]], xyz[tri[:, 1]], xyz[tri[:, 2]]
-    cap = sph.enclosing_cap_radius(A, B, C)
-    keep = cap <= max_radius_rad
-    fov = 2.0 * max_radius_rad if fov_rad is None else float(fov_rad)
-    longest = np.max(np.stack(sph.sides(A, B, C)), axis=0) if len(tri) else np.zeros(0)
-    counts = np.array([len(tri), int(keep.sum()), int(np.sum(longest <= fov)), int(np.sum(cap <= fov / 2.0))],
-                      dtype=np.int64)
-    tri, A, B, C = tri[keep], A[keep], B[keep], C[keep]
-    area = sph.area(A, B, C).astype(np.float32)
-    moment = sph.polar_moment(A, B, C, depth).astype(np.float32)
+    idx_dtype = np.int16 if len(catalog) <= np.iinfo(np.int16).max else np.int32
+    parts_tri, parts_area, parts_moment, parts_cap = [], [], [], []
+    n_sides = 0
+    for _, _, tri in _triangle_chunks(xyz, 2.0 * max_radius_rad, pairs, None, CHUNK_CANDIDATES):
+        n_sides += len(tri)
+        A, B, C = xyz[tri[:, 0]], xyz[tri[:, 1]], xyz[tri[:, 2]]
+        cap = sph.enclosing_cap_radius(A, B, C)
+        keep = cap <= max_radius_rad
+        tri, A, B, C = tri[keep], A[keep], B[keep], C[keep]
+        parts_cap.append(cap[keep].astype(np.float32))
+        parts_tri.append(tri.astype(idx_dtype))
+        parts_area.append(sph.area(A, B, C).astype(np.float32))
+        parts_moment.append(sph.polar_moment(A, B, C, depth).astype(np.float32))
+    tri = np.concatenate(parts_tri) if parts_tri else np.zeros((0, 3), dtype=idx_dtype)
+    area = np.concatenate(parts_area) if parts_area else np.zeros(0, dtype=np.float32)
+    moment = np.concatenate(parts_moment) if parts_moment else np.zeros(0, dtype=np.float32)
+    cap = np.concatenate(parts_cap) if parts_cap else np.zeros(0, dtype=np.float32)
+    del parts_tri, parts_area, parts_moment, parts_cap, pairs
+    counts = np.array([n_sides, len(tri)], dtype=np.int64)
     order = np.lexsort((tri[:, 2], tri[:, 1], tri[:, 0], area))
-    tri, area, moment = tri[order], area[order], moment[order]
-    m_order = np.argsort(moment, kind="stable")
+    tri, area, moment, cap = tri[order], area[order], moment[order], cap[order]
+    del order
+    m_order = np.argsort(moment, kind="stable").astype(np.int32)
     rank = np.empty(len(m_order), dtype=np.int32)
     rank[m_order] = np.arange(len(m_order), dtype=np.int32)
     kv_a = KVector(area.astype(np.float64), fit=fit, presorted=True)
-    kv_m = KVector(moment[m_order].astype(np.float64), fit=fit, presorted=True)
-    idx_dtype = np.int16 if len(catalog) <= np.iinfo(np.int16).max else np.int32
-    coef, samples = fit_moment_sigma(xyz, tri, depth, np.random.default_rng(MOMENT_SIGMA_SEED))
+    area_k, area_coef = kv_a.k.astype(np.int32), kv_a.coef
+    del kv_a
+    moment_sorted = moment[m_order]
+    kv_m = KVector(moment_sorted.astype(np.float64), fit=fit, presorted=True)
+    block_rank = _block_sorted(rank, BLOCK)
     return {
-        "tri": tri.astype(idx_dtype),
-        "area": area, "area_k": kv_a.k.astype(np.int32), "area_coef": kv_a.coef,
-        "moment_sorted": moment[m_order], "moment_order": m_order.astype(np.int32), "moment_rank": rank,
-        "moment_k": kv_m.k.astype(np.int32), "moment_coef": kv_m.coef,
-        "fit": np.array(fit),
-        "moment_sigma_coef": coef, "moment_sigma_samples": samples, "counts": counts,
+        "tri": tri, "cap": cap,
+        "area": area, "area_k": area_k, "area_coef": area_coef,
+        "moment_sorted": moment_sorted, "moment_order": m_order, "moment_rank": rank,
+        "moment_k": kv_m.k.astype(np.int32), "moment_coef": kv_m.coef, "block_rank": block_rank,
+        "fit": np.array(fit), "counts": counts,
     }
+
+
+def _camera_moment_sigma(xyz: np.ndarray, tri: np.ndarray, cap: np.ndarray, cap_limit: float, depth: int
+                         ) -> dict[str, np.ndarray]:
+    """fit_moment_sigma on the stored triangles that fit a camera (cap <= cap_limit), in their stored
+    order: the draw a database built for that camera alone makes (the same seed, the same rows)."""
+    rows = np.flatnonzero(np.asarray(cap) <= cap_limit)
+    coef, samples = fit_moment_sigma(xyz, np.asarray(tri[rows], dtype=np.int64), depth,
+                                     np.random.default_rng(MOMENT_SIGMA_SEED))
+    return {"moment_sigma_coef": coef, "moment_sigma_samples": samples}
+
+
+def triangles_estimate(n_stars: int, max_radius_rad: float) -> float:
+    """Expected number of catalog triangles with all sides <= 2 max_radius_rad: about N k^2 / 6 for k
+    neighbours within 2 max_radius_rad (the cap rule keeps ~85-95 % of them)."""
+    k = 2.0 * database_module.pairs_estimate(n_stars, 2.0 * max_radius_rad) / max(n_stars, 1)
+    return n_stars * k * k / 6.0
+
+
+MOMENT_SAMPLE_TRIANGLES = 20_000  # triangles the moment sigma line of the pair lookup draws its 1000 from
+
+
+def build_moment_sigma(catalog: GuideCatalog, max_radius_rad: float, depth: int = sph.MOMENT_DEPTH
+                       ) -> dict[str, np.ndarray]:
+    """The polar-moment sigma line without a triangle database: the same simulation (fit_moment_sigma)
+    on catalog triangles whose lowest vertex is a random subset of the stars (every triangle equally
+    likely), about MOMENT_SAMPLE_TRIANGLES of them, cap <= max_radius_rad."""
+    rng = np.random.default_rng(MOMENT_SIGMA_SEED)
+    frac = min(1.0, 2.0 * MOMENT_SAMPLE_TRIANGLES / max(triangles_estimate(len(catalog), max_radius_rad), 1.0))
+    first = rng.random(len(catalog)) < frac
+    tri = catalog_triangles(catalog.xyz, 2.0 * max_radius_rad, catalog.pairs_within(2.0 * max_radius_rad), first)
+    xyz = catalog.xyz
+    tri = tri[sph.enclosing_cap_radius(xyz[tri[:, 0]], xyz[tri[:, 1]], xyz[tri[:, 2]]) <= max_radius_rad]
+    coef, samples = fit_moment_sigma(xyz, tri, depth, rng)
+    return {"moment_sigma_coef": coef, "moment_sigma_samples": samples}
+
+
+def triangle_counts(catalog: GuideCatalog, max_radius_rad: float, fov_rad: float) -> dict[str, int]:
+    """How many catalog triangles each rule keeps (for the report): all sides <= 2 max_radius_rad, an
+    enclosing cap <= max_radius_rad, and for a circular FOV all sides <= fov_rad and a cap <= fov_rad / 2."""
+    out = dict.fromkeys(("sides_within_diagonal", "cap_within_half_diagonal", "sides_within_fov",
+                         "cap_within_half_fov"), 0)
+    xyz = catalog.xyz
+    reach = max(2.0 * max_radius_rad, fov_rad)
+    for _, _, tri in _triangle_chunks(xyz, reach, catalog.pairs_within(reach), None, CHUNK_CANDIDATES):
+        A, B, C = xyz[tri[:, 0]], xyz[tri[:, 1]], xyz[tri[:, 2]]
+        cap = sph.enclosing_cap_radius(A, B, C)
+        longest = np.max(np.stack(sph.sides(A, B, C)), axis=0)
+        out["sides_within_diagonal"] += int(np.sum(longest <= 2.0 * max_radius_rad))
+        out["cap_within_half_diagonal"] += int(np.sum(cap <= max_radius_rad))
+        out["sides_within_fov"] += int(np.sum(longest <= fov_rad))
+        out["cap_within_half_fov"] += int(np.sum(cap <= fov_rad / 2.0))
+    return out
 
 
 def _block_sorted(rank: np.ndarray, block: int) -> np.ndarray:
@@ -321,7 +446,8 @@ class TriangleMethod(Identifier):
                  max_stars: int | None = None, pivoting: str = "shared-star",
                  close_triangles: bool = False, backtrack: bool = False, max_restarts: int = 10,
                  max_dropped: int = 1, statistic: str = CALIBRATED, threshold: float | None = None,
-                 radius_sigmas: float = RADIUS_SIGMAS, kvector_fit: str = "parabola"):
+                 radius_sigmas: float = RADIUS_SIGMAS, kvector_fit: str = "parabola",
+                 database: str = "triangles"):
         if not (np.isfinite(sigma_rad) and sigma_rad > 0):
             raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
         if not (np.isfinite(beta) and beta > 0):
@@ -352,6 +478,11 @@ class TriangleMethod(Identifier):
             raise BadInput("max_restarts and max_dropped must be >= 0")
         if not (np.isfinite(radius_sigmas) and radius_sigmas > 0):
             raise BadInput("radius_sigmas must be positive")
+        if database not in DATABASES:
+            raise BadInput(f"unknown database {database!r}: choose from {', '.join(DATABASES)}")
+        if database == "pairs" and (vertex_order != "sides" or pivoting != "join"):
+            raise BadInput("database='pairs' joins oriented triangles: it needs vertex_order='sides' and "
+                           "pivoting='join'")
         self.catalog = catalog
         self.camera = camera
         self.sigma_rad = float(sigma_rad)
@@ -372,44 +503,92 @@ class TriangleMethod(Identifier):
         self.threshold = threshold
         self.radius_sigmas = float(radius_sigmas)
 
-        self.max_radius_rad = camera.half_diagonal_rad
+        self.database = database
+        # the database belongs to the sky: caps up to the half-diagonal rounded up on the 5 % grid of
+        # database.angular_range, so one database serves every camera whose half-diagonal is below it
+        self.max_radius_rad = database_module.angular_range(camera.half_diagonal_rad)
+        moment_params = [MOMENT_SIGMA_TRIANGLES, MOMENT_SIGMA_TRIALS, MOMENT_SIGMA_MARGIN, MOMENT_SIGMA_REF_RAD,
+                         MOMENT_SIGMA_SEED]
+        n_tri = triangles_estimate(len(catalog), self.max_radius_rad)
+        if database == "pairs":
+            self._init_pairs(catalog, camera, moment_params)
+            return
         params = {"max_radius_rad": self.max_radius_rad, "depth": self.depth, "kvector_fit": kvector_fit,
-                  "moment_sigma": [MOMENT_SIGMA_TRIANGLES, MOMENT_SIGMA_TRIALS, MOMENT_SIGMA_MARGIN,
-                                   MOMENT_SIGMA_REF_RAD, MOMENT_SIGMA_SEED],
-                  "version": DATABASE_VERSION}
-        self.database_key = database.make_key(self.name, params, catalog, camera)
-        # triangles with all sides <= 2r: about N k^2 / 6 for k neighbours within 2r; ~250 bytes each while
-        # built (indices, vertices, sides, caps, areas, moments and their sorted copies), ~13 us each
-        k = 2.0 * database.pairs_estimate(len(catalog), 2.0 * self.max_radius_rad) / max(len(catalog), 1)
-        n_tri = len(catalog) * k * k / 6.0
+                  "moment_sigma": moment_params, "version": DATABASE_VERSION}
+        self.database_key = database_module.make_key(self.name, params, catalog, None)
+        # built in chunks: ~BYTES_PER_TRIANGLE bytes a triangle at the peak, ~10 us each (the polar moment)
         what = (f"the triangle database ({len(catalog):,} stars, caps up to "
                 f"{np.degrees(self.max_radius_rad):.1f} deg, ~{n_tri / 1e6:.1f} M triangles)")
-        arrays, info = database.load_or_build(
+        arrays, info = database_module.load_or_build(
             self.database_key,
-            lambda: build_triangle_database(catalog, self.max_radius_rad, self.depth, kvector_fit,
-                                            np.radians(camera.fov_deg)),
-            what=what, estimate_s=13e-6 * n_tri, estimate_bytes=250.0 * n_tri)
+            lambda: build_triangle_database(catalog, self.max_radius_rad, self.depth, kvector_fit),
+            mmap=True, what=what, estimate_s=10e-6 * n_tri, estimate_bytes=BUILD_FIXED_BYTES + BYTES_PER_TRIANGLE * n_tri)
         t0 = time.perf_counter()
         self.tri = arrays["tri"]
         self.area = arrays["area"]
         self.moment_order = arrays["moment_order"]
         self.moment_rank = arrays["moment_rank"]
-        fit = str(arrays["fit"])
+        fit = str(arrays["fit"][()])
         self.kv_area = _kvector(self.area, arrays["area_k"], arrays["area_coef"], fit)
         self.kv_moment = _kvector(arrays["moment_sorted"], arrays["moment_k"], arrays["moment_coef"], fit)
-        self.block_rank = _block_sorted(self.moment_rank, BLOCK)
-        self.moment_sigma_coef = np.asarray(arrays["moment_sigma_coef"], dtype=np.float64)
-        self.moment_sigma_samples = arrays["moment_sigma_samples"]
+        self.block_rank = arrays["block_rank"]
+        # the database serves every camera whose half-diagonal is below its range; a look-up keeps the
+        # triangles that fit THIS camera's circumscribed circle, as a database of its own would
+        self.cap = arrays["cap"]
+        self.cap_limit = float(camera.half_diagonal_rad)
+        # the polar-moment sigma line of the triangles that fit this camera (the paper's simulation on
+        # 1000 of them): what a database of its own would hold, a small cached file of its own
+        mkey = database_module.make_key("triangle-moment", {
+            "triangles": database_module.key_string(self.database_key), "cap_limit": self.cap_limit,
+            "version": MOMENT_SIGMA_VERSION}, catalog, None)
+        line, minfo = database_module.load_or_build(
+            mkey, lambda: _camera_moment_sigma(catalog.xyz, self.tri, self.cap, self.cap_limit, self.depth),
+            what="the polar-moment sigma line of the triangle method", estimate_s=2.0)
+        self.moment_sigma_coef = np.asarray(line["moment_sigma_coef"], dtype=np.float64)
+        self.moment_sigma_samples = np.asarray(line["moment_sigma_samples"])
         counts = dict(zip(COUNT_NAMES, (int(c) for c in arrays["counts"])))
         info.update(triangles=len(self.tri), triangle_counts=counts, fov_deg=float(camera.fov_deg),
                     max_radius_deg=float(np.degrees(self.max_radius_rad)), catalog_stars=len(catalog),
-                    moment_sigma_coef=self.moment_sigma_coef.tolist(),
+                    moment_sigma_coef=self.moment_sigma_coef.tolist(), database="triangles",
                     index_s=time.perf_counter() - t0)
+        self._n_patterns = len(self.tri)
+        self.database_info = info
+        self._key_string = database_module.key_string(self.database_key)
+
+    def _init_pairs(self, catalog: GuideCatalog, camera: Camera, moment_params: list) -> None:
+        """No triangle database: the angle database's pairs (shared with the angle method) and the
+        polar-moment sigma line (a small database of its own)."""
+
+        self.pair_i, self.pair_j, self.kv_pairs, info = load_pair_database(catalog, camera)
+        self.pair_max_sep_rad = float(info["max_sep_rad"])
+        params = {"max_radius_rad": self.max_radius_rad, "depth": self.depth, "moment_sigma": moment_params,
+                  "sample": MOMENT_SAMPLE_TRIANGLES, "version": MOMENT_SIGMA_VERSION}
+        mkey = database_module.make_key("triangle-moment", params, catalog, None)
+        arrays, minfo = database_module.load_or_build(
+            mkey, lambda: build_moment_sigma(catalog, self.max_radius_rad, self.depth),
+            what="the polar-moment sigma line of the triangle method", estimate_s=2.0)
+        self.moment_sigma_coef = np.asarray(arrays["moment_sigma_coef"], dtype=np.float64)
+        self.moment_sigma_samples = np.asarray(arrays["moment_sigma_samples"])
+        # the key recorded in results names both databases the method reads
+        self.database_key = database_module.make_key(self.name, {"database": "pairs", "pairs": info["key"],
+                                                                 "moment_sigma": mkey}, catalog, None)
+        self._key_string = database_module.key_string(self.database_key)
+        info.update(database="pairs", pairs=len(self.pair_i), max_sep_deg=float(np.degrees(self.pair_max_sep_rad)),
+                    max_radius_deg=float(np.degrees(self.max_radius_rad)), fov_deg=float(camera.fov_deg),
+                    catalog_stars=len(catalog), moment_sigma_coef=self.moment_sigma_coef.tolist(),
+                    moment_sigma_key=minfo["key_string"], moment_sigma_source=minfo["source"])
+        self._n_patterns = len(self.pair_i)
         self.database_info = info
 
     @property
     def database_key_string(self) -> str:
-        return database.key_string(self.database_key)
+        return self._key_string
+
+    @property
+    def n_patterns(self) -> int:
+        """Patterns in the database (the tetra3 statistic divides its threshold by this): the stored
+        triangles, or with database="pairs" the pairs."""
+        return self._n_patterns
 
     # ------------------------------------------------------------------ bounds and look-up
     def moment_sigma(self, moment: np.ndarray, sigma: float) -> np.ndarray:
@@ -428,34 +607,74 @@ class TriangleMethod(Identifier):
         A, B, C = V[ti], V[tj], V[tk]
         a, b, c = sph.sides(A, B, C)
         area = sph.lhuilier(a, b, c)
-        if self.area_sigma == "paper":  # eq. 24 with each side's own sigma, sqrt(2) sigma (eq. 13)
-            s_area = sph.area_sigma_paper(a, b, c, SQ2 * sigma)
-        elif self.area_sigma == "star-sigma":
-            s_area = sph.area_sigma_paper(a, b, c, sigma)
-        else:
-            s_area = sph.area_sigma_stars(A, B, C, sigma)
-        moment = sph.polar_moment(A, B, C, self.depth)
-        s_moment = self.moment_sigma(moment, sigma)
-        area_bound = self.beta * s_area
-        moment_bound = self.beta * s_moment
-        out = dict(ti=ti, tj=tj, tk=tk, sides=np.stack([a, b, c], axis=1), area=area, area_bound=area_bound,
-                   moment=moment, moment_bound=moment_bound,
-                   triple=sph.triple(A, B, C), triple_sigma=sph.triple_sigma(A, B, C, sigma))
-        if lookup:
+        n = len(area)
+        out = dict(ti=ti, tj=tj, tk=tk, sides=np.stack([a, b, c], axis=1), area=area, triple=sph.triple(A, B, C),
+                   sigma=sigma, V=V, area_bound=np.full(n, np.nan), moment=np.full(n, np.nan),
+                   moment_bound=np.full(n, np.nan), triple_sigma=np.full(n, np.nan))
+        if lookup or self.order == "fewest":
+            self._measure(out, np.arange(n))
+        if self.database == "pairs":  # no ranges: each triangle's candidates are joined when it is visited
+            for key in ("s1", "e1", "s2", "e2", "counts"):
+                out[key] = np.full(len(area), -1, dtype=np.int64)
+            if lookup:
+                for k in range(len(area)):
+                    self.count_of(out, k)
+        elif lookup:
             with np.errstate(invalid="ignore"):
-                out["s1"], out["e1"] = self.kv_area.ranges(area - area_bound, area + area_bound)
-                out["s2"], out["e2"] = self.kv_moment.ranges(moment - moment_bound, moment + moment_bound)
+                da, moment, dm = out["area_bound"], out["moment"], out["moment_bound"]
+                out["s1"], out["e1"] = self.kv_area.ranges(area - da, area + da)
+                out["s2"], out["e2"] = self.kv_moment.ranges(moment - dm, moment + dm)
             out["counts"] = self._count(out)
+            # the counter sees the whole database; list the candidates to keep those that fit this camera
+            for k in np.flatnonzero(out["counts"] > 0).tolist():
+                if min(out["e1"][k] - out["s1"][k], out["e2"][k] - out["s2"][k]) <= SCAN_LIMIT:
+                    out.setdefault("rows", {})[k] = rows = self._scan(out, k)
+                    out["counts"][k] = len(rows)
         else:
             for key in ("s1", "e1", "s2", "e2", "counts"):
                 out[key] = np.full(len(area), -1, dtype=np.int64)
         return out
 
+    def _measure(self, t: dict, idx: np.ndarray) -> None:
+        """Fill the area bound, polar moment, its bound and the triple product's sigma of the observed
+        triangles idx (the largest-area order measures only the triangles it visits, MEASURE_BATCH at a
+        time: the polar moments of all 220 triangles of 12 stars would cost more than the search)."""
+        V, sigma = t["V"], t["sigma"]
+        A, B, C = V[t["ti"][idx]], V[t["tj"][idx]], V[t["tk"][idx]]
+        if self.area_sigma == "paper":  # eq. 24 with each side's own sigma, sqrt(2) sigma (eq. 13)
+            a, b, c = t["sides"][idx].T
+            s_area = sph.area_sigma_paper(a, b, c, SQ2 * sigma)
+        elif self.area_sigma == "star-sigma":
+            a, b, c = t["sides"][idx].T
+            s_area = sph.area_sigma_paper(a, b, c, sigma)
+        else:
+            s_area = sph.area_sigma_stars(A, B, C, sigma)
+        moment = sph.polar_moment(A, B, C, self.depth)
+        t["area_bound"][idx] = self.beta * s_area
+        t["moment"][idx] = moment
+        t["moment_bound"][idx] = self.beta * self.moment_sigma(moment, sigma)
+        t["triple_sigma"][idx] = sph.triple_sigma(A, B, C, sigma)
+
+    def _ensure(self, t: dict, k: int) -> None:
+        """Observed triangle k measured (`_measure`), with the next unmeasured ones in the search order."""
+        if not np.isnan(t["moment"][k]):
+            return
+        todo = np.flatnonzero(np.isnan(t["moment"]))
+        pr = t.get("priority")
+        if pr is not None and len(todo) > MEASURE_BATCH:
+            todo = todo[np.argsort(pr[todo], kind="stable")[:MEASURE_BATCH]]
+            if k not in todo:
+                todo = np.append(todo[:-1], k)
+        elif pr is None:
+            todo = np.array([k])
+        self._measure(t, np.sort(todo))
+
     def _count(self, t: dict) -> np.ndarray:
         """|area range ∩ polar-moment range| of each observed triangle, exact and vectorised.
 
         A catalog triangle is a candidate when its position in area order is in [s1, e1) and its
-        position in polar-moment order (its rank) in [s2, e2). The area order is cut into blocks of
+        position in polar-moment order (its rank) in [s2, e2) (and it fits the camera: `_scan` applies
+        that, this counter counts the whole database's range). The area order is cut into blocks of
         BLOCK triangles whose ranks are stored sorted (`block_rank`): a block wholly
         inside [s1, e1) is counted with two binary searches, the at most 2 BLOCK triangles of the two
         partial blocks at the ends one by one.
@@ -490,8 +709,13 @@ class TriangleMethod(Identifier):
         return counts
 
     def count_of(self, t: dict, k: int) -> int:
-        """The candidate count of observed triangle k, looked up and counted now if it was left out."""
-        if t["counts"][k] < 0:
+        """The candidate count of observed triangle k, looked up and counted now if it was left out
+        (database="pairs": the catalog star sets that the pair join leaves)."""
+        self._ensure(t, k)
+        if t["counts"][k] < 0 and self.database == "pairs":
+            t.setdefault("oriented", {})[k] = H = self.join_pairs(t, k)
+            t["counts"][k] = _n_sets(H)
+        elif t["counts"][k] < 0:
             a, da, i, di = t["area"][k], t["area_bound"][k], t["moment"][k], t["moment_bound"][k]
             t["s1"][k], t["e1"][k] = self.kv_area.range(a - da, a + da)
             t["s2"][k], t["e2"][k] = self.kv_moment.range(i - di, i + di)
@@ -503,6 +727,75 @@ class TriangleMethod(Identifier):
                 t["counts"][k] = self._count(one)[0]
         return int(t["counts"][k])
 
+    def join_pairs(self, t: dict, k: int) -> np.ndarray:
+        """database="pairs": the oriented candidates of observed triangle k ((p, q, r) = (ti, tj, tk)[k]),
+        without a triangle database.
+
+        The catalog pairs whose angle matches side pq within beta sigma_p (sigma_p = sqrt(2) sigma, the
+        tolerance `orient` gives each side) are joined on the shared star q with the pairs matching
+        side qr, in both orientations; a third side rp within the same tolerance closes the triangle
+        (its angle computed from the two stars, as the database computes its pairs'). Then, as the
+        triangle database's candidates: the handedness where the observed sign is certain, the area
+        within its bound and the polar moment within its bound. Returns (h, 3) catalog rows in the
+        order (p, q, r): what `orient` returns from the stored candidates, up to the stored database's
+        cap rule (a triangle that matches a sensor's triangle within the noise fits the sensor).
+        """
+        self._ensure(t, k)
+        sig = float(t["sigma"])
+        tol = self.beta * SQ2 * sig
+        sides = t["sides"][k]
+        lo, hi = sides - tol, sides + tol
+        st, sp = self.kv_pairs.ranges(lo[:2], hi[:2])
+        pi, pj, xyz = self.pair_i, self.pair_j, self.catalog.xyz
+        a1, b1 = pi[st[0]:sp[0]], pj[st[0]:sp[0]]
+        a2, b2 = pi[st[1]:sp[1]], pj[st[1]:sp[1]]
+        cp, cq = np.concatenate([a1, b1]), np.concatenate([b1, a1])  # (catalog p, catalog q), both orientations
+        q2, r2 = np.concatenate([a2, b2]), np.concatenate([b2, a2])
+        r2s, start, size = _by_star(q2, r2, len(xyz))  # side qr's pairs in blocks by their star on q
+        cnt = size[cq]
+        rows = np.repeat(np.arange(len(cp)), cnt)
+        c = r2s[np.repeat(start[cq] - np.cumsum(cnt) + cnt, cnt) + np.arange(int(cnt.sum()))]
+        a, b = cp[rows], cq[rows]
+        ok = c != a
+        a, b, c = a[ok], b[ok], c[ok]
+        # side rp: a cheap test on the dot product, a little wider than the bounds, then the angle exactly
+        # as the database computes its pairs' (the same triangles as computing every angle)
+        hi_rp = min(float(hi[2]), self.pair_max_sep_rad)
+        near = np.einsum("ij,ij->i", xyz[c], xyz[a]) >= np.cos(min(hi_rp + 1e-6, np.pi))
+        a, b, c = a[near], b[near], c[near]
+        d = angular_distance(xyz[c], xyz[a])
+        ok = (d >= lo[2]) & (d <= hi[2]) & (d <= self.pair_max_sep_rad)
+        a, b, c = a[ok], b[ok], c[ok]
+        A, B, C = xyz[a], xyz[b], xyz[c]
+        tr, trs = float(t["triple"][k]), float(t["triple_sigma"][k])
+        if len(a) and abs(tr) > self.beta * trs:
+            ok = np.sign(sph.triple(A, B, C)) == np.sign(tr)
+            a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
+        if len(a):
+            ar, da = float(t["area"][k]), float(t["area_bound"][k])
+            area = sph.area(A, B, C)
+            ok = (area >= ar - da) & (area <= ar + da)
+            a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
+        if len(a):
+            mo, dm = float(t["moment"][k]), float(t["moment_bound"][k])
+            moment = sph.polar_moment(A, B, C, self.depth)
+            ok = (moment >= mo - dm) & (moment <= mo + dm)
+            a, b, c = a[ok], b[ok], c[ok]
+        t.setdefault("side_counts", {})[k] = (int(sp[0] - st[0]), int(sp[1] - st[1]))
+        return np.stack([a, b, c], axis=1)
+
+    def hypotheses(self, t: dict, k: int, sigma: float) -> tuple[np.ndarray, list[tuple[int, ...]]]:
+        """The oriented candidates of observed triangle k (rows over (ti, tj, tk)[k]) and the catalog
+        triangles a step draws for them (capped)."""
+        if self.database == "pairs":
+            self.count_of(t, k)
+            H = t["oriented"][k]
+            shown = np.unique(np.sort(H[:64 * CAP], axis=1), axis=0)[:CAP] if len(H) else H
+            return H, list(map(tuple, shown.astype(int).tolist()))
+        rows = self.candidates(t, k)
+        H, src = self.orient(t, k, rows, sigma)
+        return H, _groups(self.tri, rows, src)
+
     def candidates(self, t: dict, m: int) -> np.ndarray:
         """Rows (into self.tri, area order) of the catalog triangles matching observed triangle m:
         the shorter of its two ranges, filtered by the other."""
@@ -511,12 +804,16 @@ class TriangleMethod(Identifier):
         return rows if rows is not None else self._scan(t, m)
 
     def _scan(self, t: dict, m: int) -> np.ndarray:
+        """The candidate rows of observed triangle m: its two ranges intersected, then the triangles
+        that fit this camera (enclosing cap <= its half-diagonal)."""
         s1, e1, s2, e2 = int(t["s1"][m]), int(t["e1"][m]), int(t["s2"][m]), int(t["e2"][m])
         if e1 - s1 <= e2 - s2:
             r = self.moment_rank[s1:e1]
-            return s1 + np.flatnonzero((r >= s2) & (r < e2))
-        p = self.moment_order[s2:e2].astype(np.int64)
-        return np.sort(p[(p >= s1) & (p < e1)])
+            rows = s1 + np.flatnonzero((r >= s2) & (r < e2))
+        else:
+            p = self.moment_order[s2:e2].astype(np.int64)
+            rows = np.sort(p[(p >= s1) & (p < e1)])
+        return rows[self.cap[rows] <= self.cap_limit]
 
     def orient(self, t: dict, m: int, rows: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
         """Hypotheses of observed triangle m from candidate rows: (h, 3) catalog stars for the observed
@@ -527,6 +824,7 @@ class TriangleMethod(Identifier):
         sign is certain. vertex_order="paper": every one of the 6 orders (the paper matches triangles
         by area and polar moment only; the join and the final resolution sort the orders out).
         """
+        self._ensure(t, m)
         if len(rows) == 0:
             return np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
         cat = self.tri[rows].astype(np.int64)  # (r, 3)
@@ -562,17 +860,21 @@ class TriangleMethod(Identifier):
             return H
         xyz = self.catalog.xyz
         col = {s: c for c, s in enumerate(used)}
-        ok = np.ones(len(H), dtype=bool)
         tol = self.beta * SQ2 * sigma
-        for x, y in itertools.combinations(range(len(used)), 2):
-            obs_angle = float(angular_distance(V[used[x]], V[used[y]]))
-            ok &= np.abs(angular_distance(xyz[H[:, x]], xyz[H[:, y]]) - obs_angle) <= tol
-        for tri in triangles:
-            A, B, C = V[tri[0]], V[tri[1]], V[tri[2]]
-            tr = float(sph.triple(A, B, C))
-            if abs(tr) > self.beta * float(sph.triple_sigma(A, B, C, sigma)):
-                c = [col[s] for s in tri]
-                ok &= np.sign(sph.triple(xyz[H[:, c[0]]], xyz[H[:, c[1]]], xyz[H[:, c[2]]])) == np.sign(tr)
+        x, y = _pair_indices(len(used))  # every pair of stars at once
+        u = np.asarray(used)
+        obs_angle = angular_distance(V[u[x]], V[u[y]])
+        P = xyz[H]
+        ok = np.all(np.abs(angular_distance(P[:, x], P[:, y]) - obs_angle) <= tol, axis=1)
+        T = np.asarray(triangles)  # every triangle of the chain at once
+        A, B, C = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
+        tr = sph.triple(A, B, C)
+        certain = np.abs(tr) > self.beta * sph.triple_sigma(A, B, C, sigma)
+        if np.any(certain):
+            c = np.array([[col[s] for s in tri] for tri in T[certain].tolist()])  # (t, 3) columns of H
+            Pc = P[:, c]  # (h, t, 3 vertices, 3)
+            hand = np.sign(sph.triple(Pc[:, :, 0], Pc[:, :, 1], Pc[:, :, 2])) == np.sign(tr[certain])
+            ok &= np.all(hand, axis=1)
         return H[ok]
 
     # ------------------------------------------------------------------ identify
@@ -626,7 +928,7 @@ class TriangleMethod(Identifier):
                 hyp = dict(zip(chain.used, chain.best.tolist()))
                 n_verified += 1
                 ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=n_verified,
-                             n_patterns=len(self.tri), statistic=self.statistic, threshold=self.threshold,
+                             n_patterns=self.n_patterns, statistic=self.statistic, threshold=self.threshold,
                              radius_rad=match_radius(sigma, self.radius_sigmas))
                 vd = ver.to_dict()
                 steps.append(verification_step(ver, hyp, cap=CAP))
@@ -676,6 +978,11 @@ class TriangleMethod(Identifier):
 
     # ------------------------------------------------------------------ one pivoting chain
     def _numbers(self, t: dict, k: int) -> dict[str, float]:
+        if self.database == "pairs":
+            n_pq, n_qr = t.get("side_counts", {}).get(k, (-1, -1))
+            return {"area_sr": float(t["area"][k]), "area_bound_sr": float(t["area_bound"][k]),
+                    "moment": float(t["moment"][k]), "moment_bound": float(t["moment_bound"][k]),
+                    "pairs_side1": n_pq, "pairs_side2": n_qr, "candidates": int(t["counts"][k])}
         return {"area_sr": float(t["area"][k]), "area_bound_sr": float(t["area_bound"][k]),
                 "moment": float(t["moment"][k]), "moment_bound": float(t["moment_bound"][k]),
                 "candidates_area": int(t["e1"][k] - t["s1"][k]),
@@ -717,8 +1024,7 @@ class TriangleMethod(Identifier):
                 skip(k)
                 continue
             break
-        rows = self.candidates(t, k)
-        H, src = self.orient(t, k, rows, sigma)
+        H, groups = self.hypotheses(t, k, sigma)
         used = [int(ti[k]), int(tj[k]), int(tk[k])]
         triangles = [used.copy()]
         n_sets = _n_sets(H)
@@ -727,7 +1033,7 @@ class TriangleMethod(Identifier):
         steps.append(Step("pick", f"picked {self._label(t, k)}: {counts[k]} candidates"
                                   + (f", {len(H)} in a vertex order that fits the sides and handedness"
                                      if self.vertex_order == "sides" else ""),
-                          observed=used.copy(), catalog=_distinct(H), groups=_groups(self.tri, rows, src),
+                          observed=used.copy(), catalog=_distinct(H), groups=groups,
                           numbers=self._numbers(t, k) | {"hypotheses": len(H), "sets": n_sets},
                           layers=(Hypotheses.sample(used, H),)))
         if len(H) == 0:
@@ -764,8 +1070,7 @@ class TriangleMethod(Identifier):
                 skip(k)
                 continue
             obs3 = [int(ti[k]), int(tj[k]), int(tk[k])]
-            rows = self.candidates(t, k)
-            O, src = self.orient(t, k, rows, sigma)
+            O, groups = self.hypotheses(t, k, sigma)
             before, sets_before = len(H), n_sets
             shared = [s for s in obs3 if s in used]
             H, used, new = join(H, used, obs3, O)
@@ -779,7 +1084,7 @@ class TriangleMethod(Identifier):
             steps.append(Step("pivot", f"pivoted to {self._label(t, k)} sharing stars "
                                        f"{'-'.join(map(str, shared))}: {counts[k]} candidates, "
                                        f"{sets_before} -> {n_sets} candidate star sets",
-                              observed=obs3, catalog=_distinct(H), groups=_groups(self.tri, rows, src),
+                              observed=obs3, catalog=_distinct(H), groups=groups,
                               numbers=self._numbers(t, k) | {"oriented": len(O), "hypotheses_before": before,
                                                              "hypotheses_after": len(H), "sets_before": sets_before,
                                                              "sets_after": n_sets, "pivot": pivots,
@@ -1095,7 +1400,8 @@ def report(fov_deg: float = 8.0, width: int = 1024, mag: float = 6.0, sigma: flo
             else:
                 os.environ["SKYVIEW_CACHE"] = old
     info = built.database_info
-    out = {"database": {"catalog_stars": len(cat), "triangles": info["triangles"], **info["triangle_counts"],
+    counts = triangle_counts(cat, built.max_radius_rad, np.radians(fov_deg))
+    out = {"database": {"catalog_stars": len(cat), "triangles": info["triangles"], **counts,
                         "nbytes": info["nbytes"], "file_bytes": info["file_bytes"], "build_s": info["build_s"],
                         "load_s": loaded.database_info["load_s"], "index_s": loaded.database_info["index_s"],
                         "init_s": init_s, "moment_sigma_coef": info["moment_sigma_coef"]}}

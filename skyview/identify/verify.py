@@ -46,11 +46,18 @@ cannot be verified and is not identified.
 Threshold. DEFAULT_THRESHOLD = 1e-3. At mag 6 and 8 deg an image holds about 4-10 catalog stars,
 p_i = 1e-4 ... 3e-4 per tested star at sigma = 87 microradians, so ONE agreeing star gives P(false)
 of order 1e-4 to 3e-4, two give 1e-8. A threshold of 1e-4 would reject most single-agreement frames,
-exactly the sparse (4-6 star) fields that must stay solvable (the measurement in measure.py: 15-50 %
+exactly the sparse (4-6 star) fields that must stay solvable (`skyview experiment measure`: 15-50 %
 of all identifications have 1e-4 <= P(false) < 1e-3); 1e-3 accepts them. It bounds the rate of wrong
 answers by P(a wrong hypothesis reaches verification) x 1e-3: that first factor is below 0.2 even
 with a false star (Cole & Crassidis: 17 % incorrect without verification), so wrong attitudes stay
 near 2e-4 at worst, inside the project's 0.1 %.
+
+Speed (the same answers). A frame holds tens of stars on each side, so the nearest catalog stars of
+the tested stars (nearest, second nearest, the crowding count) come from one array of distances
+(`_nearest_two`, `_count_within`; a k-d tree only beyond BRUTE_PAIRS pairs) instead of building a
+k-d tree per round; the catalog stars around the frame are fetched once per verification, a little
+wider (NEAR_SLACK_RAD), and every refined attitude reuses them (`_Near`); the radii of all stars are
+computed once per estimate.
 
 Statistic "tetra3": the classic tetra3 form for comparison: per star p1 = N_nearby (r / FOV)^2
 (r as a fraction of the horizontal FOV, no pi), P = BinomCDF(n_obs - (n_matched - 2), n_obs, 1 - p1)
@@ -60,6 +67,7 @@ threshold (tetra3's 1e-3) divided by the number of patterns in the method's data
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -109,6 +117,8 @@ def match_radius(sigma_rad: float, k: float = RADIUS_SIGMAS) -> float:
 
 def p_single(n_frame: int, frame_solid_angle_sr: float, radius_rad) -> float | np.ndarray:
     """Chance that an unrelated direction lands within r of one of n_frame catalog stars."""
+    if isinstance(radius_rad, float):  # one radius: Python floats (verify calls this once a hypothesis)
+        return min(1.0, n_frame / frame_solid_angle_sr * math.pi * radius_rad ** 2)
     p = np.minimum(1.0, n_frame / frame_solid_angle_sr * np.pi * np.asarray(radius_rad, dtype=np.float64) ** 2)
     return float(p) if np.ndim(p) == 0 else p
 
@@ -124,18 +134,46 @@ def _per_item(x, n: int) -> np.ndarray:
 
 
 def poisson_binomial_sf(k: int, ps) -> float:
-    """P[sum of independent Bernoulli(p_i) >= k] (exact; no cancellation for tiny tails)."""
+    """P[sum of independent Bernoulli(p_i) >= k] (exact; no cancellation for tiny tails).
+
+    The distribution is carried only as far as the answer needs: the counts 0 .. k-1 and one state
+    for ">= k" (every term a sum of products of probabilities, nothing subtracted), or, when k is
+    near n, the same over the misses (P[X >= k] = P[n - X <= n - k]). Small states run in Python
+    floats (a frame's tens of stars: no numpy call per star), larger ones in numpy.
+    """
     ps = np.asarray(ps, dtype=np.float64).ravel()
+    n = len(ps)
     if k <= 0:
         return 1.0
-    if k > len(ps):
+    if k > n:
         return 0.0
-    dist = np.zeros(len(ps) + 1)
+    qs = 1.0 - ps
+    if n - k + 1 < k:  # P[X >= k] = P[misses <= n - k]: the states 0 .. n - k of the misses, summed
+        return float(min(1.0, sum(_states(n - k + 1, qs, ps))))
+    return float(min(1.0, _states(k, ps, qs, absorb=True)[k]))
+
+
+def _states(k: int, ps: np.ndarray, qs: np.ndarray, absorb: bool = False):
+    """The distribution of a sum of Bernoulli(p_i) (q_i = 1 - p_i given, not recomputed: no
+    cancellation when p_i is near 1) over the counts 0 .. k-1, plus with absorb=True a last state
+    "k or more" that the mass moving past k-1 joins."""
+    if k <= 32:
+        dist = [1.0] + [0.0] * (k - 1 + absorb)
+        for p, q in zip(ps.tolist(), qs.tolist()):
+            if absorb:
+                dist[k] += dist[k - 1] * p
+            for j in range(k - 1, 0, -1):
+                dist[j] = dist[j] * q + dist[j - 1] * p
+            dist[0] *= q
+        return dist
+    dist = np.zeros(k + absorb)
     dist[0] = 1.0
-    for p in ps:
-        dist[1:] = dist[1:] * (1.0 - p) + dist[:-1] * p
-        dist[0] *= 1.0 - p
-    return float(min(1.0, dist[k:].sum()))
+    for p, q in zip(ps, qs):
+        if absorb:
+            dist[k] += dist[k - 1] * p
+        dist[1:k] = dist[1:k] * q + dist[:k - 1] * p
+        dist[0] *= q
+    return dist.tolist()
 
 
 def p_false_calibrated(n_agree: int, n_tested: int, p, n_hypotheses: int = 1) -> float:
@@ -248,23 +286,78 @@ def match_one_to_one(query: np.ndarray, ref: np.ndarray, radius_rad
     e = np.zeros(0, dtype=np.int64)
     if len(query) == 0 or len(ref) == 0:
         return e, e, np.zeros(0), e
-    rq = _per_item(radius_rad, len(query))
-    cq = chord(rq)
-    tree = cKDTree(ref)
-    k = 2 if len(ref) > 1 else 1
-    d, j = tree.query(query, k=k, distance_upper_bound=float(cq.max()))
-    d, j = d.reshape(len(query), k), j.reshape(len(query), k)
-    ambiguous = np.flatnonzero(d[:, -1] <= cq) if k == 2 else e
-    ok = d[:, 0] <= cq
+    cq = chord(_per_item(radius_rad, len(query)))
+    d0, j0, d1 = _nearest_two(np.asarray(query, dtype=np.float64), np.asarray(ref, dtype=np.float64),
+                              float(cq.max()))
+    ambiguous = np.flatnonzero(d1 <= cq)
+    qi, rj, dist = _one_to_one(d0, j0, cq)
+    return qi, rj, dist, ambiguous
+
+
+BRUTE_PAIRS = 65536  # up to this many (query, ref) pairs the distances are one numpy array, not a k-d tree
+
+
+def _nearest_two(query: np.ndarray, ref: np.ndarray, bound: float, keep: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per query row: the chord to its nearest ref row among ref[keep] (all by default), that row's
+    index in ref[keep], and the chord to the second nearest of ALL ref rows; beyond `bound` a chord is
+    inf and a row len(ref[keep]), as cKDTree.query(k=2, distance_upper_bound=bound) gives them.
+    Small problems (the frames of a star tracker: tens of stars on each side) are one (n, m) array
+    of distances, larger ones a k-d tree."""
+    n, m = len(query), len(ref)
+    if n * m <= BRUTE_PAIRS:
+        diff = query[:, None, :] - ref[None, :, :]
+        D = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+        d1 = np.partition(D, 1, axis=1)[:, 1] if m > 1 else np.full(n, np.inf)
+        Dk = D if keep is None else D[:, keep]
+        mk = Dk.shape[1]
+        if mk:
+            j0 = np.argmin(Dk, axis=1)
+            d0 = Dk[np.arange(n), j0]
+        else:
+            j0, d0 = np.zeros(n, dtype=np.int64), np.full(n, np.inf)
+        out = d0 > bound
+        d0[out] = np.inf
+        j0[out] = mk
+        d1[d1 > bound] = np.inf
+        return d0, j0, d1
+    k = 2 if m > 1 else 1
+    d, j = cKDTree(ref).query(query, k=k, distance_upper_bound=bound)
+    d1 = d.reshape(n, k)[:, 1] if k == 2 else np.full(n, np.inf)
+    if keep is not None:
+        sub = ref[keep]
+        if len(sub) == 0:
+            return np.full(n, np.inf), np.zeros(n, dtype=np.int64), d1
+        d, j = cKDTree(sub).query(query, k=1, distance_upper_bound=bound)
+        return d, j, d1
+    d, j = d.reshape(n, k), j.reshape(n, k)
+    return d[:, 0], j[:, 0], d1
+
+
+def _count_within(query: np.ndarray, ref: np.ndarray, chords: np.ndarray) -> np.ndarray:
+    """How many ref rows lie within each query's chord (= cKDTree(ref).query_ball_point(query, chords,
+    return_length=True))."""
+    if len(query) * len(ref) <= BRUTE_PAIRS:
+        diff = query[:, None, :] - ref[None, :, :]
+        return np.count_nonzero(np.sqrt(np.einsum("ijk,ijk->ij", diff, diff)) <= chords[:, None], axis=1)
+    return np.asarray(cKDTree(ref).query_ball_point(query, chords, return_length=True))
+
+
+def _one_to_one(d0: np.ndarray, j0: np.ndarray, cq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """From each query's nearest ref (chord d0, row j0) and its chord radius cq: the pairs within the
+    radius, each ref kept by its nearest query; (query index, ref index, angle), nearest first."""
+    ok = d0 <= cq
     qi = np.flatnonzero(ok)
-    rj = j[ok, 0].astype(np.int64)
-    dist = 2.0 * np.arcsin(np.clip(d[ok, 0] / 2.0, 0.0, 1.0))
+    rj = j0[ok].astype(np.int64)
+    dist = 2.0 * np.arcsin(np.clip(d0[ok] / 2.0, 0.0, 1.0))
     order = np.argsort(dist, kind="stable")
     qi, rj, dist = qi[order], rj[order], dist[order]
     by_ref = np.argsort(rj, kind="stable")  # the first (nearest) query of each ref star: = np.unique(rj,
     rs = rj[by_ref]                          # return_index=True)[1], without its per-call overhead
-    first = np.sort(by_ref[np.r_[True, rs[1:] != rs[:-1]]]) if len(rs) else by_ref
-    return qi[first], rj[first], dist[first], ambiguous
+    head = np.ones(len(rs), dtype=bool)
+    np.not_equal(rs[1:], rs[:-1], out=head[1:])
+    first = np.sort(by_ref[head])
+    return qi[first], rj[first], dist[first]
 
 
 def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
@@ -278,49 +371,90 @@ def _half_diagonal_rad(camera: Camera) -> float:
     return camera.half_diagonal_rad
 
 
+NEAR_SLACK_RAD = float(np.radians(0.25))  # the catalog stars near a frame are fetched this much wider
+
+
+@lru_cache(maxsize=64)
+def _solid_angle_sr(camera: Camera) -> float:
+    """camera.solid_angle_sr, computed once per camera (a dozen scalar numpy calls: ~20 us a call)."""
+    return camera.solid_angle_sr
+
+
+class _Near:
+    """The catalog stars within some radius of a direction, fetched once per verification and reused
+    by every re-estimated attitude whose frame they still cover (a refit moves the boresight by
+    arcseconds): `rows(b, radius)` is exactly catalog.within(b, radius) or a superset of it."""
+
+    def __init__(self, catalog: GuideCatalog):
+        self.catalog = catalog
+        self.center = None
+        self.radius = -1.0
+        self.idx = np.zeros(0, dtype=np.int64)
+
+    def rows(self, b: np.ndarray, radius: float) -> np.ndarray:
+        if self.center is not None:
+            d = self.center - b
+            moved = 2.0 * math.asin(min(1.0, math.sqrt(float(d @ d)) / 2.0))
+            if moved + radius <= self.radius:
+                return self.idx
+        self.center, self.radius = np.array(b, dtype=np.float64), radius + NEAR_SLACK_RAD
+        self.idx = self.catalog.within(b, self.radius)
+        return self.idx
+
+
 class _Frame:
     """The catalog reprojected with one attitude: the stars on the sensor grown by r (n_frame, the
     density), and the pool of stars an observed star may match (grown by the largest radius)."""
 
-    def __init__(self, catalog: GuideCatalog, camera: Camera, R: np.ndarray, r: float, r_pool: float):
+    def __init__(self, catalog: GuideCatalog, camera: Camera, R: np.ndarray, r: float, r_pool: float,
+                 near: _Near | None = None):
         R = np.asarray(R, dtype=np.float64)
         grow = max(float(r), float(r_pool), 0.0)
-        near = catalog.within(R[2], _half_diagonal_rad(camera) + grow + 1e-9)
+        radius = _half_diagonal_rad(camera) + grow + 1e-9
+        near = (near or _Near(catalog)).rows(R[2], radius)
         v = catalog.xyz[near] @ R.T
         f = max(camera.fx, camera.fy)
         if len(near):
-            uv, front = camera.project(v)
-            pool = front & camera.in_image(uv, margin=-grow * f)
-            self.n_frame = int(np.sum(front & camera.in_image(uv, margin=-max(float(r), 0.0) * f)))
+            uv, front = camera.project(v)  # NaN pixels behind the camera compare False below
+            x, y = uv[:, 0], uv[:, 1]
+
+            def inside(margin):  # = camera.in_image(uv, margin) without its per-call overhead
+                return ((x >= -0.5 + margin) & (x <= camera.width - 0.5 - margin)
+                        & (y >= -0.5 + margin) & (y <= camera.height - 0.5 - margin))
+
+            pool = front & inside(-grow * f)
+            self.n_frame = int(np.count_nonzero(front & inside(-max(float(r), 0.0) * f)))
         else:
             pool = np.zeros(0, dtype=bool)
             self.n_frame = 0
         self.rows = near[pool]
         self.v = v[pool]
-        self._tree = cKDTree(self.v) if len(self.rows) > 1 else None
 
     def ambiguous(self, q: np.ndarray, radii) -> np.ndarray:
         """Mask of observed vectors with two or more catalog stars within their radius."""
-        if self._tree is None or len(q) == 0:
+        if len(self.rows) < 2 or len(q) == 0:
             return np.zeros(len(q), dtype=bool)
         cq = chord(_per_item(radii, len(q)))
-        d, _ = self._tree.query(q, k=2, distance_upper_bound=float(cq.max()))
-        return d[:, 1] <= cq
+        return _nearest_two(q, self.v, float(cq.max()))[2] <= cq
 
     def agreeing(self, vectors: np.ndarray, others: np.ndarray, exclude_rows: np.ndarray, radii
                  ) -> tuple[dict[int, int], set[int]]:
         """Observed stars among `others` within their radius of a catalog star not in exclude_rows
         (one-to-one), and those with two or more catalog stars within it (ambiguous: not in the dict)."""
-        if len(others) == 0:
+        if len(others) == 0 or len(self.rows) == 0:
             return {}, set()
         ex = np.asarray(exclude_rows).ravel()
         keep = (self.rows[:, None] != ex[None, :]).all(axis=1) if ex.size <= 16 else ~np.isin(self.rows, ex)
-        qi, rj, _, _ = match_one_to_one(vectors[others], self.v[keep], radii)
+        q = vectors[others]
+        cq = chord(_per_item(radii, len(q)))
+        # the nearest catalog star not in the hypothesis; ambiguity is judged against every catalog
+        # star, those of the hypothesis included
+        d0, j0, d1 = _nearest_two(q, self.v, float(cq.max()), keep)
+        amb_mask = d1 <= cq
+        qi, rj, _ = _one_to_one(d0, j0, cq)
         pool = self.rows[keep]
-        # ambiguity is judged against every catalog star, those of the hypothesis included
-        amb = set(np.flatnonzero(self.ambiguous(vectors[others], radii)).tolist())
-        agree = {int(others[q]): int(pool[j]) for q, j in zip(qi, rj) if q not in amb}
-        return agree, {int(others[q]) for q in amb}
+        agree = {int(others[a]): int(pool[b]) for a, b in zip(qi.tolist(), rj.tolist()) if not amb_mask[a]}
+        return agree, set(others[amb_mask].tolist())
 
 
 def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalog, camera: Camera,
@@ -347,7 +481,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         return out
     h_obs = np.array(sorted(hypothesis), dtype=np.int64)
     h_cat = np.array([hypothesis[i] for i in h_obs], dtype=np.int64)
-    if np.any(h_obs < 0) or np.any(h_obs >= n_obs):
+    if h_obs[0] < 0 or h_obs[-1] >= n_obs:  # sorted
         raise ValueError("hypothesis refers to an observed star that does not exist")
     if len(set(h_cat.tolist())) != len(h_cat):
         out.reason = "the hypothesis assigns one catalog star to two observed stars"
@@ -368,19 +502,21 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     out.n_tested = int(len(others))
     radii = star_radii(vectors[others], est.covariance, sigma_rad, r)
     out.radius_max_rad = float(radii.max()) if len(radii) else r
-    frame = _Frame(catalog, camera, R, r, out.radius_max_rad)
+    near = _Near(catalog)  # the catalog stars around the frame, fetched once for every round below
+    frame = _Frame(catalog, camera, R, r, out.radius_max_rad, near)
     out.n_frame = frame.n_frame
-    out.p_single = p_single(out.n_frame, camera.solid_angle_sr, r)
+    solid_angle = _solid_angle_sr(camera)
+    out.p_single = p_single(out.n_frame, solid_angle, r)
     agree, amb = frame.agreeing(vectors, others, h_cat, radii)
     out.n_agree = len(agree) + len(amb)  # an unresolved close pair still is a catalog star
     out.agreeing = agree
     # density: the frame's, or the local one around each tested star where that is higher (a
     # cluster); the star a tested star landed on is left out of its own neighbourhood
     landed = np.array([o in agree or o in amb for o in others.tolist()], dtype=np.float64)
-    dens = np.maximum(out.n_frame / camera.solid_angle_sr,
+    dens = np.maximum(out.n_frame / solid_angle,
                       local_density(catalog, vectors[others] @ R, leave_out=landed))
     ps = np.minimum(1.0, dens * np.pi * radii ** 2)
-    out.p_tested = [float(p) for p in ps]
+    out.p_tested = ps.tolist()
     if statistic == CALIBRATED:
         out.p_false = p_false_calibrated(out.n_agree, out.n_tested, ps, n_hypotheses)
     else:
@@ -409,28 +545,30 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         if done is not None and done[0] == current:
             break
         est = _estimate(vectors, current, catalog, sigma_rad)
-        radii = star_radii(vectors[others], est.covariance, sigma_rad, r)
-        frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r)
+        radii_all = star_radii(vectors, est.covariance, sigma_rad, r)  # every star's radius for this estimate
+        radii = radii_all[others]
+        frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r, near)
         agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii)
         done = (current, est)
         current = {**hyp, **agree_i}
-    h_amb = frame.ambiguous(vectors[h_obs], star_radii(vectors[h_obs], est.covariance, sigma_rad, r))
+    h_amb = frame.ambiguous(vectors[h_obs], radii_all[h_obs])
     final = {int(o): int(c) for o, c, a in zip(h_obs, h_cat, h_amb) if not a}
     final.update(agree_i)
     ambiguous = set(h_obs[h_amb].tolist()) | amb_i
     if len(final) >= 2:
-        est = done[1] if final == done[0] else _estimate(vectors, final, catalog, sigma_rad)
+        same = final == done[0]
+        est = done[1] if same else _estimate(vectors, final, catalog, sigma_rad)
         done = (dict(final), est)
         f_obs = np.array(sorted(final), dtype=np.int64)
         f_cat = np.array([final[o] for o in f_obs], dtype=np.int64)
-        rad = star_radii(vectors[f_obs], est.covariance, sigma_rad, r)
+        rad = radii_all[f_obs] if same else star_radii(vectors[f_obs], est.covariance, sigma_rad, r)
         pred = catalog.xyz[f_cat] @ est.R.T
         # every reported star must fit the final attitude (a hypothesis star that only just fitted
         # its own attitude may not) ...
         misfit = angular_distance(vectors[f_obs], pred) > rad
         # ... and a catalog star with two observed stars within the radius (a false star or a hot
         # pixel next to a star) may belong to either, so neither is reported
-        crowd = cKDTree(vectors).query_ball_point(pred, chord(rad), return_length=True) >= 2
+        crowd = _count_within(pred, vectors, chord(rad)) >= 2
         # ... and a catalog star with another catalog star closer than the sensor resolves may be
         # half of a blend whose centroid sits between the two: its identity is either
         blend = np.maximum(rad, BLEND_RADIUS_PX * camera.pixel_scale_rad)

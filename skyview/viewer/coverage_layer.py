@@ -43,6 +43,11 @@ class CoverageLayer:
         return cls(cfg, px["solved"], summary)
 
     @property
+    def label(self) -> str:
+        """The View tab's checkbox for this layer."""
+        return f"Sky coverage: {self.config.method}, {self.config.fov_deg:g}°"
+
+    @property
     def visible(self) -> bool:
         return bool(self.handles)
 

@@ -1,7 +1,7 @@
 """The side panel: its widgets, and the text it shows for results, steps and comparisons.
 
 `build_panel` lays out the controls in a viser `GuiApi` (one browser tab's or the server's); the
-`*_markdown` functions turn `Run` objects into the panel's text. No callbacks here: `app` wires them.
+`*_markdown` functions turn `Run` objects into the panel's text. No callbacks here: `session` wires them.
 """
 
 from __future__ import annotations
@@ -10,78 +10,126 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from viser import (GuiButtonHandle, GuiCheckboxHandle, GuiDropdownHandle, GuiFolderHandle, GuiImageHandle,
+                   GuiMarkdownHandle, GuiNumberHandle, GuiSliderHandle, GuiTabGroupHandle, GuiUploadButtonHandle,
+                   GuiUplotHandle)
 
 from skyview.attitude import radec_roll_from_R
 from skyview.present import LEGEND, OUTCOME_RGB, PALETTE, StepView, format_number, step_summary, why_not
+from skyview.viewer.plot_control import add_frame_plot, add_step_plot
 from skyview.viewer.run import FOV_RANGE_DEG, RESOLUTIONS, SEQUENCE_NOTE, Run, SceneConfig, needs_sequence
-from skyview.viewer.scene import STAR_NAMES
+from skyview.viewer.geometry import STAR_NAMES
 from skyview.viewer.sequence_run import FRAMES_RANGE, STEP_RANGE_DEG, TURNS, SequenceConfig, SequenceRun
 
-PLOT_COLORS = ("#e848d2", "#ffd23c")
-# The plot across frames: stars above the prior, the leading star's and the true star's posterior, now.
-FRAME_PLOT_COLORS = ("#e848d2", "#ffb830", "#46d7ff", "#ffffff")
 PAPER_CAMERA = {"fov_deg": 30.0, "resolution": "1024x1024", "mag_limit": 4.5}  # Udomkesmalee et al.'s camera
 
 
 @dataclass
 class Panel:
-    """Handles of every widget of one session's panel."""
+    """Handles of every widget of one session's panel (viser's handle types: a slider's or a number's
+    `.value` is what the user set, a markdown's `.content` what it says)."""
 
-    status: object
-    progress: object
-    error: object
-    image: object
-    legend: object
-    tabs: object
+    status: GuiMarkdownHandle
+    progress: object  # viser's GuiProgressBarHandle (not exported by viser 1.1.1)
+    error: GuiMarkdownHandle
+    image: GuiImageHandle
+    legend: GuiMarkdownHandle
+    tabs: GuiTabGroupHandle
     # frames (a sequence)
-    seq_box: object  # folder shown when a sequence is on screen
-    frame: object
-    play_frames: object
-    frame_text: object
-    frame_plot_box: object  # holds the uPlot across frames (re-created per sequence)
+    seq_box: GuiFolderHandle  # shown when a sequence is on screen
+    frame: GuiSliderHandle
+    play_frames: GuiButtonHandle
+    frame_text: GuiMarkdownHandle
+    frame_plot: GuiUplotHandle  # across the frames of a sequence method's sequence (updated in place)
     # steps
-    step: object
-    play: object
-    step_text: object
-    plot_key: object
-    plot_box: object  # folder holding the uPlot (re-created when the series change)
+    step: GuiSliderHandle
+    play: GuiButtonHandle
+    step_text: GuiMarkdownHandle
+    plot_key: GuiDropdownHandle
+    step_plot: GuiUplotHandle  # the chosen number across the steps (updated in place)
     # scenario
-    ra: object
-    dec: object
-    roll: object
-    random: object
-    fov: object
-    resolution: object
-    mag: object
-    noise: object
-    false_stars: object
-    dropped: object
-    seed: object
-    method: object
-    variant: object
-    seq_controls: object  # folder shown when the method identifies over sequences (or tracks one)
-    track: object  # checkbox: track a sequence with a single-frame method
-    bench_table: object  # markdown: a `skyview bench --compare` report (view --compare FILE)
-    n_frames: object
-    turn: object
-    turn_step: object
-    paper_camera: object
-    auto: object
-    solve: object
-    compare: object
-    upload_fov: object
-    upload: object
-    back: object
+    ra: GuiSliderHandle
+    dec: GuiSliderHandle
+    roll: GuiSliderHandle
+    random: GuiButtonHandle
+    fov: GuiSliderHandle
+    resolution: GuiDropdownHandle
+    mag: GuiSliderHandle
+    noise: GuiSliderHandle
+    false_stars: GuiSliderHandle
+    dropped: GuiSliderHandle
+    seed: GuiNumberHandle
+    method: GuiDropdownHandle
+    variant: GuiDropdownHandle
+    seq_controls: GuiFolderHandle  # shown when the method identifies over sequences (or tracks one)
+    track: GuiCheckboxHandle  # track a sequence with a single-frame method
+    bench_table: GuiMarkdownHandle  # a `skyview bench --compare` report (view --compare FILE)
+    n_frames: GuiSliderHandle
+    turn: GuiDropdownHandle
+    turn_step: GuiSliderHandle
+    paper_camera: GuiButtonHandle
+    auto: GuiCheckboxHandle
+    solve: GuiButtonHandle
+    compare: GuiButtonHandle
+    upload_fov: GuiNumberHandle
+    upload: GuiUploadButtonHandle
+    back: GuiButtonHandle
     # result
-    result: object
-    compare_table: object
-    export: object
+    result: GuiMarkdownHandle
+    compare_table: GuiMarkdownHandle
+    export: GuiButtonHandle
     # view
-    boresight: object
-    wide: object
-    follow: object
-    checks: dict
-    picked: object
+    boresight: GuiButtonHandle
+    wide: GuiButtonHandle
+    follow: GuiCheckboxHandle
+    checks: dict[str, GuiCheckboxHandle]
+    picked: GuiMarkdownHandle
+
+    def show_error(self, message: str) -> None:
+        self.error.content = f"<span style='color:rgb(255,110,110)'><b>Error:</b> {_escape(message)}</span>"
+        self.error.visible = True
+
+    def show_busy(self, label: str, elapsed_s: float, progress: float | None) -> None:
+        """A job has been running for elapsed_s: its progress (0-100, None: unknown) and what it does."""
+        self.progress.value = progress if progress is not None else 100.0
+        self.progress.animated = progress is None
+        self.progress.visible = True
+        self.status.content = f"⏳ {_escape(label)}… {elapsed_s:.1f} s"
+
+    def show_idle(self, status: str | None) -> None:
+        """The job ended: the progress bar leaves, the status line says `status` (None: unchanged)."""
+        self.progress.visible = False
+        if status is not None:
+            self.status.content = status
+
+    def set_paper_camera(self) -> None:
+        """Udomkesmalee et al.'s camera (PAPER_CAMERA) in the scenario's controls."""
+        self.fov.value = PAPER_CAMERA["fov_deg"]
+        self.resolution.value = PAPER_CAMERA["resolution"]
+        self.mag.value = PAPER_CAMERA["mag_limit"]
+
+    def set_pointing(self, ra_deg: float, dec_deg: float, roll_deg: float) -> None:
+        self.ra.value, self.dec.value, self.roll.value = ra_deg, dec_deg, roll_deg
+
+    def sequence_wanted(self) -> bool:
+        """A sequence is solved: the method identifies over sequences, or tracking is ticked."""
+        return needs_sequence(self.method.value) or bool(self.track.value)
+
+    def scene_config(self) -> SceneConfig:
+        """The scenario the controls describe (validated: BadInput names a bad control)."""
+        return SceneConfig(ra_deg=self.ra.value, dec_deg=self.dec.value, roll_deg=self.roll.value,
+                           fov_deg=self.fov.value, resolution=self.resolution.value, mag_limit=self.mag.value,
+                           noise_arcsec=self.noise.value, false_stars=self.false_stars.value,
+                           dropped=self.dropped.value, seed=self.seed.value).checked()
+
+    def sequence_config(self) -> SequenceConfig:
+        """The sequence the controls describe (validated: BadInput names a bad control)."""
+        return SequenceConfig(n_frames=self.n_frames.value, turn=self.turn.value,
+                              step_deg=self.turn_step.value).checked()
+
+
+def _escape(text: str) -> str:
+    return str(text).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
 
 
 def _rgb(c) -> str:
@@ -97,7 +145,11 @@ def legend_markdown() -> str:
 
 def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
                 coverage_label: str | None = None) -> Panel:
-    """Lay out the panel; returns the handles."""
+    """Lay out the panel (docked right, dark); returns the handles."""
+    gui.configure_theme(dark_mode=True, control_width="large", show_logo=False, show_share_button=False,
+                        brand_color=(255, 184, 48))
+    gui.main_panel.dock_right()
+    gui.main_panel.set_width(400)
     gui.add_markdown("**skyview** &nbsp;·&nbsp; where is the camera pointing?")
     status = gui.add_markdown("starting…")
     progress = gui.add_progress_bar(100.0, animated=True, visible=False)
@@ -114,12 +166,13 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
                                    hint="frames are numbered from 0, as in the method's steps")
             play_frames = gui.add_button("Play the frames", icon="player-track-next")
             frame_text = gui.add_markdown("")
-            frame_plot_box = gui.add_folder(None)
+            frame_plot = add_frame_plot(gui)
         step = gui.add_slider("Step", min=0, max=1, step=1, initial_value=0, disabled=True)
         play = gui.add_button("Play the steps", icon="player-play")
         step_text = gui.add_markdown("")
         plot_key = gui.add_dropdown("Plot across steps", ("-",), initial_value="-")
-        plot_box = gui.add_folder("The chosen number across the steps", expand_by_default=True)
+        with gui.add_folder("The chosen number across the steps", expand_by_default=True):
+            step_plot = add_step_plot(gui)
 
     with tabs.add_tab("Scenario", icon="adjustments"):
         ra = gui.add_slider("RA (deg)", min=0.0, max=360.0, step=0.1, initial_value=cfg.ra_deg)
@@ -191,14 +244,15 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
 
     return Panel(status=status, progress=progress, error=error, image=image, legend=legend, tabs=tabs,
                  seq_box=seq_box, frame=frame, play_frames=play_frames, frame_text=frame_text,
-                 frame_plot_box=frame_plot_box, step=step, play=play, step_text=step_text, plot_key=plot_key,
-                 plot_box=plot_box,
+                 frame_plot=frame_plot, step=step, play=play, step_text=step_text, plot_key=plot_key,
+                 step_plot=step_plot,
                  ra=ra, dec=dec, roll=roll, random=random, fov=fov, resolution=resolution, mag=mag, noise=noise,
                  false_stars=false_stars, dropped=dropped, seed=seed, method=method, variant=variant,
                  seq_controls=seq_controls, track=track, n_frames=n_frames, turn=turn, turn_step=turn_step,
                  paper_camera=paper_camera, auto=auto,
                  solve=solve, compare=compare, upload_fov=upload_fov, upload=upload, back=back,
-                 result=result, compare_table=compare_table, bench_table=bench_table, export=export, boresight=boresight, wide=wide,
+                 result=result, compare_table=compare_table, bench_table=bench_table, export=export,
+                 boresight=boresight, wide=wide,
                  follow=follow, checks=checks, picked=picked)
 
 
@@ -316,6 +370,24 @@ def star_markdown(hip: int, mag: float, ra_deg: float, dec_deg: float, name: str
     return f"{title}**HIP {hip}** · Hp {mag:.2f}  \nRA {ra_deg:.4f}° · Dec {dec_deg:+.4f}°"
 
 
+def bench_markdown(report: dict) -> str:
+    """A `skyview bench --compare` report under this image's result (`skyview view --compare FILE`)."""
+    from skyview.compare import format_markdown
+
+    return "---\n\n## Every method on the same images (`skyview bench --compare`)\n\n" + format_markdown(report)
+
+
+def picked_star(catalog, row: int | None) -> tuple[str, str]:
+    """A star clicked on the sphere (a catalog row, None: none near the click): its label on the
+    sphere and what the View tab says of it."""
+    if row is None:
+        return "", "No catalog star there (click closer to a star)."
+    hip, mag = int(catalog.hip[row]), float(catalog.mag[row])
+    ra, dec = (float(np.degrees(a[row])) for a in catalog.ra_dec)
+    name = STAR_NAMES.get(hip)
+    return f"{name + ' · ' if name else ''}HIP {hip} · Hp {mag:.2f}", star_markdown(hip, mag, ra, dec, name)
+
+
 # ---------------------------------------------------------------------------------------------- sequences
 
 def _frames(seq: SequenceRun) -> str:
@@ -379,9 +451,10 @@ def frame_markdown(seq: SequenceRun, k: int) -> str:
         parts.append(f"{int(st['above_prior'])} of {len(seq.result.catalog)} stars above the prior")
     if st.get("top_hips"):
         parts.append(f"leading {_hip_name(st['top_hips'][0])} at {format_number(float(st['top_posterior']))}")
-    if st.get("true_row") is not None and st.get("true_row", -1) >= 0:
-        hip = int(seq.result.catalog.hip[st["true_row"]])
-        parts.append(f"true star {_hip_name(hip)} at {format_number(float(st['true_posterior']))}")
+    truth = seq.result.truth_figures()[k]  # scored against the truth (skyview.scoring), not by the method
+    if truth["true_row"] is not None:
+        hip = int(seq.result.catalog.hip[truth["true_row"]])
+        parts.append(f"true star {_hip_name(hip)} at {format_number(float(truth['true_posterior']))}")
     if parts:
         lines.append(" · ".join(parts))
     return "\n\n".join(lines)

@@ -13,6 +13,7 @@ import numpy as np
 from skyview.centroid import check_pixel_count, to_gray
 from skyview.errors import BadInput
 from skyview.present import OUTCOME_RGB, PALETTE, TEXTURE_FLOOR_SIGMAS, stretch  # noqa: F401  (one palette, one stretch)
+from skyview.present import place_labels
 
 HIGHLIGHT_RGB = PALETTE["observed"]
 MAX_UPLOAD_BYTES = 64 * 1024 * 1024
@@ -97,15 +98,28 @@ def annotate(base: np.ndarray, source_shape: tuple[int, int], uv: np.ndarray, ou
         for a, b in np.asarray(pattern, dtype=np.int64).reshape(-1, 2):
             if a < len(p) and b < len(p):
                 cv2.line(rgb, _pt(p[a]), _pt(p[b]), HIGHLIGHT_RGB, 1, cv2.LINE_AA)
-    scale = max(0.35, size / 1400)
+    scale = round(max(0.35, size / 1400), 3)
+    numbered = numbers_placed(p[:max_numbers], r, scale, hl)
     for i in range(len(p)):
         c = OUTCOME_RGB.get(outcomes[i] if i < len(outcomes) else "unidentified", OUTCOME_RGB["unidentified"])
         cv2.circle(rgb, _pt(p[i]), r, c, 1, cv2.LINE_AA)
         if i in hl:
             cv2.circle(rgb, _pt(p[i]), r + 3, HIGHLIGHT_RGB, 2, cv2.LINE_AA)
-        if i < max_numbers:
+        if i < len(numbered) and numbered[i]:
             _label(rgb, str(i), int(round(p[i, 0] + r + 1)), int(round(p[i, 1] - r + 2)), scale, c)
     return rgb
+
+
+def numbers_placed(p: np.ndarray, r: int, scale: float, highlight: set[int]) -> np.ndarray:
+    """Which centroid numbers to write so that none overlaps another: the step's stars first, then by
+    brightness (`present.place_labels`). Each number sits at the upper right of its ring."""
+    boxes = []
+    for i in range(len(p)):
+        fill, _, top = _text_masks(str(i), scale)
+        boxes.append((p[i, 0] + r + 1, p[i, 1] - r + 2 - top + fill.shape[0] / 2.0, fill.shape[1], fill.shape[0]))
+    b = np.array(boxes, dtype=np.float64).reshape(-1, 4)
+    priority = np.arange(len(p), dtype=np.float64) - np.isin(np.arange(len(p)), list(highlight)) * len(p)
+    return place_labels(b[:, :2], priority, b[:, 2:], gap=0.0)
 
 
 @lru_cache(maxsize=512)

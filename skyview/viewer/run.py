@@ -1,19 +1,19 @@
 """What the viewer runs: a scenario or an image, solved by the same `Solver` as the CLI.
 
 No identification logic here: a `Run` is the simulator's image and truth, the pipeline's
-`SolveResult`, and what `steps` derives from them for drawing. Solvers (catalog + method database)
+`SolveResult`, and what `skyview.present` derives from them for drawing. Solvers (catalog + method database)
 are cached and shared by every browser tab; one solve at a time per solver.
 """
 
 from __future__ import annotations
 
 import dataclasses
-
 import math
 import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -67,12 +67,17 @@ def check_fov(fov_deg) -> float:
 
 
 BLIND = "blind"  # the default pipeline: blind four-star patterns, the camera fitted (skyview.identify.blind)
-VIEWER_METHODS = (BLIND, *METHODS)  # the viewer opens on the default pipeline
+
+
+def viewer_methods() -> tuple[str, ...]:
+    """The viewer's method list: the default pipeline first (the viewer opens on it), then the registry's
+    methods as they are now (a method registered at run time included)."""
+    return (BLIND, *METHODS)
 
 
 def check_method(method, variant) -> tuple[str, str]:
-    if method not in VIEWER_METHODS:
-        raise BadInput(f"unknown method {method!r}: choose from {', '.join(VIEWER_METHODS)}")
+    if method not in viewer_methods():
+        raise BadInput(f"unknown method {method!r}: choose from {', '.join(viewer_methods())}")
     if variant not in VARIANTS:
         raise BadInput(f"unknown variant {variant!r}: choose from {', '.join(VARIANTS)}")
     return str(method), str(variant)
@@ -245,8 +250,10 @@ def sigma_for(source: Source) -> float:
     return float(math.hypot(pix, noise))
 
 
-def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: Solvers) -> Run:
-    """Centroid and identify `source` with `method`; derive the drawables."""
+def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: Solvers, label=None) -> Run:
+    """Centroid and identify `source` with `method`; derive the drawables. label(text): told what is
+    being done (the viewer's progress line)."""
+    say = label or (lambda _text: None)
     method, variant = check_method(method, variant)
     mag_limit = _num("magnitude limit", mag_limit, *MAG_RANGE)
     if method == BLIND:  # the default pipeline: no FOV, depth from the image, the camera fitted
@@ -259,6 +266,10 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
     if source.depth_mag is not None:  # a user's image: the depth it shows, not the panel's limit
         mag_limit = source.depth_mag
     camera = source.camera
+    if not solvers.cached(camera, method, variant, mag_limit, sigma_for(source)):
+        say(f"loading the {method} database (built once per camera and catalog, then cached)")
+    else:
+        say(f"solving with {method} ({variant})")
     solver, lock = solvers.get(camera, method, variant, mag_limit, sigma_for(source))
     with lock:
         result = solver.solve_array(source.image)
@@ -351,3 +362,14 @@ def compare(source: Source, mag_limit: float, solvers: Solvers, progress=None, m
     if progress is not None:
         progress(len(jobs), len(jobs), "done")
     return rows
+
+
+def record_run(run: Run, path) -> Path:
+    """Write a run as a Rerun recording (skyview.record): the viewer's Export button."""
+    try:
+        from skyview.record import record_solve
+    except ImportError as exc:
+        raise BadInput(f"the Rerun recorder is not available here ({exc})") from None
+    info = record_solve(path, run.result, run.source.image, catalog=run.catalog, truth=run.source.truth,
+                        force=True, meta={"image": run.source.name}, name=f"skyview-{run.result.method}")
+    return Path(info.path)

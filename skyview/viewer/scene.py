@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import viser.transforms as vtf
 
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, radec_to_vec, vec_to_radec
@@ -22,22 +21,12 @@ from skyview.sky_geometry import (group_segments, magnitude_bins, polylines_as_s
                                   sensor_footprint, star_color, star_radius)
 from skyview.present import (ARC_POINTS, IMAGE_ROLES, OUTCOME_RGB, PALETTE, SKY_ROLES, SkyLines, SkyPoints, StepView,
                              place_labels)
+from skyview.viewer.geometry import (STAR_NAMES, frustum_scale, local_grid, nice_step, pose_wxyz, ring_segments,
+                                     sky_grid_labels)
 from skyview.viewer.run import Run
 
-# Proper names of the brightest stars (HIP -> name), for the sky labels.
-STAR_NAMES = {
-    32349: "Sirius", 30438: "Canopus", 91262: "Vega", 69673: "Arcturus", 71683: "Rigil Kentaurus",
-    24436: "Rigel", 24608: "Capella", 7588: "Achernar", 37279: "Procyon", 27989: "Betelgeuse",
-    68702: "Hadar", 60718: "Acrux", 97649: "Altair", 65474: "Spica", 80763: "Antares", 21421: "Aldebaran",
-    62434: "Mimosa", 113368: "Fomalhaut", 37826: "Pollux", 102098: "Deneb", 49669: "Regulus",
-    33579: "Adhara", 85927: "Shaula", 25336: "Bellatrix", 36850: "Castor", 25428: "Elnath",
-    26311: "Alnilam", 61084: "Gacrux", 45238: "Miaplacidus", 26727: "Alnitak", 109268: "Alnair",
-    11767: "Polaris", 25930: "Mintaka", 27366: "Saiph", 54061: "Dubhe", 53910: "Merak", 62956: "Alioth",
-    65378: "Mizar", 67301: "Alkaid", 3179: "Schedar", 746: "Caph", 677: "Alpheratz", 15863: "Mirfak",
-    14576: "Algol", 9884: "Hamal",
-}
 NAME_MAG_LIMIT = 1.7  # stars at least this bright get a name label (named ones down to mag 2.4 too)
-NAME_CHAR_PX, NAME_HEIGHT_PX = 7.5, 16.0  # a name label's character width and height on screen
+NAME_CHAR_PX, NAME_PAD_PX, NAME_HEIGHT_PX = 4.8, 4.0, 13.0  # a name label on screen (scale 0.85): px/char, pad, height
 VIEW_HEIGHT_PX = 860.0  # the 3-D view's height the label sizes assume
 REFERENCE_TAN = math.tan(math.radians(30.0))  # the view at zoom 1 (as the session's)
 
@@ -94,102 +83,6 @@ def _f32(a) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(a, dtype=np.float32))
 
 
-def pose_wxyz(R: np.ndarray) -> np.ndarray:
-    """Camera -> world rotation of skyview's R (v_cam = R v_icrs) as viser's wxyz."""
-    return vtf.SO3.from_matrix(np.asarray(R, dtype=np.float64).T).wxyz
-
-
-def frustum_scale(camera: Camera, depth: float) -> float:
-    """viser normalises its frustum's volume: the `scale` that puts the far plane at `depth`."""
-    ty = camera.height / (2.0 * camera.fy)
-    tx = camera.width / (2.0 * camera.fx)
-    return float(depth * np.cbrt(tx * ty / 3.0))
-
-
-def ray_to_sphere(origin, direction) -> np.ndarray | None:
-    """Where a view ray leaves the unit sphere (the far root: the sky seen from inside)."""
-    o = np.asarray(origin, dtype=np.float64)
-    d = np.asarray(direction, dtype=np.float64)
-    d = d / np.linalg.norm(d)
-    b = o @ d
-    c = o @ o - 1.0
-    disc = b * b - c
-    if disc < 0:
-        return None
-    t = -b + math.sqrt(disc)
-    if t <= 0:
-        return None
-    p = o + t * d
-    return p / np.linalg.norm(p)
-
-
-def nice_step(fov_deg: float) -> float:
-    """Fine-grid spacing: about a third of the field, from a round list."""
-    for s in (0.25, 0.5, 1.0, 2.0, 5.0, 10.0):
-        if s >= fov_deg / 4.0:
-            return s
-    return 15.0
-
-
-def local_grid(b: np.ndarray, radius_rad: float, step_deg: float, n_per_line: int = 80):
-    """RA/Dec lines every `step_deg` within `radius_rad` of `b`: segments and label anchors.
-
-    Returns (segments (S, 2, 3), labels [(text, xyz)]): meridians labelled along the grid parallel
-    nearest to `b`, parallels along the nearest meridian.
-    """
-    ra0, dec0 = (math.degrees(x) for x in vec_to_radec(np.asarray(b, dtype=np.float64)))
-    r = math.degrees(radius_rad)
-    dec_lo, dec_hi = max(-90.0, dec0 - r), min(90.0, dec0 + r)
-    cos_edge = math.cos(math.radians(max(abs(dec_lo), abs(dec_hi))))
-    if dec_hi >= 89.999 or dec_lo <= -89.999 or cos_edge < 1e-3 or r / cos_edge >= 180:
-        ra_lo, ra_hi = 0.0, 360.0
-    else:
-        half = r / cos_edge
-        ra_lo, ra_hi = ra0 - half, ra0 + half
-    lines = []
-    ras = np.arange(math.ceil(ra_lo / step_deg) * step_deg, ra_hi + 1e-9, step_deg)
-    ras = ras[ras < ra_lo + 360.0 - 1e-9] if ra_hi - ra_lo >= 360.0 else ras
-    decs = np.arange(math.ceil(dec_lo / step_deg) * step_deg, dec_hi + 1e-9, step_deg)
-    decs = decs[(decs > -90.0) & (decs < 90.0)]
-    dd = np.radians(np.linspace(dec_lo, dec_hi, n_per_line))
-    for ra in ras:
-        lines.append(radec_to_vec(np.full_like(dd, math.radians(ra)), dd))
-    rr = np.radians(np.linspace(ra_lo, ra_hi, 2 * n_per_line))
-    for dec in decs:
-        lines.append(radec_to_vec(rr, np.full_like(rr, math.radians(dec))))
-    segs = polylines_as_segments(lines)
-    if len(segs):
-        mid = segs.mean(axis=1)
-        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
-        segs = segs[mid @ b >= math.cos(radius_rad)]
-    labels = []
-    if len(decs):
-        d_near = float(decs[np.argmin(np.abs(decs - dec0))])
-        for ra in ras:
-            p = radec_to_vec(math.radians(ra), math.radians(d_near))
-            if p @ b >= math.cos(radius_rad * 0.9):
-                labels.append((f"{ra % 360:g}°", p))
-    if len(ras):
-        diff = (ras - ra0 + 180.0) % 360.0 - 180.0
-        ra_near = float(ras[np.argmin(np.abs(diff))])
-        for dec in decs:
-            p = radec_to_vec(math.radians(ra_near), math.radians(dec))
-            if p @ b >= math.cos(radius_rad * 0.9):
-                labels.append((f"{dec:+g}°", p))
-    return segs, labels
-
-
-def ring_segments(xy: np.ndarray, radius: float, depth: float, n: int = 14) -> np.ndarray:
-    """Circles (as segments) around points of the plane z = depth in the camera frame."""
-    if len(xy) == 0:
-        return np.zeros((0, 2, 3), dtype=np.float32)
-    t = np.linspace(0.0, 2.0 * np.pi, n + 1)
-    c = np.stack([np.cos(t), np.sin(t)], axis=1) * radius  # (n+1, 2)
-    pts = xy[:, None, :] + c[None, :, :]  # (N, n+1, 2)
-    p3 = np.concatenate([pts, np.full(pts.shape[:2] + (1,), depth)], axis=2)
-    return np.stack([p3[:, :-1], p3[:, 1:]], axis=2).reshape(-1, 2, 3)
-
-
 class SkyScene:
     """The 3-D scene of one viewer session."""
 
@@ -204,13 +97,14 @@ class SkyScene:
         self.visible = {"grid": True, "names": True, "image": True, "true": True, "matches": True, "track": True,
                         "numbers": True, "hips": False, "stars": True, "candidates": True}
         self._run: Run | None = None
-        self._image_plane_xy = np.zeros((0, 2))
-        self._ring = 0.0
+        self._image_plane_xy, self._ring = np.zeros((0, 2)), 0.0  # centroids on the image plane, ring radius
         self._tex: np.ndarray | None = None
         self.detail = True  # centroid numbers and fine-grid labels: only when the field fills the view
         self.final = True  # the identification is on screen (last step, or no step selected)
         self._names: tuple | None = None  # star names: (positions, magnitudes, lengths) for their placement
-        self._name_keep: np.ndarray | None = None
+        self._name_keep, self._name_xyz = None, np.zeros((0, 3))  # the names shown, where they are
+        self._grid_labels: list[tuple[str, np.ndarray]] = []  # the fine grid's degrees: (text, position)
+        self._measured: frozenset[int] = frozenset()  # the stars the step shown measured
         self._ring_colors: np.ndarray | None = None
 
     # ------------------------------------------------------------------ sky
@@ -230,17 +124,10 @@ class SkyScene:
                                              thickness=1.0, thickness_units="screen")
         self.h["grid_main"] = s.add_line_segments(NODES["grid_main"], _f32(polylines_as_segments(main)),
                                                   GRID_MAIN_RGB, thickness=1.6, thickness_units="screen")
-        labels = []
-        for hour in range(0, 24, 2):
-            labels.append((f"{hour}h", radec_to_vec(math.radians(15.0 * hour), math.radians(1.0))))
-        for ra_h in (0, 12):
-            for dec in (-60, -30, 30, 60):
-                labels.append((f"{dec:+d}°", radec_to_vec(math.radians(15.0 * ra_h + 1.0), math.radians(dec))))
-        labels += [("N pole", np.array([0.0, 0.0, 1.0])), ("S pole", np.array([0.0, 0.0, -1.0]))]
         self.h["grid_labels"] = [
             s.add_label(f"{NODES['grid_labels']}/{k}", text, position=_f32(p), font_screen_scale=0.8,
                         anchor="bottom-left")
-            for k, (text, p) in enumerate(labels)]
+            for k, (text, p) in enumerate(sky_grid_labels())]
 
     def draw_catalog(self, catalog: GuideCatalog) -> None:
         """The guide catalog on the sphere (one cloud per magnitude bin) and the bright stars' names."""
@@ -280,6 +167,7 @@ class SkyScene:
         ra, dec = vec_to_radec(catalog.xyz[rows])
         self._names = (np.stack([np.asarray(ra) * np.cos(dec), np.asarray(dec)], axis=1), catalog.mag[rows],
                        np.array([len(t) for t in texts], dtype=np.float64))
+        self._name_xyz = catalog.xyz[rows]
         self._place_names()
 
     def _place_names(self) -> None:
@@ -290,11 +178,47 @@ class SkyScene:
         xy, mag, n_chars = self._names
         span = REFERENCE_TAN * self.zoom ** (1.0 / 0.85)  # half-height of the view at the sphere (Session zoom)
         per_px = 2.0 * span / VIEW_HEIGHT_PX  # sphere units per screen pixel
-        sizes = np.stack([n_chars * NAME_CHAR_PX * per_px, np.full_like(n_chars, NAME_HEIGHT_PX * per_px)], axis=1)
+        w = (n_chars * NAME_CHAR_PX + NAME_PAD_PX) * per_px
+        sizes = np.stack([w, np.full_like(w, NAME_HEIGHT_PX * per_px)], axis=1)
         keep = place_labels(xy, mag, sizes, gap=0.0)
         for hd, k in zip(hds, keep):
             hd.visible = bool(k) and self.visible["names"]
         self._name_keep = keep
+        self._place_field_labels()
+
+    def _place_field_labels(self) -> None:
+        """Show the centroid numbers and the fine grid's degrees that overlap no label shown before them:
+        the star names first, then the numbers (the step's stars, then the brightest), then the grid, on the
+        plane of the image (the view down the boresight), sized for this zoom (`present.place_labels`)."""
+        run, nums, grid = self._run, self.h.get("numbers", []), self.h.get("fine_labels", [])
+        if run is None or run.R_shown is None:
+            return
+        R = run.R_shown
+        per_px = 2.0 * REFERENCE_TAN * self.zoom ** (1.0 / 0.85) / VIEW_HEIGHT_PX  # image-plane units per pixel
+        anchors, sizes, priority = [], [], []
+
+        def add(xy, n_chars, scale, below, rank):  # below: the text hangs under its anchor (top-left)
+            f = scale / 0.85 * per_px  # labels scale with their font
+            w, h = (n_chars * NAME_CHAR_PX + NAME_PAD_PX) * f, NAME_HEIGHT_PX * f
+            anchors.append((xy[0], xy[1] + (h if below else -h) / 2.0))
+            sizes.append((w, h))
+            priority.append(rank)
+
+        if self._names is not None and self._name_keep is not None and self.visible["names"]:
+            for v, k, n in zip(self._name_xyz @ R.T, self._name_keep, self._names[2]):
+                if k and v[2] > 0.5:
+                    add(v[:2] / v[2], n, 0.85, True, -2e3)
+        for i, hd in enumerate(nums):  # beside the ring, on the image plane at IMAGE_DEPTH
+            add((self._image_plane_xy[i] + np.array([0.8, -0.8]) * self._ring) / IMAGE_DEPTH, len(hd.text), 0.7,
+                False, i - 1e3 * (i in self._measured))
+        for k, (text, p) in enumerate(self._grid_labels):
+            add((R @ p)[:2] / max(float(R[2] @ p), 1e-6), len(text), 0.7, False, 1e3 + k)
+        keep = place_labels(np.array(anchors).reshape(-1, 2), np.array(priority), np.array(sizes).reshape(-1, 2),
+                            gap=0.0)[len(anchors) - len(nums) - len(self._grid_labels):]
+        for hd, k in zip(nums, keep[:len(nums)]):
+            hd.visible = bool(k) and self.visible["numbers"] and self.detail
+        for hd, k in zip(grid, keep[len(nums):]):
+            hd.visible = bool(k) and self.visible["grid"] and self.detail
 
     def draw_fine_grid(self, b: np.ndarray, fov_deg: float, radius_rad: float) -> None:
         """A finer RA/Dec grid around the boresight, labelled in degrees."""
@@ -312,10 +236,11 @@ class SkyScene:
         if len(segs):
             self.h["fine_grid"] = s.add_line_segments(NODES["fine_grid"], _f32(segs), FINE_GRID_RGB, thickness=1.0,
                                                       thickness_units="screen", visible=self.visible["grid"])
+        self._grid_labels = labels[:16]
         self.h["fine_labels"] = [
             s.add_label(f"{NODES['fine_labels']}/{k}", text, position=_f32(p), font_screen_scale=0.7,
-                        anchor="bottom-left", visible=self.visible["grid"] and self.detail)
-            for k, (text, p) in enumerate(labels[:16])]
+                        anchor="bottom-left", visible=False)
+            for k, (text, p) in enumerate(self._grid_labels)]
 
     # ------------------------------------------------------------------ camera
     def draw_run(self, run: Run, tex: np.ndarray | None) -> None:
@@ -329,14 +254,13 @@ class SkyScene:
                     "camera", "true_camera", "footprint", "true_footprint", "matches", "match_stars"):
             if key in self.h:
                 self.h.pop(key).remove()
-        self._tex = tex
-        self._sized["run"] = []
+        self._tex, self._sized["run"] = tex, []
         if R is None:  # an image that did not solve: no pose to draw it at
             for hd in self.h.pop("fine_labels", []):
                 hd.remove()
             if "fine_grid" in self.h:
                 self.h.pop("fine_grid").remove()
-            self._grid_key = None
+            self._grid_key, self._grid_labels = None, []
             self._run = None
             self.show_step(run, None)
             return
@@ -372,9 +296,9 @@ class SkyScene:
         self.h["numbers"] = [
             s.add_label(f"{NODES['numbers']}/{i}", str(i),
                         position=_f32([xy[i, 0] + ring * 0.8, xy[i, 1] - ring * 0.8, depth * 0.999]),
-                        font_screen_scale=0.7, anchor="bottom-left",
-                        visible=self.visible["numbers"] and self.detail)
+                        font_screen_scale=0.7, anchor="bottom-left", visible=False)
             for i in range(min(len(xy), 40))]
+        self._place_field_labels()  # the numbers and the grid's degrees that overlap no other label
         if run.R_true is not None and run.result.R is not None:
             self.h["true_camera"] = s.add_frame(NODES["true_camera"], wxyz=pose_wxyz(run.R_true),
                                                 position=(0.0, 0.0, 0.0), show_axes=False,
@@ -483,6 +407,10 @@ class SkyScene:
                 else:
                     hd.visible = False
         self._show_identification(d is None or d.final)
+        measured = frozenset(int(i) for i in (d.observed if d is not None else ()))
+        if measured != self._measured:  # the step's stars keep their numbers first
+            self._measured = measured
+            self._place_field_labels()
         return d
 
     def _show_identification(self, final: bool) -> None:
@@ -532,10 +460,7 @@ class SkyScene:
         if on == self.detail:
             return
         self.detail = on
-        for hd in self.h.get("numbers", []):
-            hd.visible = on and self.visible["numbers"]
-        for hd in self.h.get("fine_labels", []):
-            hd.visible = on and self.visible["grid"]
+        self._place_field_labels()
 
     def set_visible(self, what: str, on: bool) -> None:
         self.visible[what] = bool(on)
@@ -558,9 +483,13 @@ class SkyScene:
             "track": ["track", "track_labels"],
         }
         for key in groups.get(what, []):
+            if key in ("numbers", "fine_labels"):  # placed with the names, in the view's plane
+                continue
             hd = self.h.get(key)
             for one in (hd if isinstance(hd, list) else [hd] if hd is not None else []):
-                one.visible = on and (self.detail or key not in ("numbers", "fine_labels"))
+                one.visible = on
+        if what in ("grid", "numbers"):
+            self._place_field_labels()
 
     def show_pick(self, catalog: GuideCatalog, row: int | None, text: str = "") -> None:
         if "pick" in self.h:
@@ -568,11 +497,3 @@ class SkyScene:
         if row is not None:
             self.h["pick"] = self.scene.add_label(NODES["pick"], text, position=_f32(catalog.xyz[row]),
                                                   font_screen_scale=0.95, anchor="bottom-left")
-
-
-def nearest_star(catalog: GuideCatalog, direction: np.ndarray, max_angle_rad: float) -> int | None:
-    """Row of the catalog star nearest to a direction, if within max_angle_rad."""
-    d, i = catalog.tree.query(np.asarray(direction, dtype=np.float64))
-    if not np.isfinite(d) or 2.0 * math.asin(min(1.0, d / 2.0)) > max_angle_rad:
-        return None
-    return int(i)

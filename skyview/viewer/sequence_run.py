@@ -112,10 +112,13 @@ class SequenceRun:
 
     def series(self) -> dict[str, np.ndarray]:
         """Per frame: stars above the prior 1/N, the leading star's posterior and the true designated
-        star's posterior (NaN where a frame does not report it), from each frame's stats."""
+        star's posterior (NaN where a frame does not report it), from each frame's stats and, for the
+        truth, from the scorer (`SequenceResult.truth_figures`)."""
         out = {}
+        scored = self.result.truth_figures()
         for key in SERIES:
-            vals = [r.stats.get(key) for r in self.result.identifications]
+            vals = [(tf if key.startswith("true_") else r.stats).get(key)
+                    for r, tf in zip(self.result.identifications, scored)]
             out[key] = np.array([np.nan if v is None else float(v) for v in vals], dtype=np.float64)
         return out
 
@@ -303,14 +306,6 @@ class TrackedSequenceRun:
             self.current = scene.add_line_segments(f"{TRACK_NODE}/current", seg, CURRENT_RGB, thickness=4.0,
                                                    thickness_units="screen")
         self.shown = k
-
-    def play(self, scene, delay_s: float = 0.5, stop=None) -> None:
-        """Step the outline through the frames (stop(): return True to end early)."""
-        for k in range(len(self)):
-            if stop is not None and stop():
-                return
-            self.set_frame(scene, k)
-            time.sleep(delay_s)
 
     def hide(self) -> None:
         for h in self.handles:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from typing import Callable
@@ -24,6 +25,33 @@ class Worker:
         with self._cv:
             self._job = (label, fn)
             self._cv.notify_all()
+
+    def relabel(self, text: str) -> None:
+        """Say what the running job is doing now (the panel's progress line)."""
+        busy = self.busy
+        if busy is not None:
+            self.busy = (text, busy[1])
+
+    def watch(self, on_busy: Callable[[str, float, float | None], None], on_idle: Callable[[], None],
+              after_s: float = 0.3, every_s: float = 0.2) -> None:
+        """Until closed, report a job that runs longer than after_s every every_s, as on_busy(label,
+        seconds so far, progress 0..100 or None), and its end, as on_idle() (from a thread of its own)."""
+
+        def loop() -> None:
+            shown = False
+            while not self._closed:
+                busy = self.busy
+                if busy is not None and time.monotonic() - busy[1] > after_s:
+                    with contextlib.suppress(Exception):
+                        on_busy(busy[0], time.monotonic() - busy[1], self.progress)
+                    shown = True
+                elif busy is None and shown:
+                    with contextlib.suppress(Exception):
+                        on_idle()
+                    shown = False
+                time.sleep(every_s)
+
+        threading.Thread(target=loop, name="skyview-viewer-ticker", daemon=True).start()
 
     @property
     def superseded(self) -> bool:

@@ -1,11 +1,11 @@
 """The paper's own experiment (Paladugu, Williams & Schoen): the spiral GA on a random star map.
 
-    python -m skyview.identify.genetic_map [--runs 100] [--seed 0] [--fov-stars 15 20] [--json out.json]
-    python -m skyview.identify.genetic_map --verify-sky [--fov-deg 8] [--frames 300] [--attempts 10]
-                                           [--false-stars 0] [--outliers 0|1] [--outlier-min-stars N]
-                                           [--seed 0]
+    skyview experiment genetic_map [--runs 100] [--seed 0] [--fov-stars 15 20] [--json out.json]
+    skyview experiment genetic_map --verify-sky [--fov-deg 8] [--frames 300] [--attempts 10]
+                                        [--false-stars 0] [--outliers 0|1] [--outlier-min-stars N]
+                                        [--seed 0]
 
-The second form is the real-sky check of `skyview.identify.genetic.verify_every_answer`: every answer
+The second form is the real-sky check of `verify_every_answer` (below): every answer
 of the GA on the celestial sphere (vector-level frames) through the shared verification.
 
 The map: 1,000 stars uniform on a 300 x 300 map (-150 to +150), the FOV a 25 x 25 square. The
@@ -35,15 +35,16 @@ stage, restarts and time.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from skyview.errors import BadInput
 from skyview.identify.genetic import (PAPER_BOX_FACTOR, PAPER_DELTAS, PAPER_FIRST, PAPER_M, PAPER_MAX_GENERATIONS,
                                       PAPER_MUTATION_RATE, PAPER_ROLL, PAPER_SPIRAL, GeneSpace, Sizes, angle_cost,
                                       angle_partners, distance_cost, distance_vector, roll_threshold, run_ga,
@@ -298,56 +299,117 @@ def format_report(s: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m skyview.identify.genetic_map", description=__doc__.split("\n")[0])
-    ap.add_argument("--runs", type=int, default=100)
-    ap.add_argument("--seed", type=int, default=0)
+def add_arguments(ap) -> None:
+    ap.add_argument("--runs", type=int, default=100, help="maps to solve (default 100)")
+    ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ap.add_argument("--fov-stars", type=int, nargs=2, metavar=("LO", "HI"), default=None,
                     help="only maps whose FOV at the origin holds LO..HI stars")
     ap.add_argument("--example", action="store_true", help="roll 60 deg as in the paper's example")
-    ap.add_argument("--max-restarts", type=int, default=200)
+    ap.add_argument("--max-restarts", type=int, default=200, help="restarts of the whole search per map (default 200)")
     ap.add_argument("--deltas", type=float, nargs="+", default=list(PAPER_DELTAS),
                     help="convergence costs of the position GAs (default 3.0 1.0 0.001882)")
     ap.add_argument("--json", default=None, help="write the statistics here (never overwrites)")
-    ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
     sky = ap.add_argument_group("--verify-sky: every real-sky GA answer through the shared verification")
-    sky.add_argument("--verify-sky", action="store_true")
-    sky.add_argument("--fov-deg", type=float, default=8.0)
-    sky.add_argument("--frames", type=int, default=300)
-    sky.add_argument("--attempts", type=int, default=10)
-    sky.add_argument("--false-stars", type=int, default=0)
-    sky.add_argument("--sigma-urad", type=float, default=87.0)
+    sky.add_argument("--verify-sky", action="store_true", help="run the real-sky check instead of the map")
+    sky.add_argument("--fov-deg", type=float, default=8.0, help="full field of view, deg (default 8)")
+    sky.add_argument("--frames", type=int, default=300, help="vector-level frames (default 300)")
+    sky.add_argument("--attempts", type=int, default=10, help="GA attempts per frame (default 10)")
+    sky.add_argument("--false-stars", type=int, default=0, help="false stars per frame (default 0)")
+    sky.add_argument("--sigma-urad", type=float, default=87.0, help="per-axis noise, microradians (default 87)")
     sky.add_argument("--outliers", type=int, default=None, choices=(0, 1),
                      help="eq. 3 forgives one star (default: the improved variant's, from 10 stars)")
-    sky.add_argument("--outlier-min-stars", type=int, default=None)
-    a = ap.parse_args(argv)
+    sky.add_argument("--outlier-min-stars", type=int, default=None,
+                     help="stars from which --outliers 1 applies (at least 3)")
+
+
+def command(a) -> int:
     if a.verify_sky:
         if a.frames < 1 or a.attempts < 1 or a.false_stars < 0 or not a.sigma_urad > 0:
-            ap.error("--frames and --attempts must be >= 1, --false-stars >= 0, --sigma-urad > 0")
+            raise BadInput("--frames and --attempts must be >= 1, --false-stars >= 0, --sigma-urad > 0")
         if a.outlier_min_stars is not None and a.outlier_min_stars < 3:
-            ap.error("--outlier-min-stars must be at least 3")
-        from skyview.identify.genetic import verify_every_answer
+            raise BadInput("--outlier-min-stars must be at least 3")
         extra = {k: v for k, v in (("outliers", a.outliers), ("outlier_min_stars", a.outlier_min_stars))
                  if v is not None}
         print(json.dumps(verify_every_answer(a.fov_deg, a.frames, a.attempts, a.false_stars, a.sigma_urad * 1e-6,
                                              seed=a.seed, **extra)))
         return 0
     if a.runs < 1:
-        ap.error("--runs must be at least 1")
+        raise BadInput("--runs must be at least 1")
     if a.fov_stars and not (0 <= a.fov_stars[0] <= a.fov_stars[1]):
-        ap.error("--fov-stars needs 0 <= LO <= HI")
+        raise BadInput("--fov-stars needs 0 <= LO <= HI")
     if any(d <= 0 for d in a.deltas):
-        ap.error("--deltas must be positive")
+        raise BadInput("--deltas must be positive")
+    path = Path(a.json) if a.json else None
+    if path is not None and path.exists():
+        raise BadInput(f"{path} exists: not overwritten")
     s = reproduce(a.runs, a.seed, tuple(a.fov_stars) if a.fov_stars else None, a.example, a.max_restarts,
                   tuple(a.deltas), progress=not a.quiet)
     print(format_report(s))
-    if a.json:
-        from pathlib import Path
-        path = Path(a.json)
-        if path.exists():
-            ap.error(f"{path} exists: not overwritten")
+    if path is not None:
         path.write_text(json.dumps(s, indent=1))
     return 0
+
+
+def verify_every_answer(fov_deg: float = 8.0, frames: int = 300, attempts: int = 10, false_stars: int = 0,
+                        sigma_rad: float = 87e-6, mag_limit: float = 6.0, seed: int = 0,
+                        **params) -> dict:
+    """Vector-level check of the guard: random attitudes (Cole & Crassidis frames), `attempts` GA
+    attempts per frame with the improved parameters (and `params`), EVERY answer sent to the shared
+    verification (until one passes, counting hypotheses as identify does), each scored against the
+    truth. Returns the tally: answers, wrong answers, wrong answers that passed, right ones passed and
+    rejected."""
+    from skyview.attitude import random_attitudes
+    from skyview.camera import Camera
+    from skyview.catalog import load_guide_catalog
+    from skyview.identify.genetic import IMPROVED_PARAMS, GeneticMethod
+    from skyview.identify.synthetic import synthetic_frame
+    from skyview.identify.verify import match_radius, verify
+
+    cat = load_guide_catalog().brighter_than(mag_limit)
+    cam = Camera.from_fov(fov_deg, 1024)
+    g = GeneticMethod(cat, cam, sigma_rad, **{**IMPROVED_PARAMS, "max_restarts": attempts - 1, **params})
+    rng = np.random.default_rng(seed)
+    r = match_radius(sigma_rad, g.radius_sigmas)
+    tally = {"frames": 0, "answers": 0, "wrong_answers": 0, "wrong_passed": 0, "right_passed": 0,
+             "right_rejected": 0, "time_s": 0.0}
+    t0 = time.perf_counter()
+    for t in range(frames):
+        R = random_attitudes(1, rng)[0]
+        f = synthetic_frame(cat, cam, R, sigma_rad, rng, false_stars=false_stars)
+        V = f.obs.vectors
+        if len(V) < 3 or g._field(V, f.obs.brightness, sigma_rad).n < g.min_stars:
+            continue
+        tally["frames"] += 1
+        n_hyp = 0
+        for k in range(attempts):
+            att = g._attempt(V, f.obs.brightness, sigma_rad, t, k)
+            if att.outcome != "answer":
+                continue
+            hyp, n_pair = g._hypothesis(V, att.matches, r)
+            if hyp is None:
+                continue
+            n_hyp += n_pair
+            ver = verify(V, hyp, cat, cam, sigma_rad, n_hypotheses=n_hyp, radius_rad=r)
+            right = all(f.truth[o] == c for o, c in hyp.items())
+            tally["answers"] += 1
+            if not right:
+                tally["wrong_answers"] += 1
+                tally["wrong_passed"] += int(ver.passed)
+            elif ver.passed:
+                tally["right_passed"] += 1
+            else:
+                tally["right_rejected"] += 1
+            if ver.passed:
+                break
+    tally["time_s"] = time.perf_counter() - t0
+    return tally
+
+
+def main(argv: list[str] | None = None) -> int:
+    from skyview.experiments import run_main
+
+    return run_main("genetic_map", argv)
 
 
 if __name__ == "__main__":

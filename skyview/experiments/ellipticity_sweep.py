@@ -1,6 +1,6 @@
 """The full-sky sweep of Sun, Qi, Jin & Wang (2017), section 3.3 and Table 3.
 
-    python -m skyview.identify.ellipticity_sweep [--variant paper|improved] [--frames guide|sky]
+    skyview experiment ellipticity_sweep [--variant paper|improved] [--frames guide|sky]
         [--ra-step 1] [--dec-step 0.5] [--stride 1] [--sigma 10e-6] [--workers 2] [--json out.json]
 
 Not Monte Carlo: boresights on a grid, every ra_step in RA from 0 to 360 deg INCLUSIVE and every
@@ -38,7 +38,6 @@ Nothing is ever identified wrongly. ~3 ms per frame and core on an idle machine.
 
 from __future__ import annotations
 
-import argparse
 import json
 import multiprocessing as mp
 import os
@@ -240,45 +239,52 @@ def format_sweep(s: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--variant", default="paper", choices=["paper", "improved"])
-    ap.add_argument("--frames", default="guide", choices=list(FRAMES))
-    ap.add_argument("--ra-step", type=float, default=1.0, help="deg")
-    ap.add_argument("--dec-step", type=float, default=0.5, help="deg")
-    ap.add_argument("--dec-max", type=float, default=89.0, help="deg")
+def add_arguments(ap) -> None:
+    from skyview.identify import VARIANTS
+
+    ap.add_argument("--variant", default=VARIANTS[0], choices=VARIANTS, help="the method's variant (default paper)")
+    ap.add_argument("--frames", default="guide", choices=list(FRAMES),
+                    help="guide: a sky of the guide stars only (the paper's); sky: every Hp <= 6 star")
+    ap.add_argument("--ra-step", type=float, default=1.0, help="RA step of the grid, deg (default 1)")
+    ap.add_argument("--dec-step", type=float, default=0.5, help="Dec step of the grid, deg (default 0.5)")
+    ap.add_argument("--dec-max", type=float, default=89.0, help="the grid's Dec reaches +-this, deg (default 89)")
     ap.add_argument("--stride", type=int, default=1, help="every k-th RA and Dec of the grid")
     ap.add_argument("--sigma", type=float, default=DEFAULT_SIGMA_RAD, help="per-axis noise, radians")
-    ap.add_argument("--fov-deg", type=float, default=20.0)
-    ap.add_argument("--width", type=int, default=1024)
-    ap.add_argument("--roll-deg", type=float, default=0.0)
-    ap.add_argument("--false-stars", type=int, default=0)
-    ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--fov-deg", type=float, default=20.0, help="full field of view, deg (default 20, the paper's)")
+    ap.add_argument("--width", type=int, default=1024, help="sensor width, pixels (default 1024)")
+    ap.add_argument("--roll-deg", type=float, default=0.0, help="roll of every boresight, deg (default 0)")
+    ap.add_argument("--false-stars", type=int, default=0, help="false stars per frame (default 0)")
+    ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="processes (default 2)")
+    ap.add_argument("--seed", type=int, default=0, help="random seed of the noise (default 0)")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="a method parameter (repeatable), e.g. pivot_radius_deg=8")
     ap.add_argument("--json", default=None, help="write the figures (failures included) to this file")
-    ap.add_argument("--quiet", action="store_true")
-    a = ap.parse_args(argv)
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def command(a) -> int:
     params = {}
     for item in a.param:
         name, _, value = item.partition("=")
-        if not value:
-            ap.error(f"--param {item!r} is not NAME=VALUE")
-        params[name] = json.loads(value) if value not in ("True", "False") else value == "True"
-    try:
-        s = run_sweep(variant=a.variant, frames=a.frames, ra_step_deg=a.ra_step, dec_step_deg=a.dec_step,
-                      dec_max_deg=a.dec_max, stride=a.stride, sigma_rad=a.sigma, fov_deg=a.fov_deg, width=a.width,
-                      roll_deg=a.roll_deg, false_stars=a.false_stars, params=params, workers=a.workers, seed=a.seed,
-                      progress=not a.quiet)
-    except BadInput as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        try:
+            params[name] = json.loads(value) if value not in ("True", "False") else value == "True"
+        except ValueError:
+            raise BadInput(f"--param {item!r} is not NAME=VALUE with a JSON value") from None
+    s = run_sweep(variant=a.variant, frames=a.frames, ra_step_deg=a.ra_step, dec_step_deg=a.dec_step,
+                  dec_max_deg=a.dec_max, stride=a.stride, sigma_rad=a.sigma, fov_deg=a.fov_deg, width=a.width,
+                  roll_deg=a.roll_deg, false_stars=a.false_stars, params=params, workers=a.workers, seed=a.seed,
+                  progress=not a.quiet)
     print(format_sweep(s))
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(s, fh, indent=1, default=float)
     return 0
+
+
+def main(argv=None) -> int:
+    from skyview.experiments import run_main
+
+    return run_main("ellipticity_sweep", argv)
 
 
 if __name__ == "__main__":

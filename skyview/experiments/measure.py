@@ -1,6 +1,6 @@
 """Quick vector-level measurement of an identification method (no images): Cole & Crassidis section IV.
 
-    python -m skyview.identify.measure --method angle --n 300 [--false-stars 1] [--json out.json]
+    skyview experiment measure --method angle --n 300 [--false-stars 1] [--json out.json]
 
 Random attitudes uniform on SO(3); the catalog stars on the sensor, with Gaussian tangent-plane
 noise; optionally one false star placed as in the paper (within half the FOV of the boresight).
@@ -16,7 +16,6 @@ The full bench of the project is `skyview bench`; this is the method's own quick
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 
@@ -25,6 +24,7 @@ import numpy as np
 from skyview.attitude import random_attitudes
 from skyview.camera import Camera
 from skyview.catalog import load_guide_catalog
+from skyview.errors import BadInput
 from skyview.identify import METHODS, make_identifier
 from skyview.identify.synthetic import synthetic_frame
 
@@ -117,21 +117,26 @@ def database_build(method: str, fov_deg: float, width: int, mag: float, sigma: f
             "key_string": built["key_string"]}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--method", default="angle", choices=list(METHODS))
-    ap.add_argument("--n", type=int, default=300)
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--fov-deg", type=float, default=8.0)
-    ap.add_argument("--width", type=int, default=1024)
-    ap.add_argument("--mag", type=float, default=6.0)
+def add_arguments(ap) -> None:
+    ap.add_argument("--method", default="angle", choices=list(METHODS), help="the method (default angle)")
+    ap.add_argument("--n", type=int, default=300, help="random attitudes (default 300)")
+    ap.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    ap.add_argument("--fov-deg", type=float, default=8.0, help="full field of view, deg (default 8)")
+    ap.add_argument("--width", type=int, default=1024, help="sensor width, pixels (default 1024)")
+    ap.add_argument("--mag", type=float, default=6.0, help="catalog and sky limit, Hp (default 6)")
     ap.add_argument("--sigma", type=float, default=87e-6, help="per-axis noise, radians")
-    ap.add_argument("--false-stars", type=int, nargs="+", default=[0, 1])
-    ap.add_argument("--configs", nargs="+", default=None, help=f"subset of {', '.join(ANGLE_CONFIGS)}")
+    ap.add_argument("--false-stars", type=int, nargs="+", default=[0, 1],
+                    help="false stars per frame, one run per value (default 0 1)")
+    ap.add_argument("--configs", nargs="+", default=None, choices=list(ANGLE_CONFIGS), metavar="CONFIG",
+                    help=f"angle only: a subset of {', '.join(ANGLE_CONFIGS)}")
     ap.add_argument("--json", default=None, help="write the figures to this file")
-    a = ap.parse_args(argv)
+
+
+def command(a) -> int:
     configs = ANGLE_CONFIGS if a.method == "angle" else {"default": {}}
     if a.configs:
+        if a.method != "angle":
+            raise BadInput("--configs goes with --method angle")
         configs = {k: configs[k] for k in a.configs}
     report = {"database": database_build(a.method, a.fov_deg, a.width, a.mag, a.sigma), "runs": []}
     db = report["database"]
@@ -158,6 +163,12 @@ def main(argv=None) -> int:
         with open(a.json, "w") as fh:
             json.dump(report, fh, indent=1, default=float)
     return 0
+
+
+def main(argv=None) -> int:
+    from skyview.experiments import run_main
+
+    return run_main("measure", argv)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,25 @@
+"""Experiments: a paper's own experiment reproduced, or a method measured outside the bench.
+
+Each module is reachable as `skyview experiment NAME [OPTIONS]` and as `python -m skyview.experiments.NAME`,
+with the same options and one-line errors (exit code 2). A module has `add_arguments(parser)`,
+`command(args) -> int` (the exit code) and `main(argv)`; to add one, write the module and add a line to
+EXPERIMENTS. Experiments may import anything in skyview; nothing in skyview.identify imports them.
+"""
+
+from __future__ import annotations
+
+import sys
+
+EXPERIMENTS = {  # name -> one line for `skyview experiment --help`
+    "ellipticity_sweep": "Sun et al. 2017's full-sky sweep of the ellipticity method (section 3.3, Table 3)",
+    "genetic_map": "Paladugu et al.'s spiral GA on its random star map; --verify-sky: every real-sky answer "
+                   "verified",
+    "measure": "a method on vector-level frames (no images): Cole & Crassidis section IV's quick check",
+}
+
+
+def run_main(name: str, argv: list[str] | None = None) -> int:
+    """`python -m skyview.experiments.NAME ARGS`: the same as `skyview experiment NAME ARGS`."""
+    from skyview.cli import main
+
+    return main(["experiment", name, *(sys.argv[1:] if argv is None else argv)])
