@@ -12,7 +12,8 @@ P = (sum_i w_i (I - b_i b_i^T))^-1 in the camera frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+import threading
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -20,6 +21,10 @@ from scipy.spatial.transform import Rotation
 from skyview.catalog import radec_to_vec, vec_to_radec
 
 RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
+try:  # the gufunc behind np.linalg.svd (numpy 1.x and 2.x); np.linalg.svd where it is not there
+    from numpy.linalg._umath_linalg import svd_f as _SVD_F
+except ImportError:  # pragma: no cover
+    _SVD_F = None
 
 
 # ------------------------------------------------------------------------- conventions
@@ -80,11 +85,31 @@ def orthonormalize(R: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------------- estimators
 
-@dataclass(frozen=True)
 class AttitudeEstimate:
-    R: np.ndarray  # v_cam = R v_icrs
-    covariance: np.ndarray  # 3x3 rad^2, small rotation about camera x, y, z
-    loss: float  # Wahba loss: 1/2 sum w |b - R r|^2 (unitless with w in 1/rad^2)
+    """An attitude estimate: R (v_cam = R v_icrs), its covariance (3x3 rad^2, small rotation about
+    camera x, y, z) and the Wahba loss 1/2 sum w |b - R r|^2 (unitless with w in 1/rad^2; computed
+    when first asked for, from the pairs the estimate was made of: most callers never ask)."""
+
+    __slots__ = ("R", "covariance", "_loss", "_pairs")
+
+    def __init__(self, R: np.ndarray, covariance: np.ndarray, loss: float | None = None, *, pairs=None):
+        if loss is None and pairs is None:
+            raise ValueError("an attitude estimate needs its loss or the pairs it was made of")
+        self.R = R
+        self.covariance = covariance
+        self._loss = None if loss is None else float(loss)
+        self._pairs = pairs  # (b, r, w): w one weight or one per pair
+
+    @property
+    def loss(self) -> float:
+        if self._loss is None:
+            b, r, w = self._pairs
+            resid = b - r @ self.R.T
+            self._loss = 0.5 * float(np.sum(w * np.sum(resid * resid, axis=1)))
+        return self._loss
+
+    def __repr__(self) -> str:
+        return f"AttitudeEstimate(R={self.R!r}, covariance={self.covariance!r}, loss={self.loss!r})"
 
     @property
     def sigma_boresight_arcsec(self) -> float:
@@ -120,34 +145,124 @@ def _inverse_3x3(F: np.ndarray) -> np.ndarray | None:
     return np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]]) / det
 
 
+_EYE3 = np.eye(3)
+
+
 def attitude_covariance(b: np.ndarray, w: np.ndarray) -> np.ndarray:
     """QUEST model covariance (sum w_i (I - b_i b_i^T))^-1, camera frame, rad^2 (the pseudo-inverse
     when the matrix is singular: all vectors parallel)."""
-    F = w.sum() * np.eye(3) - (b * w[:, None]).T @ b
+    return _covariance(w.sum(), (b * w[:, None]).T @ b)
+
+
+def _covariance(w_sum: float, bwb: np.ndarray) -> np.ndarray:
+    """attitude_covariance from sum w_i and sum w_i b_i b_i^T."""
+    F = w_sum * _EYE3 - bwb
     inv = _inverse_3x3(F)
     return np.linalg.pinv(F) if inv is None else inv
 
 
+_W_SUMS: dict[tuple[int, float], float] = {}
+
+
+def _weight_sum(n: int, w: float) -> float:
+    """np.full(n, w).sum(), remembered: numpy's pairwise sum of n equal weights (not n * w, which
+    rounds differently), computed once per (n, w) instead of two numpy calls per estimate."""
+    key = (n, w)
+    s = _W_SUMS.get(key)
+    if s is None:
+        if len(_W_SUMS) > 4096:
+            _W_SUMS.clear()
+        s = _W_SUMS[key] = float(np.full(n, w).sum())
+    return s
+
+
+def _svd3(B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """U, V^T of a 3x3 matrix: the LAPACK routine np.linalg.svd calls, without its wrapper (checks,
+    error-state context: ~4 us of its ~8); np.linalg.svd itself (and its LinAlgError) for input that
+    is not finite."""
+    if _SVD_F is None or not math.isfinite(sum(B.ravel().tolist())):
+        U, _, Vt = np.linalg.svd(B)
+        return U, Vt
+    U, _, Vt = _SVD_F(B, signature="d->ddd")
+    return U, Vt
+
+
 def _finish(R: np.ndarray, b: np.ndarray, r: np.ndarray, w: np.ndarray) -> AttitudeEstimate:
-    resid = b - r @ R.T
-    loss = 0.5 * float(np.sum(w * np.sum(resid * resid, axis=1)))
-    return AttitudeEstimate(R=R, covariance=attitude_covariance(b, w), loss=loss)
+    return AttitudeEstimate(R, attitude_covariance(b, w), pairs=(b, r, w))
+
+
+def _proper(U: np.ndarray, Vt: np.ndarray) -> np.ndarray:
+    """U V^T, with the axis of the smallest singular value flipped when det(U) det(V) = -1."""
+    if _det3(U) * _det3(Vt) < 0:
+        U = U.copy()
+        U[:, 2] = -U[:, 2]
+    return U @ Vt
 
 
 def svd_attitude(b: np.ndarray, r: np.ndarray, sigma: float | np.ndarray = 1.0) -> AttitudeEstimate:
-    """Markley's SVD solution of Wahba's problem: b_i ~ R r_i (b: camera, r: ICRS), proper R."""
+    """Markley's SVD solution of Wahba's problem: b_i ~ R r_i (b: camera, r: ICRS), proper R.
+
+    With one sigma for every pair (the usual case) the same numbers are computed with a scalar
+    weight (b * w is b * w[:, None] for equal weights, element for element), so the answer is the
+    general path's to the last bit, in about half its time (a star tracker's few stars make
+    every numpy call's overhead count)."""
     b = np.asarray(b, dtype=np.float64)
     r = np.asarray(r, dtype=np.float64)
     if len(b) < 2 or b.shape != r.shape:
         raise ValueError("need at least two matched vector pairs of the same shape")
+    if isinstance(sigma, (float, int)) and not isinstance(sigma, bool):
+        if not sigma > 0:
+            raise ValueError("measurement sigma must be positive")
+        w = 1.0 / (float(sigma) * float(sigma))
+        bw = b * w
+        U, Vt = _svd3(bw.T @ r)
+        return AttitudeEstimate(_proper(U, Vt), _covariance(_weight_sum(len(b), w), bw.T @ b), pairs=(b, r, w))
     w = _weights(len(b), sigma)
-    B = (b * w[:, None]).T @ r
-    U, _, Vt = np.linalg.svd(B)
-    if _det3(U) * _det3(Vt) < 0:  # det(U) det(V) = -1: flip the axis of the smallest singular value
-        U = U.copy()
-        U[:, 2] = -U[:, 2]
-    R = U @ Vt
-    return _finish(R, b, r, w)
+    U, Vt = _svd3((b * w[:, None]).T @ r)
+    return _finish(_proper(U, Vt), b, r, w)
+
+
+_REMEMBERED: dict[tuple, AttitudeEstimate] = {}
+_REMEMBERED_LOCK = threading.Lock()
+REMEMBER_MAX = 8
+
+
+def _memo_key(b: np.ndarray, r: np.ndarray, sigma) -> tuple | None:
+    if not (isinstance(sigma, (float, int)) and not isinstance(sigma, bool)):
+        return None
+    b = np.ascontiguousarray(b, dtype=np.float64)
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    return b.shape, b.tobytes(), r.tobytes(), float(sigma)
+
+
+def remember_svd(b: np.ndarray, r: np.ndarray, sigma: float, est: AttitudeEstimate) -> None:
+    """Keep `est` = svd_attitude(b, r, sigma) for `recall_svd` (the last REMEMBER_MAX of them): the
+    shared verification ends in the estimate from every match, and the solver's attitude stage
+    estimates the same thing again from the same numbers."""
+    key = _memo_key(b, r, sigma)
+    if key is None:
+        return
+    with _REMEMBERED_LOCK:
+        _REMEMBERED.pop(key, None)
+        _REMEMBERED[key] = est
+        while len(_REMEMBERED) > REMEMBER_MAX:
+            del _REMEMBERED[next(iter(_REMEMBERED))]
+
+
+def svd_attitude_remembered(b: np.ndarray, r: np.ndarray, sigma: float | np.ndarray = 1.0) -> AttitudeEstimate:
+    """svd_attitude(b, r, sigma): a remembered estimate of exactly these numbers (`remember_svd`;
+    R and the covariance copied), else a new one."""
+    b = np.asarray(b, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    key = _memo_key(b, r, sigma)
+    est = None
+    if key is not None:
+        with _REMEMBERED_LOCK:
+            est = _REMEMBERED.get(key)
+    if est is None:
+        return svd_attitude(b, r, sigma)
+    w = 1.0 / (float(sigma) * float(sigma))
+    return AttitudeEstimate(est.R.copy(), est.covariance.copy(), pairs=(b, r, w))
 
 
 def _det3(M: np.ndarray) -> float:

@@ -346,14 +346,24 @@ def sequence_markdown(seq_result, *, true_R: list | None = None, rows: list | No
 
 # ============================================================================ the blueprint
 
+def sequence_eye(R_view: np.ndarray | None) -> D.SkyEye | None:
+    """The sky view's opening eye: from the sphere's centre side, looking at the middle of the path (the
+    blueprint's, and the one the HIP labels are laid out for)."""
+    if R_view is None:
+        return None
+    R_view = np.asarray(R_view, dtype=np.float64)
+    b, up = R_view[2], -R_view[1]
+    return D.SkyEye(-0.6 * b - 0.05 * up, b, up)
+
+
 def sequence_blueprint(R_view: np.ndarray | None, plots: list) -> rrb.Blueprint:
     """The 3D sky (from the sphere's centre, looking at the middle of the path), the sensor image, the
     posterior plots over the frames, and tabs with the step log, the result and the bar charts."""
     eye = None
-    if R_view is not None:
-        b, up = R_view[2], -R_view[1]
-        eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(-0.6 * b - 0.05 * up).tolist(),
-                                look_target=b.tolist(), eye_up=up.tolist())
+    sky_eye = sequence_eye(R_view)
+    if sky_eye is not None:
+        eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=sky_eye.position.tolist(),
+                                look_target=sky_eye.target.tolist(), eye_up=sky_eye.up.tolist())
     sky = rrb.Spatial3DView(name="sky", origin="/", contents=["/sky/**", "/camera/**", "/truth/**"],
                             background=[5, 8, 16], line_grid=rrb.LineGrid3D(visible=False), eye_controls=eye,
                             spatial_information=D.NO_AXES)
@@ -440,7 +450,8 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
             rec.set_time(FRAME_TIMELINE, sequence=k)
             rec.set_time(STEP_TIMELINE, sequence=first)
             note = _write_frame(fr, k, seq_result, images[k], centroids[k], shown[k],
-                                None if true_R is None else true_R[k], None if truths is None else truths[k], figs[k])
+                                None if true_R is None else true_R[k], None if truths is None else truths[k], figs[k],
+                                eye=sequence_eye(R_mid))
             image_note = image_note or f"frame {k}: {note}"
             for i, v in enumerate(views[k]):
                 rec.set_time(STEP_TIMELINE, sequence=first + i)
@@ -480,7 +491,8 @@ def _write_static(rec, seq_result, true_R, figs) -> None:
             colors=color, names=label, markers="circle", marker_sizes=4.0), static=True)
 
 
-def _write_frame(fr: _Frames, k: int, seq_result, image, uv_c: np.ndarray, R_view, R_true, truth, st: dict) -> str:
+def _write_frame(fr: _Frames, k: int, seq_result, image, uv_c: np.ndarray, R_view, R_true, truth, st: dict, *,
+                 eye: D.SkyEye | None = None) -> str:
     """Everything of frame k that is not a step (logged at its frame and its first step); returns how the
     image was stretched for display."""
     camera, catalog = seq_result.camera, seq_result.catalog
@@ -551,7 +563,8 @@ def _write_frame(fr: _Frames, k: int, seq_result, image, uv_c: np.ndarray, R_vie
         fr.clear(TRUE_DESIGNATED)
     # --- the verified matches
     if R_est is not None and r.matches:
-        write_matches(fr, sorted((int(o), int(c)) for o, c in r.matches.items()), catalog, camera, R_est, False)
+        write_matches(fr, sorted((int(o), int(c)) for o, c in r.matches.items()), catalog, camera, R_est, False,
+                      stars_uv=uv_c, eye=eye)
     else:
         for path_ in (D.MATCHES, D.MATCH_LABELS, D.IMAGE_MATCHES, D.IMAGE_LABELS):
             fr.clear(path_)

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from skyview.attitude import ESTIMATORS, RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R
+from skyview.attitude import ESTIMATORS, RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R, svd_attitude_remembered
 from skyview.camera import Camera
 from skyview.catalog import DEFAULT_EPOCH, GuideCatalog, vec_to_radec
 from skyview.centroid import Centroids
@@ -42,17 +42,33 @@ def matched_stars(catalog: GuideCatalog, uv: np.ndarray, matches: dict[int, int]
     """The matches (observed index -> catalog row; `uv` the observed pixels) as [{index, u, v, hip,
     ra_deg, dec_deg, mag, residual_arcsec}], by observed index: the catalog rows they refer to, ready
     for any sink."""
-    idx = np.array(sorted(matches), dtype=np.int64)
+    idx = sorted(matches)
     rows = np.array([matches[i] for i in idx], dtype=np.int64)
-    ra, dec = np.degrees(vec_to_radec(catalog.xyz[rows])) if len(rows) else (np.zeros(0), np.zeros(0))
-    out = []
-    for j, (i, k) in enumerate(zip(idx, rows)):
-        m = {"index": int(i), "u": float(uv[i, 0]), "v": float(uv[i, 1]), "hip": int(catalog.hip[k]),
-             "ra_deg": float(ra[j]), "dec_deg": float(dec[j]), "mag": float(catalog.mag[k])}
-        if residuals_rad is not None:
-            m["residual_arcsec"] = float(residuals_rad[j] * RAD_TO_ARCSEC)
-        out.append(m)
+    if not len(rows):
+        return []
+    ra, dec = np.degrees(vec_to_radec(catalog.xyz[rows]))
+    uvl = np.asarray(uv)[idx].tolist()
+    cols = zip(idx, uvl, catalog.hip[rows].tolist(), ra.tolist(), dec.tolist(), catalog.mag[rows].tolist())
+    out = [{"index": int(i), "u": float(p[0]), "v": float(p[1]), "hip": int(h), "ra_deg": a, "dec_deg": d,
+            "mag": float(m)} for i, p, h, a, d, m in cols]
+    if residuals_rad is not None:
+        for m, res in zip(out, (np.asarray(residuals_rad) * RAD_TO_ARCSEC).tolist()):
+            m["residual_arcsec"] = res
     return out
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross of two (n, 3) arrays (the same products and differences), without its axis handling."""
+    c = np.empty(a.shape)
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    np.multiply(a1, b2, out=c[:, 0])
+    c[:, 0] -= a2 * b1
+    np.multiply(a2, b0, out=c[:, 1])
+    c[:, 1] -= a0 * b2
+    np.multiply(a0, b1, out=c[:, 2])
+    c[:, 2] -= a1 * b0
+    return c
 
 
 @dataclass
@@ -144,14 +160,15 @@ def result_from_identification(centroids: Centroids, obs: Observation, ident: Id
     result = SolveResult(status=NOT_SOLVED, reason=ident.reason or ident.status, identification=ident, **common)
     if ident.identified:
         idx = np.array(sorted(ident.matches))
-        rows = np.array([ident.matches[i] for i in idx])
+        rows = np.array([ident.matches[i] for i in idx.tolist()])
         b, r = obs.vectors[idx], catalog.xyz[rows]
-        est = ESTIMATORS[estimator](b, r, sigma_rad)
+        # the svd estimate from every match is the one the shared verification ended in: remembered
+        est = (svd_attitude_remembered if estimator == "svd" else ESTIMATORS[estimator])(b, r, sigma_rad)
         result.status, result.reason = SOLVED, ""
         result.R = est.R
         # The reported 1-sigma uses the noise measured from the residuals when there are enough
         # matches (2n - 3 degrees of freedom >= 5), else the assumed sigma.
-        resid = np.linalg.norm(np.cross(b, r @ est.R.T), axis=1)
+        resid = np.linalg.norm(_cross(b, r @ est.R.T), axis=1)
         dof = 2 * len(idx) - 3
         scale = 1.0
         if dof >= 5:

@@ -11,6 +11,7 @@ from skyview.identify import FAILED, IDENTIFIED, METHODS, make_identifier
 from skyview.identify import database
 from skyview.identify.angle import AngleMethod, _join
 from skyview.identify.base import Observation
+from skyview.identify.pivot import Restarts
 from skyview.identify.synthetic import add_noise, synthetic_frame
 from skyview.identify.verify import angular_distance
 
@@ -221,6 +222,47 @@ def test_backtracking_drops_the_false_star(cache, cat, cam):
             assert_correct(r, f)
             assert r.stats["chains"] > 1 and r.verification["n_hypotheses"] == r.stats["verifications"]
     assert seen_backtrack
+
+
+def test_restarts_drop_each_suspect_once_within_the_limits():
+    """The shared backtracking driver: the full set first, then one restart per new suspect (queue order,
+    or the method's pick), each set of dropped stars once, at most max_dropped out, 3 stars left."""
+    steps = []
+    r = Restarts(steps, 5, backtrack=True, max_restarts=3, max_dropped=1)
+    got = []
+    for excluded in r:
+        got.append(sorted(excluded))
+        r.failed(excluded, [4, 2, 4] if not excluded else [0])  # a restart's suspects are not queued
+    assert got == [[], [4], [2]]  # the queue ran dry before the budget (1 + 3 chains)
+    assert [(s.kind, s.observed, s.numbers["restart"]) for s in steps] == [("backtrack", [4], 1), ("backtrack", [2], 2)]
+    r = Restarts([], 4, backtrack=True, max_restarts=10, max_dropped=2, pick=lambda q: len(q) - 1)  # newest first
+    got = []
+    for excluded in r:
+        got.append(sorted(excluded))
+        r.failed(excluded, [0, 1])
+    assert got == [[], [1], [0]]  # 4 stars: never fewer than 3 left, so never two dropped
+    r = Restarts([], 9, backtrack=True, max_restarts=2, max_dropped=2)
+    got = []
+    for excluded in r:
+        got.append(sorted(excluded))
+        r.failed(excluded, [5, 6, 7])
+    assert got == [[], [5], [6]]  # the budget: 1 + max_restarts chains
+    r = Restarts([], 9, backtrack=False, max_restarts=10, max_dropped=1)
+    assert [sorted(e) for e in r if r.failed(e, [1, 2]) is None] == [[]]  # no backtracking: one chain
+
+
+def test_failure_reason_numbers_the_chains(cache, cat, cam):
+    method = AngleMethod(cat, cam, SIGMA, backtrack=True, max_candidates=10)  # every angle has more
+    f = frames(cat, cam, 1, seed=8, n_min=8)[0]
+    r = method.identify(f.obs)
+    assert r.status != IDENTIFIED and r.stats["chains"] == 1 and r.stats["verifications"] == 0
+    assert r.reason == "no angle with at most max_candidates candidates to start from"
+    rng = np.random.default_rng(4)  # eight stars scattered at random: no chain holds
+    v = np.column_stack([rng.uniform(-0.05, 0.05, (8, 2)), np.ones(8)])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    r = AngleMethod(cat, cam, SIGMA, backtrack=True).identify(Observation(v, np.zeros((8, 2)), np.ones(8), SIGMA))
+    assert r.status != IDENTIFIED and r.stats["chains"] > 1
+    assert r.reason.startswith("chain 1: ") and f"; chain {r.stats['chains']}: " in r.reason
 
 
 def test_limits_and_small_inputs(ident, cat, cam):

@@ -18,8 +18,8 @@ from skyview.identify.angle import AngleMethod
 from skyview.identify.base import Observation
 from skyview.identify.layers import Hypotheses
 from skyview.identify.synthetic import add_noise, synthetic_frame
-from skyview.identify.triangle import (IMPROVED_PARAMS, TriangleMethod, catalog_triangles, join, moment_convergence,
-                                       upper_line)
+from skyview.identify.triangle import IMPROVED_PARAMS, TriangleMethod, join
+from skyview.identify.triangle_database import _triangle_chunks, catalog_triangles, moment_convergence, upper_line
 from skyview.identify.verify import angular_distance
 from skyview.pipeline import Solver
 from skyview.simulate import simulate_image
@@ -287,8 +287,7 @@ def test_database_on_a_tiny_catalog(tmp_path, monkeypatch, cam):
     assert shared.database_info["source"] == "cache" and shared.database_key_string == m.database_key_string
     # the pieces of a chunked build are the triangles of one piece
     tri = catalog_triangles(cat.xyz, 2 * r_max)
-    pieces = [t for _, _, t in __import__("skyview.identify.triangle", fromlist=["_triangle_chunks"])
-              ._triangle_chunks(cat.xyz, 2 * r_max, None, None, 50)]
+    pieces = [t for _, _, t in _triangle_chunks(cat.xyz, 2 * r_max, None, None, 50)]
     assert len(pieces) > 3
     np.testing.assert_array_equal(np.concatenate(pieces), tri)
 
@@ -357,7 +356,7 @@ def test_pair_join_gives_the_stored_candidates(improved, stored_sides, region, c
             tp = improved.triangle_bounds(V, SIGMA)
             ts = stored_sides.triangle_bounds(V, SIGMA)
             for k in range(len(tp["area"])):
-                Hp = improved.hypotheses(tp, k, SIGMA)[0]
+                Hp = improved.oriented_candidates(tp, k, SIGMA)[0]
                 Hs = stored_sides.orient(ts, k, stored_sides.candidates(ts, k), SIGMA)[0]
                 assert set(map(tuple, Hp.tolist())) == set(map(tuple, Hs.tolist()))
                 assert tp["counts"][k] == len({frozenset(h) for h in Hp.tolist()})

@@ -292,3 +292,135 @@ def test_predicted_sigma_closed_form_is_the_largest_eigenvalue():
         ref = np.sqrt(np.maximum(np.linalg.eigvalsh(K @ P @ K.transpose(0, 2, 1))[:, -1], 0.0))
         np.testing.assert_allclose(predicted_sigma(b, P), ref, rtol=1e-9, atol=1e-12 * ref.max())
     assert predicted_sigma(np.zeros((0, 3)), np.eye(3)).shape == (0,)
+
+
+# ------------------------------------------------------------------ the fast paths give the same answers
+
+def _verification_record(v):
+    return (v.passed, v.reason, v.matches, v.p_false, v.n_agree, v.n_tested, v.n_frame, v.p_tested, v.ambiguous,
+            v.agreeing, v.max_residual_rad, v.radius_max_rad, None if v.R is None else v.R.tolist())
+
+
+def _hypotheses(f, rng):
+    """A correct hypothesis of 2-4 stars of frame f, and the same stars shuffled."""
+    n = len(f.obs)
+    k = int(rng.integers(2, min(4, n) + 1))
+    obs = [int(i) for i in rng.choice(n, k, replace=False)]
+    right = {i: int(f.truth[i]) for i in obs}
+    shuffled = dict(zip(obs, np.roll([right[i] for i in obs], 1).tolist()))
+    return right, shuffled
+
+
+def test_fast_paths_agree_with_the_general_ones(cat, cam, monkeypatch):
+    """The pairs within a radius (from one distance array, or the few a dot product puts near), paired in
+    Python lists, and the remembered nearest-neighbour chords answer exactly as the k-d tree paths and
+    the numpy pairing: every figure of the verification equal, to the last bit."""
+    import skyview.identify.verify as V
+
+    rng = np.random.default_rng(5)
+    cases = []
+    for seed in range(40):
+        f = frame_with(cat, cam, 3, seed=100 + seed)
+        cases += [(f, h) for h in _hypotheses(f, rng)]
+    # the base radius as it is, and 40 times wider (several catalog stars within each: the pairing and
+    # the ambiguity decide)
+    radii = (match_radius(SIGMA), 40 * match_radius(SIGMA))
+
+    def run():
+        return [_verification_record(verify(f.obs.vectors, h, cat, cam, SIGMA, radius_rad=r))
+                for f, h in cases for r in radii]
+
+    fast = run()
+    assert sum(r[0] for r in fast) >= 20  # correct hypotheses pass: the accepted branch is exercised
+    monkeypatch.setattr(V, "PREFILTER_PAIRS", 0)  # every frame's pairs through the dot-product prefilter
+    assert run() == fast
+    monkeypatch.setattr(V, "BRUTE_PAIRS", 0)  # every distance from a k-d tree
+    monkeypatch.setattr(V, "ONE_TO_ONE_PY", -1)  # the numpy pairing
+    monkeypatch.setattr(V, "_NEAREST", {})
+    monkeypatch.setattr(V, "_has_neighbour", lambda catalog, rows, chords: np.asarray(
+        catalog.tree.query_ball_point(catalog.xyz[rows], chords, return_length=True)) >= 2)
+    assert run() == fast
+
+
+def test_has_neighbour_is_the_kd_tree_count(cat):
+    """Remembered nearest-neighbour chords, with chords exactly at (and a hair around) a neighbour's
+    distance, answer as the k-d tree's own count."""
+    from skyview.catalog import chord
+    from skyview.identify.verify import _has_neighbour
+
+    rng = np.random.default_rng(3)
+    rows = rng.choice(len(cat.xyz), 400, replace=False)
+    nn = cat.tree.query(cat.xyz[rows], k=2)[0][:, 1]
+    for chords in (chord(rng.uniform(1e-4, 0.02, len(rows))), nn, nn * (1 + 1e-15), nn * (1 - 1e-15)):
+        want = np.asarray(cat.tree.query_ball_point(cat.xyz[rows], chords, return_length=True)) >= 2
+        assert np.array_equal(_has_neighbour(cat, rows, chords), want)
+        assert np.array_equal(_has_neighbour(cat, rows, chords), want)  # remembered the second time
+
+
+def test_svd_attitude_one_sigma_is_the_per_pair_path_to_the_bit():
+    from skyview.attitude import q_method_attitude
+
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        n = int(rng.integers(2, 30))
+        r = rng.normal(size=(n, 3))
+        r /= np.linalg.norm(r, axis=1)[:, None]
+        R = random_attitudes(1, rng)[0]
+        b = r @ R.T + rng.normal(size=(n, 3)) * 1e-4
+        b /= np.linalg.norm(b, axis=1)[:, None]
+        s = float(rng.uniform(1e-5, 1e-3))
+        one, per_pair = svd_attitude(b, r, s), svd_attitude(b, r, np.full(n, s))
+        assert np.array_equal(one.R, per_pair.R) and np.array_equal(one.covariance, per_pair.covariance)
+        assert one.loss == per_pair.loss
+        resid = b - r @ one.R.T
+        assert one.loss == pytest.approx(0.5 * np.sum(resid * resid) / s ** 2, rel=1e-12)
+        assert abs(np.linalg.det(one.R) - 1.0) < 1e-12
+        assert attitude_error_arcsec(one.R, q_method_attitude(b, r, s).R)["total"] < 1e-6
+
+
+def test_svd_attitude_bad_input():
+    b = np.eye(3)
+    with pytest.raises(ValueError):
+        svd_attitude(b, b, 0.0)
+    with pytest.raises(ValueError):
+        svd_attitude(b[:1], b[:1], 1e-4)
+    with pytest.raises(np.linalg.LinAlgError):
+        svd_attitude(np.full((3, 3), np.nan), b, 1e-4)
+
+
+def test_remembered_estimate_is_the_estimate(cat, cam):
+    """The solver's attitude stage reuses the estimate the verification ended in: the same numbers as a
+    new svd_attitude, in arrays of its own; anything else is estimated anew."""
+    from skyview.attitude import svd_attitude_remembered
+
+    f = frame_with(cat, cam, 6, seed=4)
+    v = verify(f.obs.vectors, {i: int(f.truth[i]) for i in range(3)}, cat, cam, SIGMA)
+    assert v.passed
+    obs = np.array(sorted(v.matches))
+    b, r = f.obs.vectors[obs], cat.xyz[[v.matches[o] for o in obs]]
+    again = svd_attitude_remembered(b, r, SIGMA)
+    new = svd_attitude(b, r, SIGMA)
+    assert np.array_equal(again.R, new.R) and np.array_equal(again.covariance, new.covariance)
+    assert again.loss == new.loss
+    assert again.R is not v.R and np.array_equal(again.R, v.R)
+    other = svd_attitude_remembered(b[:-1], r[:-1], SIGMA)  # not remembered: estimated
+    assert np.array_equal(other.R, svd_attitude(b[:-1], r[:-1], SIGMA).R)
+
+
+def test_result_cross_and_matched_stars(cat):
+    from skyview.result import _cross, matched_stars
+
+    rng = np.random.default_rng(2)
+    a, b = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+    assert np.array_equal(_cross(a, b), np.cross(a, b))
+    uv = rng.uniform(0, 1000, (5, 2))
+    matches = {3: 10, 0: 42, 4: 7}
+    ms = matched_stars(cat, uv, matches, np.array([1e-5, 2e-5, 3e-5]))
+    assert [m["index"] for m in ms] == [0, 3, 4]
+    ra, dec = np.degrees(vec_to_radec(cat.xyz[[42, 10, 7]]))
+    for m, row, k in zip(ms, (42, 10, 7), range(3)):
+        assert m["hip"] == int(cat.hip[row]) and m["mag"] == float(cat.mag[row])
+        assert (m["u"], m["v"]) == (float(uv[m["index"], 0]), float(uv[m["index"], 1]))
+        assert m["ra_deg"] == float(ra[k]) and m["dec_deg"] == float(dec[k])
+        assert m["residual_arcsec"] == pytest.approx((k + 1) * 1e-5 * 206264.806, rel=1e-6)
+    assert matched_stars(cat, uv, {}) == []

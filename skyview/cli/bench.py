@@ -238,7 +238,7 @@ def add_parsers(sub) -> None:
     add_statistic(b)
     b.add_argument("--speed", action="store_true",
                    help="time each stage (decode, centroids, identification, attitude) of the improved angle "
-                        "method (or --method/--variant) and the blind pipeline, and tetra3rs on the same images "
+                        "and triangle methods (or --method/--variant) and the blind pipeline, and tetra3rs on the same images "
                         "when its virtualenv exists (benchmarks/README.md); prints the ratio")
     b.add_argument("--peers-python", default=None, help="with --speed: python of the tetra3rs virtualenv "
                    "(default $SKYVIEW_PEERS_PYTHON or .venv-peers/bin/python)")

@@ -96,22 +96,13 @@ def run(method: str, configs: dict, n: int, seed: int, fov_deg: float, width: in
 
 def database_build(method: str, fov_deg: float, width: int, mag: float, sigma: float) -> dict:
     """Build the method's database in a throw-away cache and load it again: times and sizes."""
-    import os
-    import tempfile
+    from skyview.experiments import throwaway_cache
 
     cat = load_guide_catalog().brighter_than(mag)
     cam = Camera.from_fov(fov_deg, width)
-    old = os.environ.get("SKYVIEW_CACHE")
-    with tempfile.TemporaryDirectory() as tmp:
-        os.environ["SKYVIEW_CACHE"] = tmp
-        try:
-            built = make_identifier(method, cat, cam, sigma).database_info
-            loaded = make_identifier(method, cat, cam, sigma).database_info
-        finally:
-            if old is None:
-                os.environ.pop("SKYVIEW_CACHE", None)
-            else:
-                os.environ["SKYVIEW_CACHE"] = old
+    with throwaway_cache():
+        built = make_identifier(method, cat, cam, sigma).database_info
+        loaded = make_identifier(method, cat, cam, sigma).database_info
     keep = ("pairs", "pairs_within_fov", "fov_deg", "max_sep_deg", "nbytes", "file_bytes", "catalog_stars")
     return {**{k: built.get(k) for k in keep}, "build_s": built["build_s"], "load_s": loaded["load_s"],
             "key_string": built["key_string"]}

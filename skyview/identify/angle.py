@@ -50,7 +50,7 @@ pairs); the twelve brightest give 66 angles and the same identifications (vector
 sun20, with and without a false star).
 
 Speed (beyond the paper, same results). A join groups the candidate pairs by their catalog star on
-the shared observed star once (a radix sort and a bincount, `_by_star`) and each hypothesis meets
+the shared observed star once (a radix sort and a bincount, `by_star`) and each hypothesis meets
 its star's block, a closed loop included (no binary search per hypothesis: ~0.1 ms instead of ~2.5 ms
 for 12,000 candidates at 20 deg); steps record capped samples (CAP rows, `Hypotheses.sample`), never
 the whole candidate lists.
@@ -61,41 +61,30 @@ failed. With backtrack=True the chain is restarted without one suspect star: fir
 angle emptied the set (the one just added, or the newer of the two in a closed loop), then the other
 stars of the chain, newest first; each restart again starts from the largest remaining angle. At
 most max_restarts restarts and max_dropped stars dropped at once. Every verification counts in the
-Bonferroni factor of the verification statistic, so no wrong attitude gets an easier pass.
+Bonferroni factor of the verification statistic, so no wrong attitude gets an easier pass. The
+search loop, the restarts and the parameters it shares with the triangle method are in
+`skyview.identify.pivot`.
 """
 
 from __future__ import annotations
 
-import time
-from collections import deque
-from dataclasses import dataclass, field
-from functools import lru_cache
+from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
-from skyview.attitude import RAD_TO_ARCSEC, svd_attitude
+from skyview.attitude import RAD_TO_ARCSEC
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog
-from skyview.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Identification, Identifier, Observation,
-                                   Step)
+from skyview.identify.base import Search, Step
 from skyview.identify.kvector import KVector
 from skyview.identify.layers import Hypotheses
-from skyview.identify.verify import (CALIBRATED, RADIUS_SIGMAS, STATISTICS, angular_distance, match_radius,
-                                     verification_step, verify)
+from skyview.identify.pivot import (Chain, PivotMethod, PivotParams, by_star, first_pattern, next_by_priority,
+                                   pair_indices, uses_any)
+from skyview.identify.verify import angular_distance
 
-ORDERS = ("largest", "fewest")
-# The paper's method is the default. These options (not in the paper) identify 80.7 % of random 8 deg /
-# Hp 6.0 fields instead of 65.7 %, and 75 % instead of 27 % with a false star, never wrongly (vector
-# level, 300 attitudes, seed 1): join full assignments on the shared star, close triangles first so
-# that stars are left to verify with, and restart without a suspect star when a chain fails.
-IMPROVED_PARAMS = {"pivoting": "join", "close_loops": True, "backtrack": True, "max_stars": 12}
-# the paper's pairwise list pruning: a common star anywhere ("lists") or on the shared observed star
-# ("shared-star"); beyond the paper: full assignments joined on the shared star ("join")
-PIVOTINGS = ("shared-star", "lists", "join")
 CAP = 200  # catalog rows / groups kept in one step
-MAX_EQUIVALENT = 16  # at most this many hypotheses are compared for unresolved close pairs
 DATABASE_VERSION = 1
 
 
@@ -134,75 +123,37 @@ def load_pair_database(catalog: GuideCatalog, camera: Camera, kvector_fit: str =
             info)
 
 
-@dataclass
-class _Chain:
-    outcome: str  # "unique", "empty" or "ambiguous"
-    reason: str
-    used: list[int]
-    H: np.ndarray  # (n_hypotheses, len(used)) catalog rows
-    suspects: list[int] = field(default_factory=list)
-    pivots: int = 0
-    candidates: list[int] = field(default_factory=list)
-    hypotheses: list[int] = field(default_factory=list)
-    best: np.ndarray | None = None  # the hypothesis sent to verification
+@dataclass(frozen=True)
+class AngleParams(PivotParams):
+    """The angle method's parameters (the paper's defaults; the module docstring explains each)."""
+
+    close_loops: bool = False
 
 
-class AngleMethod(Identifier):
+PAPER = AngleParams()
+# These options (not in the paper) identify 80.7 % of random 8 deg / Hp 6.0 fields instead of 65.7 %,
+# and 75 % instead of 27 % with a false star, never wrongly (vector level, 300 attitudes, seed 1): join
+# full assignments on the shared star, close triangles first so that stars are left to verify with,
+# and restart without a suspect star when a chain fails.
+IMPROVED = replace(PAPER, pivoting="join", close_loops=True, backtrack=True, max_stars=12)
+IMPROVED_PARAMS = IMPROVED.changed()
+
+
+class AngleMethod(PivotMethod):
     """Cole & Crassidis' angle method with pivoting, ending in the shared verification."""
 
     name = "angle"
+    title = "the angle method"
+    Params = AngleParams
     improved_params = IMPROVED_PARAMS
 
-    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, *, beta: float = 3.0,
-                 max_pivots: int | None = 9, max_candidates: int = 10_000, order: str = "largest",
-                 backtrack: bool = False, max_restarts: int = 10, max_dropped: int = 1,
-                 statistic: str = CALIBRATED, threshold: float | None = None,
-                 radius_sigmas: float = RADIUS_SIGMAS, kvector_fit: str = "line", close_loops: bool = False,
-                 pivoting: str = "shared-star", max_stars: int | None = None):
-        if not (np.isfinite(sigma_rad) and sigma_rad > 0):
-            raise BadInput(f"the measurement sigma must be a positive number, not {sigma_rad!r}")
-        if not (np.isfinite(beta) and beta > 0):
-            raise BadInput(f"beta must be positive, not {beta!r}")
-        if max_pivots is not None and int(max_pivots) < 0:
-            raise BadInput("max_pivots must be >= 0 or None (unlimited)")
-        if int(max_candidates) < 1:
-            raise BadInput("max_candidates must be at least 1")
-        if order not in ORDERS:
-            raise BadInput(f"unknown order {order!r}: choose from {', '.join(ORDERS)}")
-        if max_stars is not None and int(max_stars) < 3:
-            raise BadInput("max_stars must be at least 3 or None (all)")
-        if pivoting not in PIVOTINGS:
-            raise BadInput(f"unknown pivoting {pivoting!r}: choose from {', '.join(PIVOTINGS)}")
-        if statistic not in STATISTICS:
-            raise BadInput(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
-        if threshold is not None and not (0 < float(threshold) <= 1):
-            raise BadInput("threshold must be in (0, 1]")
-        if kvector_fit not in ("line", "parabola"):
-            raise BadInput("kvector_fit must be 'line' or 'parabola'")
-        if int(max_restarts) < 0 or int(max_dropped) < 0:
-            raise BadInput("max_restarts and max_dropped must be >= 0")
-        if not (np.isfinite(radius_sigmas) and radius_sigmas > 0):
-            raise BadInput("radius_sigmas must be positive")
-        self.catalog = catalog
-        self.camera = camera
-        self.sigma_rad = float(sigma_rad)
-        self.beta = float(beta)
-        self.max_pivots = None if max_pivots is None else int(max_pivots)
-        self.max_candidates = int(max_candidates)
-        self.order = order
-        self.backtrack = bool(backtrack)
-        self.max_restarts = int(max_restarts)
-        self.max_dropped = int(max_dropped)
-        self.statistic = statistic
-        self.threshold = threshold
-        self.radius_sigmas = float(radius_sigmas)
-        self.close_loops = bool(close_loops)
-        self.pivoting = pivoting
-        self.max_stars = None if max_stars is None else int(max_stars)
+    def __init__(self, catalog: GuideCatalog, camera: Camera, sigma_rad: float, **params):
+        p = self.configure(catalog, camera, sigma_rad, params)
+        self.close_loops = bool(p.close_loops)
 
         # the database belongs to the sky: pairs up to the diagonal rounded up on a 5 % grid, so one
         # database serves every camera whose diagonal is below it
-        self.pair_i, self.pair_j, self.kv, info = load_pair_database(catalog, camera, kvector_fit)
+        self.pair_i, self.pair_j, self.kv, info = load_pair_database(catalog, camera, p.kvector_fit)
         self.max_sep_rad = info["max_sep_rad"]
         self.database_key = info["key"]
         fov = np.radians(camera.fov_deg)
@@ -210,31 +161,18 @@ class AngleMethod(Identifier):
         info.update(pairs=len(self.pair_i), pairs_within_fov=n_fov, fov_deg=float(camera.fov_deg),
                     max_sep_deg=float(np.degrees(self.max_sep_rad)), catalog_stars=len(catalog))
         self.database_info = info
-        self._key_string = database.key_string(self.database_key)
 
     @property
-    def database_key_string(self) -> str:
-        return self._key_string
+    def n_patterns(self) -> int:
+        return len(self.pair_i)
 
-    # ------------------------------------------------------------------ identify
-    def identify(self, obs: Observation) -> Identification:
-        t0 = time.perf_counter()
-        steps: list[Step] = []
-        n = len(obs)
-        sigma = float(obs.sigma_rad) if (obs.sigma_rad is not None and np.isfinite(obs.sigma_rad)
-                                         and obs.sigma_rad > 0) else self.sigma_rad
-        result = Identification(method=self.name, status=FAILED, matches={}, steps=steps,
-                                database_key=self.database_key_string)
-        if n < 3:
-            result.reason = f"the angle method needs at least 3 stars, the frame has {n}"
-            result.stats = {"stars": n, "time_s": time.perf_counter() - t0}
-            return result
-
-        V = np.asarray(obs.vectors, dtype=np.float64)
-        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
-            raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
-        m = n if self.max_stars is None else min(n, self.max_stars)  # the stars that form angles
-        ii, jj = _pair_indices(m)
+    # ------------------------------------------------------------------ identify (the template's parts)
+    def _patterns(self, search: Search) -> tuple[dict, int]:
+        """The angles of the pattern stars (the brightest max_stars), their candidate ranges and the
+        order the chains take them in."""
+        V, sigma = search.V, search.sigma
+        m = search.n if self.max_stars is None else min(search.n, self.max_stars)  # the stars that form angles
+        ii, jj = pair_indices(m)
         theta = angular_distance(V[ii], V[jj])
         bound = self.beta * np.sqrt(2.0) * sigma  # beta sigma_p, sigma_p = sqrt(2) sigma (eq. 14)
         start, stop = self.kv.ranges(theta - bound, theta + bound)
@@ -245,113 +183,48 @@ class AngleMethod(Identifier):
             rank = np.lexsort((-theta, counts))
         priority = np.empty(len(theta), dtype=np.int64)
         priority[rank] = np.arange(len(theta))
-        ctx = dict(ii=ii, jj=jj, theta=theta, start=start, stop=stop, counts=counts, priority=priority,
-                   bound=bound, tol=2.0 * match_radius(sigma, self.radius_sigmas))
+        return dict(ii=ii, jj=jj, theta=theta, start=start, stop=stop, counts=counts, priority=priority,
+                    bound=bound, tol=2.0 * search.radius), m
 
-        queue = deque([frozenset()])
-        seen = {frozenset()}
-        chains: list[_Chain] = []
-        n_verified = 0
-        reasons = []
-        budget = 1 + (self.max_restarts if self.backtrack else 0)
-        while queue and len(chains) < budget:
-            excluded = queue.popleft()
-            if excluded:
-                steps.append(Step("backtrack", f"restart without observed star(s) {sorted(excluded)}",
-                                  observed=sorted(excluded), numbers={"restart": len(chains)}))
-            chain = (self._chain if self.pivoting == "join" else self._chain_lists)(V, excluded, ctx, steps)
-            chains.append(chain)
-            suspects: list[int] = []
-            if chain.outcome == "unique":
-                # join: the best fit of equivalent hypotheses; lists: each orientation the lists left open
-                rows = [self._best(V, chain.used, chain.H, sigma)] if self.pivoting == "join" else list(chain.H)
-                for row in rows:
-                    chain.best = row
-                    hyp = dict(zip(chain.used, row.tolist()))
-                    n_verified += 1
-                    ver = verify(V, hyp, self.catalog, self.camera, sigma, n_hypotheses=n_verified,
-                                 n_patterns=len(self.pair_i), statistic=self.statistic, threshold=self.threshold,
-                                 radius_rad=match_radius(sigma, self.radius_sigmas))
-                    steps.append(verification_step(ver, hyp, cap=CAP))
-                    result.verification = ver.to_dict()
-                    if ver.passed:
-                        result.accept(ver)
-                        break
-                if result.status == IDENTIFIED:
-                    break
-                chain.best = rows[0]  # the paper's answer, when none verified: the first orientation
-                reasons.append(f"verification failed: {ver.reason}")
-                suspects = chain.used[::-1]
-            else:
-                reasons.append(chain.reason)
-                if chain.outcome == "empty":
-                    suspects = chain.suspects
-            if self.backtrack and len(excluded) < self.max_dropped:
-                for s in suspects:
-                    e2 = excluded | {int(s)}
-                    if e2 not in seen and m - len(e2) >= 3:
-                        seen.add(e2)
-                        queue.append(e2)
-        if result.status != IDENTIFIED:
-            result.status = INCONCLUSIVE
-            result.reason = reasons[0] if len(reasons) == 1 else "; ".join(
-                f"chain {k + 1}: {r}" for k, r in enumerate(reasons))
-        last = chains[-1]
+    def _proposals(self, V: np.ndarray, chain: Chain, sigma: float) -> list[np.ndarray]:
+        """join: the best fit of equivalent hypotheses; lists: each orientation the lists left open."""
+        return [self._best(V, chain.used, chain.H, sigma)] if self.pivoting == "join" else list(chain.H)
+
+    def _chain_stats(self, ctx: dict, m: int, chains: list[Chain]) -> tuple[dict, dict]:
         first = chains[0]
-        result.stats = {
-            "stars": n,
-            "pattern_stars": m,
-            "pivots": last.pivots,
-            "pivots_total": int(sum(c.pivots for c in chains)),
-            "stars_used": len(last.used),
-            "candidates": last.candidates,
-            "hypotheses": last.hypotheses,
-            "chains": len(chains),
-            "verifications": n_verified,
-            "bound_rad": float(bound),
+        return {"pattern_stars": m}, {
+            "bound_rad": float(ctx["bound"]),
             "first_chain": {"outcome": first.outcome,
                             "matches": ({int(o): int(c) for o, c in zip(first.used, first.best)}
-                                        if first.best is not None else {})},
-            "time_s": time.perf_counter() - t0,
-        }
-        return result
+                                        if first.best is not None else {})}}
 
     # ------------------------------------------------------------------ one pivoting chain
-    def _chain(self, V: np.ndarray, excluded: frozenset, ctx: dict, steps: list[Step]) -> _Chain:
+    def _numbers(self, ctx: dict, k: int) -> dict[str, float]:
+        return {"angle_deg": float(np.degrees(ctx["theta"][k])), "bound_arcsec": float(ctx["bound"] * RAD_TO_ARCSEC),
+                "candidates": int(ctx["counts"][k])}
+
+    def _skip(self, ctx: dict, k: int, steps: list[Step]) -> None:
+        """Record angle k left out: more than max_candidates candidates."""
+        i, j = int(ctx["ii"][k]), int(ctx["jj"][k])
+        steps.append(Step("skip", f"skipped angle {i}-{j} ({np.degrees(ctx['theta'][k]):.3f} deg): "
+                                  f"{ctx['counts'][k]} candidates > {self.max_candidates}", observed=[i, j],
+                          numbers=self._numbers(ctx, k) | {"max_candidates": self.max_candidates}))
+
+    def _chain(self, V: np.ndarray, excluded: frozenset, ctx: dict, steps: list[Step]) -> Chain:
         ii, jj, theta, counts, priority = ctx["ii"], ctx["jj"], ctx["theta"], ctx["counts"], ctx["priority"]
         bound = ctx["bound"]
-        avail = np.ones(len(theta), dtype=bool)
         n_obs = len(V)
-        if excluded:
-            ex = np.zeros(len(V), dtype=bool)
-            ex[list(excluded)] = True
-            avail &= ~(ex[ii] | ex[jj])
-        done = ~avail
+        done = uses_any(excluded, len(V), ii, jj)
         candidates: list[int] = []
         hyps: list[int] = []
+        angle_numbers = partial(self._numbers, ctx)
 
-        def angle_numbers(k):
-            return {"angle_deg": float(np.degrees(theta[k])), "bound_arcsec": float(bound * RAD_TO_ARCSEC),
-                    "candidates": int(counts[k])}
-
-        def pick_next(mask):
-            idx = np.flatnonzero(mask)
-            return int(idx[np.argmin(priority[idx])]) if len(idx) else -1
-
-        # first angle
-        while True:
-            k = pick_next(~done)
-            if k < 0:
-                return _Chain("ambiguous", "no angle with at most max_candidates candidates to start from", [],
-                              np.zeros((0, 0), dtype=np.int64))
-            done[k] = True
-            if counts[k] > self.max_candidates:
-                steps.append(Step("skip", f"skipped angle {ii[k]}-{jj[k]} ({np.degrees(theta[k]):.3f} deg): "
-                                  f"{counts[k]} candidates > {self.max_candidates}",
-                                  observed=[int(ii[k]), int(jj[k])],
-                                  numbers=angle_numbers(k) | {"max_candidates": self.max_candidates}))
-                continue
-            break
+        pick_next = partial(next_by_priority, priority=priority)
+        k = first_pattern(done, priority, lambda k: counts[k] > self.max_candidates,
+                          lambda k: self._skip(ctx, k, steps))
+        if k < 0:
+            return Chain("ambiguous", "no angle with at most max_candidates candidates to start from", [],
+                         np.zeros((0, 0), dtype=np.int64))
         a, b = int(ii[k]), int(jj[k])
         ci, cj = self._candidates(ctx, k)
         H = np.concatenate([np.stack([ci, cj], axis=1), np.stack([cj, ci], axis=1)])
@@ -364,7 +237,7 @@ class AngleMethod(Identifier):
                           numbers=angle_numbers(k) | {"hypotheses": len(H)},
                           layers=(Hypotheses.sample(used, H),)))
         if len(H) == 0:
-            return _Chain("empty", f"no catalog pair matches the first angle {a}-{b}", used, H,
+            return Chain("empty", f"no catalog pair matches the first angle {a}-{b}", used, H,
                           suspects=[b, a], candidates=candidates, hypotheses=hyps)
         prev = (a, b)
         pivots = 0
@@ -372,7 +245,7 @@ class AngleMethod(Identifier):
             if self.max_pivots is not None and pivots >= self.max_pivots:
                 steps.append(Step("stop", f"pivot limit {self.max_pivots} reached with {len(H)} hypotheses",
                                   observed=used.copy(), catalog=_distinct(H), numbers={"hypotheses": len(H)}))
-                return _Chain("ambiguous", f"{len(H)} hypotheses left after {pivots} pivots (the limit)", used, H,
+                return Chain("ambiguous", f"{len(H)} hypotheses left after {pivots} pivots (the limit)", used, H,
                               pivots=pivots, candidates=candidates, hypotheses=hyps)
             open_ = ~done
             in_used = np.zeros(n_obs, dtype=bool)
@@ -387,14 +260,12 @@ class AngleMethod(Identifier):
             if k < 0:
                 steps.append(Step("stop", f"no angle left to pivot to; {len(H)} hypotheses",
                                   observed=used.copy(), catalog=_distinct(H), numbers={"hypotheses": len(H)}))
-                return _Chain("ambiguous", f"{len(H)} hypotheses left and no angle to pivot to", used, H,
+                return Chain("ambiguous", f"{len(H)} hypotheses left and no angle to pivot to", used, H,
                               pivots=pivots, candidates=candidates, hypotheses=hyps)
             done[k] = True
             p, q = int(ii[k]), int(jj[k])
             if counts[k] > self.max_candidates:
-                steps.append(Step("skip", f"skipped angle {p}-{q} ({np.degrees(theta[k]):.3f} deg): "
-                                  f"{counts[k]} candidates > {self.max_candidates}", observed=[p, q],
-                                  numbers=angle_numbers(k) | {"max_candidates": self.max_candidates}))
+                self._skip(ctx, k, steps)
                 continue
             ci, cj = self._candidates(ctx, k)
             before = len(H)
@@ -414,15 +285,15 @@ class AngleMethod(Identifier):
                 else:  # closed loop: the newer of the two stars first
                     first_suspect = p if used.index(p) > used.index(q) else q
                 rest = [s for s in used[::-1] if s != first_suspect]
-                return _Chain("empty", f"no hypothesis survives angle {p}-{q}", used, H,
+                return Chain("empty", f"no hypothesis survives angle {p}-{q}", used, H,
                               suspects=[first_suspect] + rest, pivots=pivots, candidates=candidates,
                               hypotheses=hyps)
             prev = (p, q)
-        return _Chain("unique", "one hypothesis left" if len(H) == 1 else
+        return Chain("unique", "one hypothesis left" if len(H) == 1 else
                       f"{len(H)} hypotheses left that differ only by unresolved close pairs",
                       used, H, pivots=pivots, candidates=candidates, hypotheses=hyps)
 
-    def _chain_lists(self, V: np.ndarray, excluded: frozenset, ctx: dict, steps: list[Step]) -> _Chain:
+    def _chain_lists(self, V: np.ndarray, excluded: frozenset, ctx: dict, steps: list[Step]) -> Chain:
         """The paper's pivoting: candidate lists of consecutive angles pruned against each other.
 
         A pair of either list survives when it shares a catalog star with at least one pair of the other
@@ -430,17 +301,10 @@ class AngleMethod(Identifier):
         only. Ends when a list holds one pair; H holds that angle's orientation(s) over its two stars.
         """
         ii, jj, theta, counts, priority = ctx["ii"], ctx["jj"], ctx["theta"], ctx["counts"], ctx["priority"]
-        done = np.zeros(len(theta), dtype=bool)
-        if excluded:
-            ex = np.zeros(len(V), dtype=bool)
-            ex[list(excluded)] = True
-            done |= ex[ii] | ex[jj]
+        done = uses_any(excluded, len(V), ii, jj)
         candidates: list[int] = []
         hyps: list[int] = []
-
-        def numbers(k):
-            return {"angle_deg": float(np.degrees(theta[k])), "bound_arcsec": float(ctx["bound"] * RAD_TO_ARCSEC),
-                    "candidates": int(counts[k])}
+        numbers = partial(self._numbers, ctx)
 
         def next_angle(mask):
             while True:
@@ -451,13 +315,11 @@ class AngleMethod(Identifier):
                 done[k] = True
                 if counts[k] <= self.max_candidates:
                     return k
-                steps.append(Step("skip", f"skipped angle {ii[k]}-{jj[k]} ({np.degrees(theta[k]):.3f} deg): "
-                                  f"{counts[k]} candidates > {self.max_candidates}", observed=[int(ii[k]), int(jj[k])],
-                                  numbers=numbers(k) | {"max_candidates": self.max_candidates}))
+                self._skip(ctx, k, steps)
 
         k = next_angle(np.ones(len(theta), dtype=bool))
         if k < 0:
-            return _Chain("ambiguous", "no angle with at most max_candidates candidates to start from", [],
+            return Chain("ambiguous", "no angle with at most max_candidates candidates to start from", [],
                           np.zeros((0, 0), dtype=np.int64))
         cur_obs = (int(ii[k]), int(jj[k]))
         cur = np.stack(self._candidates(ctx, k), axis=1)
@@ -472,7 +334,7 @@ class AngleMethod(Identifier):
                           groups=_groups(cur[:, 0], cur[:, 1]), numbers=numbers(k) | {"pairs": len(cur)},
                           layers=(Hypotheses.sample(list(cur_obs), cur),)))
         if len(cur) == 0:
-            return _Chain("empty", f"no catalog pair matches the first angle {cur_obs[0]}-{cur_obs[1]}", used,
+            return Chain("empty", f"no catalog pair matches the first angle {cur_obs[0]}-{cur_obs[1]}", used,
                           np.zeros((0, 2), dtype=np.int64), suspects=used[::-1], candidates=candidates,
                           hypotheses=hyps)
         prev, prev_obs = None, None
@@ -481,7 +343,7 @@ class AngleMethod(Identifier):
             if self.max_pivots is not None and pivots >= self.max_pivots:
                 steps.append(Step("stop", f"pivot limit {self.max_pivots} reached with {len(cur)} candidate pairs",
                                   observed=list(cur_obs), numbers={"pairs": len(cur)}))
-                return _Chain("ambiguous", f"{len(cur)} candidate pairs left after {pivots} pivots (the limit)", used,
+                return Chain("ambiguous", f"{len(cur)} candidate pairs left after {pivots} pivots (the limit)", used,
                               cur, pivots=pivots, candidates=candidates, hypotheses=hyps)
             in_cur = np.zeros(len(V), dtype=bool)
             in_cur[list(cur_obs)] = True
@@ -490,7 +352,7 @@ class AngleMethod(Identifier):
                 steps.append(Step("stop", f"no angle sharing a star with angle {cur_obs[0]}-{cur_obs[1]} is left; "
                                           f"{len(cur)} candidate pairs", observed=list(cur_obs),
                                   numbers={"pairs": len(cur)}))
-                return _Chain("ambiguous", f"{len(cur)} candidate pairs left and no angle to pivot to", used, cur,
+                return Chain("ambiguous", f"{len(cur)} candidate pairs left and no angle to pivot to", used, cur,
                               pivots=pivots, candidates=candidates, hypotheses=hyps)
             new = np.stack(self._candidates(ctx, k), axis=1)
             new_obs = (int(ii[k]), int(jj[k]))
@@ -518,34 +380,14 @@ class AngleMethod(Identifier):
                               layers=(Hypotheses.sample(list(cur_obs), cur),)))
             if len(cur) == 0:
                 rest = [s for s in used[::-1] if s not in added]
-                return _Chain("empty", f"no candidate pair of angle {new_obs[0]}-{new_obs[1]} shares a star with the "
+                return Chain("empty", f"no candidate pair of angle {new_obs[0]}-{new_obs[1]} shares a star with the "
                                        "previous list", used, cur, suspects=added + rest, pivots=pivots,
                               candidates=candidates, hypotheses=hyps)
         one, one_obs, other, other_obs = ((cur, cur_obs, prev, prev_obs) if _n_pairs(cur) == 1
                                           else (prev, prev_obs, cur, cur_obs))
         H = one if oriented else _orient_pair(one[0], one_obs, other, other_obs)
-        return _Chain("unique", f"one candidate pair left for angle {one_obs[0]}-{one_obs[1]}", list(one_obs), H,
+        return Chain("unique", f"one candidate pair left for angle {one_obs[0]}-{one_obs[1]}", list(one_obs), H,
                       pivots=pivots, candidates=candidates, hypotheses=hyps)
-
-    def _equivalent(self, H: np.ndarray, tol: float) -> bool:
-        """A few hypotheses that put every observed star on catalog stars closer than tol to each other.
-
-        Catalog stars closer than the match radius cannot be told apart at this noise (unresolved
-        close pairs): such hypotheses are one pattern. Verification leaves their stars out of the
-        reported matches.
-        """
-        if len(H) < 2 or len(H) > MAX_EQUIVALENT:
-            return False
-        xyz = self.catalog.xyz
-        return bool(np.all(angular_distance(xyz[H], xyz[H[:1]]) <= tol))
-
-    def _best(self, V: np.ndarray, used: list[int], H: np.ndarray, sigma: float) -> np.ndarray:
-        """Among equivalent hypotheses, the one that fits the observed stars best."""
-        if len(H) == 1:
-            return H[0]
-        b = V[used]
-        losses = [svd_attitude(b, self.catalog.xyz[h], sigma).loss for h in H]
-        return H[int(np.argmin(losses))]
 
     def _candidates(self, ctx: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
         s, e = int(ctx["start"][k]), int(ctx["stop"][k])
@@ -558,7 +400,7 @@ def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np
     """Join hypotheses with the oriented candidates of angle (p, q) on the shared observed star(s).
 
     Returns (H', used', new): new is the observed star added (None for a closed loop). Vectorised:
-    the candidates are grouped by their catalog star on the shared observed star (`_by_star`), and
+    the candidates are grouped by their catalog star on the shared observed star (`by_star`), and
     each hypothesis meets the block of its star.
     """
     cp = np.concatenate([ci, cj])  # catalog star of observed star p
@@ -570,7 +412,7 @@ def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np
         raise ValueError("a pivot angle must share a star with the hypotheses")
     ip = used.index(p)
     m = max(int(H.max(initial=0)), int(cp.max(initial=0))) + 1
-    cqs, start, size = _by_star(cp, cq, m)
+    cqs, start, size = by_star(cp, cq, m)
     v = H[:, ip]
     cnt = size[v]
     rows = np.repeat(np.arange(len(H)), cnt)
@@ -582,16 +424,6 @@ def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np
     ok = ~np.any(Hn == newq[:, None], axis=1)  # a catalog star is never two observed stars
     H2 = np.concatenate([Hn[ok], newq[ok, None]], axis=1)
     return H2, used + [q], q
-
-
-def _by_star(cp: np.ndarray, cq: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The candidates grouped by their star on p (catalog rows < m): cq in that order (stable), and
-    per catalog star the start and size of its block (= np.searchsorted on the sorted cp, without a
-    binary search per hypothesis; the sort is numpy's radix sort on 16-bit keys when they fit)."""
-    key = cp.astype(np.int16) if m <= np.iinfo(np.int16).max else cp
-    order = np.argsort(key, kind="stable")
-    size = np.bincount(cp, minlength=m)
-    return cq[order], np.cumsum(size) - size, size
 
 
 def _n_pairs(P: np.ndarray) -> int:
@@ -621,15 +453,6 @@ def _orient_pair(one: np.ndarray, one_obs: tuple[int, int], other: np.ndarray | 
     cat_t = int(one[1] if in_other[0] else one[0])
     row = [cat_s, cat_t] if one_obs[0] == s else [cat_t, cat_s]
     return np.array([row], dtype=np.int64)
-
-
-@lru_cache(maxsize=256)
-def _pair_indices(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """np.triu_indices(n, 1), made once per star count (it costs ~0.2 ms a call), read-only."""
-    ii, jj = np.triu_indices(n, 1)
-    ii.flags.writeable = False
-    jj.flags.writeable = False
-    return ii, jj
 
 
 def _distinct(H: np.ndarray) -> list[int]:

@@ -262,9 +262,15 @@ class Identifier(ABC):
 
     @property
     def database_key_string(self) -> str:
-        from skyview.identify import database
+        """`database.key_string(database_key)`, computed once per key dict (a SHA-256, ~60 us: every
+        identify records it)."""
+        key = self.database_key
+        cached = self.__dict__.get("_key_string_of")
+        if cached is None or cached[0] is not key:
+            from skyview.identify import database
 
-        return database.key_string(self.database_key)
+            cached = self.__dict__["_key_string_of"] = (key, database.key_string(key))
+        return cached[1]
 
     @property
     def n_patterns(self) -> int:

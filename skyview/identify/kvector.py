@@ -124,7 +124,8 @@ class KVector:
         answers are the same slices."""
         lo = np.atleast_1d(np.asarray(lo, dtype=np.float64))
         hi = np.atleast_1d(np.asarray(hi, dtype=np.float64))
-        lo, hi = np.broadcast_arrays(lo, hi)
+        if lo.shape != hi.shape:
+            lo, hi = np.broadcast_arrays(lo, hi)
         s = self.sorted_values
         if lo.size > 32:
             # queries in increasing order: numpy's binary search starts each from the previous answer,
@@ -136,12 +137,13 @@ class KVector:
             start[order] = np.searchsorted(s, lo[order], side="left")
             stop[order] = np.searchsorted(s, hi[order], side="right")
         else:
-            start = np.searchsorted(s, lo, side="left").astype(np.int64)
-            stop = np.searchsorted(s, hi, side="right").astype(np.int64)
+            start = np.searchsorted(s, lo, side="left").astype(np.int64, copy=False)
+            stop = np.searchsorted(s, hi, side="right").astype(np.int64, copy=False)
         bad = ~(lo <= hi)  # NaN or an inverted range: empty, (0, 0) as from `range`
-        stop = np.maximum(stop, start)
-        start[bad] = 0
-        stop[bad] = 0
+        if bad.any():
+            stop = np.maximum(stop, start)
+            start[bad] = 0
+            stop[bad] = 0
         return start, stop
 
     def ranges_kvector(self, lo, hi) -> tuple[np.ndarray, np.ndarray]:

@@ -387,10 +387,6 @@ class StochasticMethod(SequenceIdentifier):
         self.database_info = info
 
     @property
-    def database_key_string(self) -> str:
-        return database.key_string(self.database_key)
-
-    @property
     def n_catalog(self) -> int:
         return len(self.catalog)
 

@@ -57,7 +57,12 @@ the tested stars (nearest, second nearest, the crowding count) come from one arr
 (`_nearest_two`, `_count_within`; a k-d tree only beyond BRUTE_PAIRS pairs) instead of building a
 k-d tree per round; the catalog stars around the frame are fetched once per verification, a little
 wider (NEAR_SLACK_RAD), and every refined attitude reuses them (`_Near`); the radii of all stars are
-computed once per estimate.
+computed once per estimate. Only the (observed, catalog) pairs within a radius are measured (all of a
+small frame's, or those a dot-product prefilter keeps on a larger one: `_Frame._within`) and they are
+paired in Python lists (`_Frame.agreeing`); whether a matched catalog star has a neighbour within the blend radius
+comes from each star's nearest-neighbour chord, looked up once per catalog (`_has_neighbour`); the
+estimate from every match is remembered for the solver's attitude stage (`attitude.remember_svd`). Each
+of these gives the general path's numbers to the last bit (tests/test_verify.py compares them).
 
 Statistic "tetra3": the classic tetra3 form for comparison: per star p1 = N_nearby (r / FOV)^2
 (r as a fraction of the horizontal FOV, no pi), P = BinomCDF(n_obs - (n_matched - 2), n_obs, 1 - p1)
@@ -68,6 +73,7 @@ threshold (tetra3's 1e-3) divided by the number of patterns in the method's data
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -75,7 +81,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import bdtr, bdtrc
 
-from skyview.attitude import RAD_TO_ARCSEC, svd_attitude
+from skyview.attitude import RAD_TO_ARCSEC, remember_svd, svd_attitude
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, chord
 
@@ -212,8 +218,11 @@ def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     # is 0). That 2x2 restriction has trace tr P - n^T P n and determinant n^T adj(P) n; its larger
     # eigenvalue is t/2 + sqrt(t^2/4 - det).
     P = np.asarray(covariance, dtype=np.float64)
-    P = 0.5 * (P + P.T)
-    (a, q, c), (_, d, e), (_, _, f) = P.tolist()  # symmetric: six numbers, as Python floats
+    rows = P.tolist()
+    if not (rows[0][1] == rows[1][0] and rows[0][2] == rows[2][0] and rows[1][2] == rows[2][1]):
+        P = 0.5 * (P + P.T)  # (for a symmetric P, the estimators' covariance, this gives P itself)
+        rows = P.tolist()
+    (a, q, c), (_, d, e), (_, _, f) = rows  # symmetric: six numbers, as Python floats
     a01, a02, a12 = c * e - q * f, q * e - c * d, q * c - a * e
     adj = np.array([[d * f - e * e, a01, a02], [a01, a * f - c * c, a12], [a02, a12, a * d - q * q]])
     s2 = np.einsum("ij,ij->i", b, b)
@@ -295,6 +304,23 @@ def match_one_to_one(query: np.ndarray, ref: np.ndarray, radius_rad
 
 
 BRUTE_PAIRS = 65536  # up to this many (query, ref) pairs the distances are one numpy array, not a k-d tree
+SPLIT_PAIRS = 256  # from this many pairs the differences are written one coordinate at a time
+PREFILTER_PAIRS = 400  # from this many pairs only those a dot product puts near are measured (_Frame._within)
+PREFILTER_MARGIN = 1e-12  # on the squared chord: its rounding through the dot product is ~1e-15
+
+
+def _chords(query: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(n, m) chords |query_i - ref_j|. The (n, m, 3) differences are the same numbers either way; a
+    broadcast over the last axis of length 3 is slow for larger arrays, three (n, m) subtractions
+    into it are not."""
+    n, m = len(query), len(ref)
+    if n * m < SPLIT_PAIRS:
+        diff = query[:, None, :] - ref[None, :, :]
+    else:
+        diff = np.empty((n, m, 3))
+        for k in range(3):
+            np.subtract(query[:, k, None], ref[None, :, k], out=diff[..., k])
+    return np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
 
 
 def _nearest_two(query: np.ndarray, ref: np.ndarray, bound: float, keep: np.ndarray | None = None
@@ -306,8 +332,7 @@ def _nearest_two(query: np.ndarray, ref: np.ndarray, bound: float, keep: np.ndar
     of distances, larger ones a k-d tree."""
     n, m = len(query), len(ref)
     if n * m <= BRUTE_PAIRS:
-        diff = query[:, None, :] - ref[None, :, :]
-        D = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+        D = _chords(query, ref)
         d1 = np.partition(D, 1, axis=1)[:, 1] if m > 1 else np.full(n, np.inf)
         Dk = D if keep is None else D[:, keep]
         mk = Dk.shape[1]
@@ -338,8 +363,7 @@ def _count_within(query: np.ndarray, ref: np.ndarray, chords: np.ndarray) -> np.
     """How many ref rows lie within each query's chord (= cKDTree(ref).query_ball_point(query, chords,
     return_length=True))."""
     if len(query) * len(ref) <= BRUTE_PAIRS:
-        diff = query[:, None, :] - ref[None, :, :]
-        return np.count_nonzero(np.sqrt(np.einsum("ijk,ijk->ij", diff, diff)) <= chords[:, None], axis=1)
+        return np.count_nonzero(_chords(query, ref) <= chords[:, None], axis=1)
     return np.asarray(cKDTree(ref).query_ball_point(query, chords, return_length=True))
 
 
@@ -349,7 +373,19 @@ def _one_to_one(d0: np.ndarray, j0: np.ndarray, cq: np.ndarray) -> tuple[np.ndar
     ok = d0 <= cq
     qi = np.flatnonzero(ok)
     rj = j0[ok].astype(np.int64)
-    dist = 2.0 * np.arcsin(np.clip(d0[ok] / 2.0, 0.0, 1.0))
+    dist = 2.0 * np.arcsin(np.minimum(d0[ok] / 2.0, 1.0))  # = np.clip(.., 0, 1): a chord is >= 0
+    if len(qi) <= ONE_TO_ONE_PY:  # a frame's few matches: Python lists, not eight numpy calls
+        # nearest first (a stable sort: ties keep the query order), each ref by its first (nearest) query
+        dl, rl = dist.tolist(), rj.tolist()
+        order = sorted(range(len(qi)), key=dl.__getitem__)
+        if len(set(rl)) < len(rl):  # two queries want one ref star: the nearer keeps it
+            seen, first = set(), []
+            for k in order:
+                if rl[k] not in seen:
+                    seen.add(rl[k])
+                    first.append(k)
+            order = first
+        return qi[order], rj[order], dist[order]
     order = np.argsort(dist, kind="stable")
     qi, rj, dist = qi[order], rj[order], dist[order]
     by_ref = np.argsort(rj, kind="stable")  # the first (nearest) query of each ref star: = np.unique(rj,
@@ -358,6 +394,36 @@ def _one_to_one(d0: np.ndarray, j0: np.ndarray, cq: np.ndarray) -> tuple[np.ndar
     np.not_equal(rs[1:], rs[:-1], out=head[1:])
     first = np.sort(by_ref[head])
     return qi[first], rj[first], dist[first]
+
+
+ONE_TO_ONE_PY = 64  # up to this many pairs within the radius _one_to_one runs in Python lists
+
+
+_NEAREST: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # catalog -> chord to each star's nearest
+NEAREST_UNSURE = 1e-9  # relative: a chord this close to the limit is decided by the k-d tree's own count
+
+
+def _has_neighbour(catalog: GuideCatalog, rows: np.ndarray, chords: np.ndarray) -> np.ndarray:
+    """catalog.tree.query_ball_point(catalog.xyz[rows], chords, return_length=True) >= 2: whether
+    another catalog star lies within each chord. From the chord to each star's nearest neighbour,
+    looked up once per star and catalog and remembered (NaN until then); a neighbour within
+    NEAREST_UNSURE of the limit is counted by the k-d tree itself, so the answer is its answer."""
+    nn = _NEAREST.get(catalog)
+    if nn is None:
+        nn = _NEAREST[catalog] = np.full(len(catalog.xyz), np.nan)
+    d = nn[rows]
+    miss = np.isnan(d)
+    if miss.any():
+        new = rows[miss]
+        dd, _ = catalog.tree.query(catalog.xyz[new], k=2)
+        nn[new] = dd[:, 1]
+        d = nn[rows]
+    out = d <= chords
+    unsure = np.abs(d - chords) <= NEAREST_UNSURE * chords
+    if unsure.any():
+        out[unsure] = np.asarray(catalog.tree.query_ball_point(catalog.xyz[rows[unsure]], chords[unsure],
+                                                               return_length=True)) >= 2
+    return out
 
 
 def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
@@ -390,15 +456,22 @@ class _Near:
         self.center = None
         self.radius = -1.0
         self.idx = np.zeros(0, dtype=np.int64)
+        self.xyz = np.zeros((0, 3))
 
     def rows(self, b: np.ndarray, radius: float) -> np.ndarray:
+        """The rows (and `self.xyz`, their directions)."""
         if self.center is not None:
             d = self.center - b
             moved = 2.0 * math.asin(min(1.0, math.sqrt(float(d @ d)) / 2.0))
             if moved + radius <= self.radius:
                 return self.idx
         self.center, self.radius = np.array(b, dtype=np.float64), radius + NEAR_SLACK_RAD
-        self.idx = self.catalog.within(b, self.radius)
+        # = catalog.within(b, self.radius) but for b's norm (an attitude's row: 1 to ~1e-16) and the
+        # chord's last bit, which no star that matters can notice: every star a frame takes lies
+        # 1e-9 rad inside the radius asked for, and that is NEAR_SLACK_RAD inside this one
+        self.idx = np.array(self.catalog.tree.query_ball_point(self.center, 2.0 * math.sin(self.radius / 2.0),
+                                                               return_sorted=True), dtype=np.int64)
+        self.xyz = self.catalog.xyz[self.idx]
         return self.idx
 
 
@@ -411,12 +484,20 @@ class _Frame:
         R = np.asarray(R, dtype=np.float64)
         grow = max(float(r), float(r_pool), 0.0)
         radius = _half_diagonal_rad(camera) + grow + 1e-9
-        near = (near or _Near(catalog)).rows(R[2], radius)
-        v = catalog.xyz[near] @ R.T
+        near = near or _Near(catalog)
+        rows = near.rows(R[2], radius)
+        v = near.xyz @ R.T
         f = max(camera.fx, camera.fy)
-        if len(near):
-            uv, front = camera.project(v)  # NaN pixels behind the camera compare False below
-            x, y = uv[:, 0], uv[:, 1]
+        if len(rows):
+            if camera.distorted:
+                uv, front = camera.project(v)  # NaN pixels behind the camera compare False below
+                x, y = uv[:, 0], uv[:, 1]
+            else:  # = camera.project without its per-call overhead: the same numbers
+                z = v[:, 2]
+                front = z > 1e-12
+                z = np.where(front, z, 1.0)
+                x = camera.fx * (v[:, 0] / z) + camera.cx
+                y = camera.fy * (v[:, 1] / z) + camera.cy
 
             def inside(margin):  # = camera.in_image(uv, margin) without its per-call overhead
                 return ((x >= -0.5 + margin) & (x <= camera.width - 0.5 - margin)
@@ -427,15 +508,36 @@ class _Frame:
         else:
             pool = np.zeros(0, dtype=bool)
             self.n_frame = 0
-        self.rows = near[pool]
+        self.rows = rows[pool]
         self.v = v[pool]
 
+    def _within(self, q: np.ndarray, cq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The pairs (row k of q, pool star j, chord) with chord <= cq[k], k ascending and j ascending
+        within a row. The chords are _chords's numbers (the same differences and sums, pair by pair);
+        on larger frames only the pairs a dot product puts within reach (a 1e-12 margin on the squared
+        chord, a thousand times its rounding) are measured."""
+        n, m = len(q), len(self.v)
+        if n * m < PREFILTER_PAIRS:
+            D = _chords(q, self.v)
+            ks, js = np.nonzero(D <= cq[:, None])
+            return ks, js, D[ks, js]
+        qq = np.einsum("ij,ij->i", q, q)
+        vv = np.einsum("ij,ij->i", self.v, self.v)
+        approx = (qq[:, None] + vv[None, :]) - 2.0 * (q @ self.v.T)  # |q - v|^2 to ~1e-15
+        ks, js = np.nonzero(approx <= (cq * cq + PREFILTER_MARGIN)[:, None])
+        diff = q[ks] - self.v[js]
+        d = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        ok = d <= cq[ks]
+        return ks[ok], js[ok], d[ok]
+
     def ambiguous(self, q: np.ndarray, radii) -> np.ndarray:
-        """Mask of observed vectors with two or more catalog stars within their radius."""
+        """Mask of observed vectors q with two or more catalog stars within their radius."""
         if len(self.rows) < 2 or len(q) == 0:
             return np.zeros(len(q), dtype=bool)
         cq = chord(_per_item(radii, len(q)))
-        return _nearest_two(q, self.v, float(cq.max()))[2] <= cq
+        if len(q) * len(self.v) > BRUTE_PAIRS:
+            return _nearest_two(q, self.v, float(cq.max()))[2] <= cq
+        return np.bincount(self._within(q, cq)[0], minlength=len(q)) >= 2  # = second nearest within
 
     def agreeing(self, vectors: np.ndarray, others: np.ndarray, exclude_rows: np.ndarray, radii
                  ) -> tuple[dict[int, int], set[int]]:
@@ -445,15 +547,48 @@ class _Frame:
             return {}, set()
         ex = np.asarray(exclude_rows).ravel()
         keep = (self.rows[:, None] != ex[None, :]).all(axis=1) if ex.size <= 16 else ~np.isin(self.rows, ex)
-        q = vectors[others]
-        cq = chord(_per_item(radii, len(q)))
+        cq = chord(_per_item(radii, len(others)))
         # the nearest catalog star not in the hypothesis; ambiguity is judged against every catalog
         # star, those of the hypothesis included
-        d0, j0, d1 = _nearest_two(q, self.v, float(cq.max()), keep)
-        amb_mask = d1 <= cq
-        qi, rj, _ = _one_to_one(d0, j0, cq)
-        pool = self.rows[keep]
-        agree = {int(others[a]): int(pool[b]) for a, b in zip(qi.tolist(), rj.tolist()) if not amb_mask[a]}
+        if len(others) * len(self.v) > BRUTE_PAIRS:
+            d0, j0, d1 = _nearest_two(vectors[others], self.v, float(cq.max()), keep)
+            amb_mask = d1 <= cq
+            qi, rj, _ = _one_to_one(d0, j0, cq)
+            pool = self.rows[keep]
+            amb = amb_mask.tolist()
+            agree = {o: c for o, c, a in zip(others[qi].tolist(), pool[rj].tolist(), qi.tolist()) if not amb[a]}
+            return agree, set(others[amb_mask].tolist())
+        # the same answer from the few (query, catalog star) pairs within the radius: a query is
+        # ambiguous with two or more of them (= its second nearest within), and its nearest catalog
+        # star not in the hypothesis (= argmin over those: the first column on a tie) is within the
+        # radius exactly when one of its pairs is such a star
+        qs, cs, ds = self._within(vectors[others], cq)
+        ds = ds.tolist()
+        keep_l = keep.tolist()
+        count = [0] * len(others)
+        best: dict[int, tuple[float, int]] = {}
+        for qk, ck, dk in zip(qs.tolist(), cs.tolist(), ds):
+            count[qk] += 1
+            if keep_l[ck]:
+                b = best.get(qk)
+                if b is None or dk < b[0]:  # columns ascend within a query: the first on a tie stays
+                    best[qk] = (dk, ck)
+        amb = [c >= 2 for c in count]
+        agree: dict[int, int] = {}
+        if best:
+            ok = sorted(best)  # = np.flatnonzero(d0 <= cq)
+            d_ok = np.array([best[k][0] for k in ok])
+            dist = (2.0 * np.arcsin(np.minimum(d_ok / 2.0, 1.0))).tolist()  # _one_to_one's angles, same array
+            rows = self.rows.tolist()
+            taken = set()
+            for k in sorted(range(len(ok)), key=dist.__getitem__):  # nearest first; a catalog star once
+                qk = ok[k]
+                ck = best[qk][1]
+                if ck not in taken:
+                    taken.add(ck)
+                    if not amb[qk]:
+                        agree[int(others[qk])] = rows[ck]
+        amb_mask = np.array(amb, dtype=bool)
         return agree, set(others[amb_mask].tolist())
 
 
@@ -572,8 +707,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         # ... and a catalog star with another catalog star closer than the sensor resolves may be
         # half of a blend whose centroid sits between the two: its identity is either
         blend = np.maximum(rad, BLEND_RADIUS_PX * camera.pixel_scale_rad)
-        blended = np.asarray(catalog.tree.query_ball_point(catalog.xyz[f_cat], chord(blend),
-                                                           return_length=True)) >= 2
+        blended = _has_neighbour(catalog, f_cat, chord(blend))
         for o in f_obs[misfit | crowd | blended].tolist():
             final.pop(int(o))
         ambiguous |= set(f_obs[crowd | blended].tolist())
@@ -591,9 +725,14 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
 
 
 def _estimate(vectors, matches, catalog, sigma_rad):
+    """svd_attitude from the matches (observed index -> catalog row), in observed order; remembered
+    (`attitude.remember_svd`) for the solver's attitude stage, which asks for the same estimate."""
     idx = np.array(sorted(matches), dtype=np.int64)
-    rows = np.array([matches[i] for i in idx], dtype=np.int64)
-    return svd_attitude(vectors[idx], catalog.xyz[rows], sigma_rad)
+    rows = np.array([matches[i] for i in idx.tolist()], dtype=np.int64)
+    b, r = vectors[idx], catalog.xyz[rows]
+    est = svd_attitude(b, r, sigma_rad)
+    remember_svd(b, r, sigma_rad, est)
+    return est
 
 
 VERIFY_NUMBERS = ("n_agree", "n_tested", "p_false", "threshold_effective", "radius_arcsec", "n_hypotheses",

@@ -1,0 +1,344 @@
+"""The triangle method's look-up (Cole & Crassidis 2006, section III-D; the method is
+`skyview.identify.triangle`, the databases `skyview.identify.triangle_database`).
+
+Every observed triangle of the pattern stars: its sides, area (L'Huilier), polar moment, their bounds
+and the triple product's sigma, measured as the search needs them (`triangle_bounds`, `_measure`);
+its candidates from the stored triangle database (the area and polar-moment k-vector ranges, counted
+exactly by the block counter `_count`, listed by `_scan` with the camera's cap rule) or, with
+database="pairs", joined from the angle database's pairs (`join_pairs`); and the vertex orders in which
+a candidate fits the observed triangle (`orient`).
+"""
+
+from __future__ import annotations
+
+import itertools
+from functools import lru_cache
+
+import numpy as np
+
+from skyview.identify import spherical as sph
+from skyview.identify.pivot import by_star
+from skyview.identify.triangle_database import BLOCK, _block_search
+from skyview.identify.verify import angular_distance
+
+CAP = 200  # catalog rows / groups kept in one step
+MEASURE_BATCH = 16  # observed triangles measured at once when the search reaches an unmeasured one
+SCAN_LIMIT = 65536  # a triangle looked up alone is counted by listing its candidates up to this range
+SQ2 = float(np.sqrt(2.0))
+_PERMS = np.array([[0, 1, 2], [1, 2, 0], [2, 0, 1], [0, 2, 1], [2, 1, 0], [1, 0, 2]])
+_PARITY = np.array([1, 1, 1, -1, -1, -1])
+_SIDE = np.array([[-1, 0, 2], [0, -1, 1], [2, 1, -1]])  # side index of vertex pair (x, y): ij=0, jk=1, ki=2
+
+
+class TriangleLookup:
+    """The look-up half of `TriangleMethod` (a mixin: it reads the method's parameters and databases)."""
+
+    def moment_sigma(self, moment: np.ndarray, sigma: float) -> np.ndarray:
+        """The simulated polar-moment sigma bound for a measured polar moment (section III-D)."""
+        c0, c1 = self.moment_sigma_coef
+        return float(sigma) * (c0 + c1 * np.asarray(moment, dtype=np.float64))
+
+    def triangle_bounds(self, V: np.ndarray, sigma: float, lookup: bool = True) -> dict[str, np.ndarray]:
+        """Every observed triangle of the stars V: stars, area, polar moment, bounds, and the k-vector
+        ranges (s1, e1: area order; s2, e2: polar-moment order) and candidate counts.
+
+        lookup=False leaves the ranges and counts at -1, to be filled for the triangles actually visited
+        (`count_of`): the largest-area order needs only those.
+        """
+        ti, tj, tk = _combinations(len(V))
+        A, B, C = V[ti], V[tj], V[tk]
+        a, b, c = sph.sides(A, B, C)
+        area = sph.lhuilier(a, b, c)
+        n = len(area)
+        out = dict(ti=ti, tj=tj, tk=tk, sides=np.stack([a, b, c], axis=1), area=area, triple=sph.triple(A, B, C),
+                   sigma=sigma, V=V, area_bound=np.full(n, np.nan), moment=np.full(n, np.nan),
+                   moment_bound=np.full(n, np.nan), triple_sigma=np.full(n, np.nan))
+        if lookup or self.order == "fewest":
+            self._measure(out, np.arange(n))
+        if self.database == "pairs":  # no ranges: each triangle's candidates are joined when it is visited
+            for key in ("s1", "e1", "s2", "e2", "counts"):
+                out[key] = np.full(len(area), -1, dtype=np.int64)
+            if lookup:
+                for k in range(len(area)):
+                    self.count_of(out, k)
+        elif lookup:
+            with np.errstate(invalid="ignore"):
+                da, moment, dm = out["area_bound"], out["moment"], out["moment_bound"]
+                out["s1"], out["e1"] = self.kv_area.ranges(area - da, area + da)
+                out["s2"], out["e2"] = self.kv_moment.ranges(moment - dm, moment + dm)
+            out["counts"] = self._count(out)
+            # the counter sees the whole database; list the candidates to keep those that fit this camera
+            for k in np.flatnonzero(out["counts"] > 0).tolist():
+                if min(out["e1"][k] - out["s1"][k], out["e2"][k] - out["s2"][k]) <= SCAN_LIMIT:
+                    out.setdefault("rows", {})[k] = rows = self._scan(out, k)
+                    out["counts"][k] = len(rows)
+        else:
+            for key in ("s1", "e1", "s2", "e2", "counts"):
+                out[key] = np.full(len(area), -1, dtype=np.int64)
+        return out
+
+    def _measure(self, t: dict, idx: np.ndarray) -> None:
+        """Fill the area bound, polar moment, its bound and the triple product's sigma of the observed
+        triangles idx (the largest-area order measures only the triangles it visits, MEASURE_BATCH at a
+        time: the polar moments of all 220 triangles of 12 stars would cost more than the search)."""
+        V, sigma = t["V"], t["sigma"]
+        A, B, C = V[t["ti"][idx]], V[t["tj"][idx]], V[t["tk"][idx]]
+        if self.area_sigma == "paper":  # eq. 24 with each side's own sigma, sqrt(2) sigma (eq. 13)
+            a, b, c = t["sides"][idx].T
+            s_area = sph.area_sigma_paper(a, b, c, SQ2 * sigma)
+        elif self.area_sigma == "star-sigma":
+            a, b, c = t["sides"][idx].T
+            s_area = sph.area_sigma_paper(a, b, c, sigma)
+        else:
+            s_area = sph.area_sigma_stars(A, B, C, sigma)
+        moment = sph.polar_moment(A, B, C, self.depth)
+        t["area_bound"][idx] = self.beta * s_area
+        t["moment"][idx] = moment
+        t["moment_bound"][idx] = self.beta * self.moment_sigma(moment, sigma)
+        t["triple_sigma"][idx] = sph.triple_sigma(A, B, C, sigma)
+
+    def _ensure(self, t: dict, k: int) -> None:
+        """Observed triangle k measured (`_measure`), with the next unmeasured ones in the search order."""
+        if not np.isnan(t["moment"][k]):
+            return
+        todo = np.flatnonzero(np.isnan(t["moment"]))
+        pr = t.get("priority")
+        if pr is not None and len(todo) > MEASURE_BATCH:
+            todo = todo[np.argsort(pr[todo], kind="stable")[:MEASURE_BATCH]]
+            if k not in todo:
+                todo = np.append(todo[:-1], k)
+        elif pr is None:
+            todo = np.array([k])
+        self._measure(t, np.sort(todo))
+
+    def _count(self, t: dict) -> np.ndarray:
+        """|area range ∩ polar-moment range| of each observed triangle, exact and vectorised.
+
+        A catalog triangle is a candidate when its position in area order is in [s1, e1) and its
+        position in polar-moment order (its rank) in [s2, e2) (and it fits the camera: `_scan` applies
+        that, this counter counts the whole database's range). The area order is cut into blocks of
+        BLOCK triangles whose ranks are stored sorted (`block_rank`): a block wholly
+        inside [s1, e1) is counted with two binary searches, the at most 2 BLOCK triangles of the two
+        partial blocks at the ends one by one.
+        """
+        s1, e1, s2, e2 = t["s1"], t["e1"], t["s2"], t["e2"]
+        b = BLOCK
+        q = np.arange(len(s1))
+        live = (e1 > s1) & (e2 > s2)
+        first = -(-s1 // b)  # first block starting at or after s1
+        last = e1 // b  # blocks [first, last) lie inside [s1, e1)
+        full = live & (last > first)
+        counts = np.zeros(len(s1), dtype=np.int64)
+        # whole blocks: two bisections inside each (triangle, block)'s sorted ranks
+        nb = np.where(full, last - first, 0)
+        if nb.sum():
+            owner = np.repeat(q, nb)
+            blk = np.repeat(first, nb) + (np.arange(int(nb.sum())) - np.repeat(np.cumsum(nb) - nb, nb))
+            c = (_block_search(self.block_rank, blk, e2[owner], b) - _block_search(self.block_rank, blk, s2[owner], b))
+            counts += np.bincount(owner, weights=c, minlength=len(s1)).astype(np.int64)
+        # the ends: [s1, first * b) and [last * b, e1) (or all of [s1, e1) when no block fits inside)
+        ends = ((s1, np.where(full, first * b, e1)), (np.where(full, last * b, e1), e1))
+        for lo, hi in ends:
+            ln = np.where(live, np.maximum(hi - lo, 0), 0)
+            total = int(ln.sum())
+            if total == 0:
+                continue
+            owner = np.repeat(q, ln)
+            pos = np.repeat(lo - np.cumsum(ln) + ln, ln) + np.arange(total)
+            r = self.moment_rank[pos]
+            ok = (r >= s2[owner]) & (r < e2[owner])
+            counts += np.bincount(owner, weights=ok, minlength=len(s1)).astype(np.int64)
+        return counts
+
+    def count_of(self, t: dict, k: int) -> int:
+        """The candidate count of observed triangle k, looked up and counted now if it was left out
+        (database="pairs": the catalog star sets that the pair join leaves)."""
+        self._ensure(t, k)
+        if t["counts"][k] < 0 and self.database == "pairs":
+            t.setdefault("oriented", {})[k] = H = self.join_pairs(t, k)
+            t["counts"][k] = _n_sets(H)
+        elif t["counts"][k] < 0:
+            a, da, i, di = t["area"][k], t["area_bound"][k], t["moment"][k], t["moment_bound"][k]
+            t["s1"][k], t["e1"][k] = self.kv_area.range(a - da, a + da)
+            t["s2"][k], t["e2"][k] = self.kv_moment.range(i - di, i + di)
+            if min(t["e1"][k] - t["s1"][k], t["e2"][k] - t["s2"][k]) <= SCAN_LIMIT:  # list them at once
+                t.setdefault("rows", {})[k] = rows = self._scan(t, k)
+                t["counts"][k] = len(rows)
+            else:
+                one = {key: t[key][k:k + 1] for key in ("s1", "e1", "s2", "e2")}
+                t["counts"][k] = self._count(one)[0]
+        return int(t["counts"][k])
+
+    def join_pairs(self, t: dict, k: int) -> np.ndarray:
+        """database="pairs": the oriented candidates of observed triangle k ((p, q, r) = (ti, tj, tk)[k]),
+        without a triangle database.
+
+        The catalog pairs whose angle matches side pq within beta sigma_p (sigma_p = sqrt(2) sigma, the
+        tolerance `orient` gives each side) are joined on the shared star q with the pairs matching
+        side qr, in both orientations; a third side rp within the same tolerance closes the triangle
+        (its angle computed from the two stars, as the database computes its pairs'). Then, as the
+        triangle database's candidates: the handedness where the observed sign is certain, the area
+        within its bound and the polar moment within its bound. Returns (h, 3) catalog rows in the
+        order (p, q, r): what `orient` returns from the stored candidates, up to the stored database's
+        cap rule (a triangle that matches a sensor's triangle within the noise fits the sensor).
+        """
+        self._ensure(t, k)
+        sig = float(t["sigma"])
+        tol = self.beta * SQ2 * sig
+        sides = t["sides"][k]
+        lo, hi = sides - tol, sides + tol
+        st, sp = self.kv_pairs.ranges(lo[:2], hi[:2])
+        pi, pj, xyz = self.pair_i, self.pair_j, self.catalog.xyz
+        a1, b1 = pi[st[0]:sp[0]], pj[st[0]:sp[0]]
+        a2, b2 = pi[st[1]:sp[1]], pj[st[1]:sp[1]]
+        cp, cq = np.concatenate([a1, b1]), np.concatenate([b1, a1])  # (catalog p, catalog q), both orientations
+        q2, r2 = np.concatenate([a2, b2]), np.concatenate([b2, a2])
+        r2s, start, size = by_star(q2, r2, len(xyz))  # side qr's pairs in blocks by their star on q
+        cnt = size[cq]
+        rows = np.repeat(np.arange(len(cp)), cnt)
+        c = r2s[np.repeat(start[cq] - np.cumsum(cnt) + cnt, cnt) + np.arange(int(cnt.sum()))]
+        a, b = cp[rows], cq[rows]
+        ok = c != a
+        a, b, c = a[ok], b[ok], c[ok]
+        # side rp: a cheap test on the dot product, a little wider than the bounds, then the angle exactly
+        # as the database computes its pairs' (the same triangles as computing every angle)
+        hi_rp = min(float(hi[2]), self.pair_max_sep_rad)
+        near = np.einsum("ij,ij->i", xyz[c], xyz[a]) >= np.cos(min(hi_rp + 1e-6, np.pi))
+        a, b, c = a[near], b[near], c[near]
+        d = angular_distance(xyz[c], xyz[a])
+        ok = (d >= lo[2]) & (d <= hi[2]) & (d <= self.pair_max_sep_rad)
+        a, b, c = a[ok], b[ok], c[ok]
+        A, B, C = xyz[a], xyz[b], xyz[c]
+        tr, trs = float(t["triple"][k]), float(t["triple_sigma"][k])
+        if len(a) and abs(tr) > self.beta * trs:
+            ok = np.sign(sph.triple(A, B, C)) == np.sign(tr)
+            a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
+        if len(a):
+            ar, da = float(t["area"][k]), float(t["area_bound"][k])
+            area = sph.area(A, B, C)
+            ok = (area >= ar - da) & (area <= ar + da)
+            a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
+        if len(a):
+            mo, dm = float(t["moment"][k]), float(t["moment_bound"][k])
+            moment = sph.polar_moment(A, B, C, self.depth)
+            ok = (moment >= mo - dm) & (moment <= mo + dm)
+            a, b, c = a[ok], b[ok], c[ok]
+        t.setdefault("side_counts", {})[k] = (int(sp[0] - st[0]), int(sp[1] - st[1]))
+        return np.stack([a, b, c], axis=1)
+
+    def oriented_candidates(self, t: dict, k: int, sigma: float) -> tuple[np.ndarray, list[tuple[int, ...]]]:
+        """The oriented candidates of observed triangle k (rows over (ti, tj, tk)[k]) and the catalog
+        triangles a step draws for them (capped)."""
+        if self.database == "pairs":
+            self.count_of(t, k)
+            H = t["oriented"][k]
+            shown = np.unique(np.sort(H[:64 * CAP], axis=1), axis=0)[:CAP] if len(H) else H
+            return H, list(map(tuple, shown.astype(int).tolist()))
+        rows = self.candidates(t, k)
+        H, src = self.orient(t, k, rows, sigma)
+        return H, _groups(self.tri, rows, src)
+
+    def candidates(self, t: dict, m: int) -> np.ndarray:
+        """Rows (into self.tri, area order) of the catalog triangles matching observed triangle m:
+        the shorter of its two ranges, filtered by the other."""
+        self.count_of(t, m)
+        rows = t.get("rows", {}).get(m)
+        return rows if rows is not None else self._scan(t, m)
+
+    def _scan(self, t: dict, m: int) -> np.ndarray:
+        """The candidate rows of observed triangle m: its two ranges intersected, then the triangles
+        that fit this camera (enclosing cap <= its half-diagonal)."""
+        s1, e1, s2, e2 = int(t["s1"][m]), int(t["e1"][m]), int(t["s2"][m]), int(t["e2"][m])
+        if e1 - s1 <= e2 - s2:
+            r = self.moment_rank[s1:e1]
+            rows = s1 + np.flatnonzero((r >= s2) & (r < e2))
+        else:
+            p = self.moment_order[s2:e2].astype(np.int64)
+            rows = np.sort(p[(p >= s1) & (p < e1)])
+        return rows[self.cap[rows] <= self.cap_limit]
+
+    def orient(self, t: dict, m: int, rows: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+        """Hypotheses of observed triangle m from candidate rows: (h, 3) catalog stars for the observed
+        stars (ti, tj, tk)[m], and the candidate row each came from.
+
+        vertex_order="sides": the vertex orders whose sides match the observed sides within
+        beta sigma_p and whose handedness (sign of the triple product) is the observed one when that
+        sign is certain. vertex_order="paper": every one of the 6 orders (the paper matches triangles
+        by area and polar moment only; the join and the final resolution sort the orders out).
+        """
+        self._ensure(t, m)
+        if len(rows) == 0:
+            return np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
+        cat = self.tri[rows].astype(np.int64)  # (r, 3)
+        if self.vertex_order == "paper":
+            H = cat[:, _PERMS].reshape(-1, 3)
+            return H, np.repeat(rows, len(_PERMS))
+        P = self.catalog.xyz[cat]  # (r, 3, 3)
+        S = np.stack(sph.sides(P[:, 0], P[:, 1], P[:, 2]), axis=1)  # ij, jk, ki
+        sgn = np.sign(sph.triple(P[:, 0], P[:, 1], P[:, 2]))
+        obs_sides = t["sides"][m]  # pq, qr, rp
+        tol = self.beta * SQ2 * sigma
+        tr, trs = float(t["triple"][m]), float(t["triple_sigma"][m])
+        check_hand = abs(tr) > self.beta * trs
+        keep_rows, keep_perm = [], []
+        for k, perm in enumerate(_PERMS):
+            sp_ = S[:, [_SIDE[perm[0], perm[1]], _SIDE[perm[1], perm[2]], _SIDE[perm[2], perm[0]]]]
+            ok = np.all(np.abs(sp_ - obs_sides[None, :]) <= tol, axis=1)
+            if check_hand:
+                ok &= sgn * _PARITY[k] == np.sign(tr)
+            idx = np.flatnonzero(ok)
+            keep_rows.append(idx)
+            keep_perm.append(np.full(len(idx), k))
+        idx = np.concatenate(keep_rows)
+        perm = _PERMS[np.concatenate(keep_perm)]
+        H = np.take_along_axis(cat[idx], perm, axis=1)
+        return H, rows[idx]
+
+
+# ---------------------------------------------------------------------- helpers
+
+@lru_cache(maxsize=64)
+def _combinations(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (i < j < k) of n stars, as three index arrays (read-only, cached)."""
+    c = np.fromiter(itertools.chain.from_iterable(itertools.combinations(range(n), 3)), dtype=np.int64)
+    c = c.reshape(-1, 3)
+    out = tuple(np.ascontiguousarray(c[:, s]) for s in range(3))
+    for a in out:
+        a.flags.writeable = False
+    return out
+
+
+def _n_sets(H: np.ndarray) -> int:
+    """How many distinct sets of catalog stars the hypotheses hold (vertex orders of one set count once).
+
+    A set is keyed by the wrapping sum of a fixed random 64-bit word per catalog star: independent
+    of the order, and two different sets collide with probability 2^-64.
+    """
+    if len(H) <= 1:
+        return len(H)
+    words = _star_words(int(H.max()) + 1)
+    return int(len(np.unique(words[H].sum(axis=1, dtype=np.uint64))))
+
+
+_WORDS = np.zeros(0, dtype=np.uint64)
+
+
+def _star_words(n: int) -> np.ndarray:
+    """The first n of a fixed sequence of random 64-bit words (grown on demand, same for every run)."""
+    global _WORDS
+    if len(_WORDS) < n:
+        size = max(n, 2 * len(_WORDS), 8192)
+        _WORDS = np.random.default_rng(0x5E75).integers(0, np.iinfo(np.uint64).max, size=size, dtype=np.uint64,
+                                                        endpoint=True)
+    return _WORDS
+
+
+def _groups(tri: np.ndarray, rows: np.ndarray, oriented_rows: np.ndarray) -> list[tuple[int, ...]]:
+    """Candidate catalog triangles to draw, those that fit in some vertex order first, capped."""
+    if len(oriented_rows) == len(_PERMS) * len(rows):  # vertex_order="paper": every candidate
+        return list(map(tuple, tri[rows[:CAP]].astype(int).tolist()))
+    first = np.unique(oriented_rows[:64 * CAP])[:CAP]
+    if len(first) < CAP and len(rows) > len(first):
+        rest = rows[~np.isin(rows, first)][:CAP - len(first)]
+        first = np.concatenate([first, rest])
+    return list(map(tuple, tri[first].astype(int).tolist()))
