@@ -79,6 +79,7 @@ def test_damaged_images_are_one_line_errors_with_json(capsys, tmp_path, sky):
         assert code == 2 and one_line(err), (name, err)
         obj = json.loads(out)
         assert obj["status"] == "error" and obj["exit_code"] == 2
+        assert obj["error"] and not obj["error"].startswith("error") and obj["error"] in err  # the same sentence
         assert f.read_bytes() == data  # never touched
 
 

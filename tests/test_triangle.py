@@ -367,6 +367,43 @@ def test_pair_join_gives_the_stored_candidates(improved, stored_sides, region, c
         improved.moment_sigma_coef = saved
 
 
+def test_measured_as_visited_gives_the_figures_of_measuring_all(improved, region, cam):
+    """The largest-area order measures only the triangles it visits, a few at a time (their polar moments
+    with the first one's candidates): the same figures, to the last bit, as measuring every triangle."""
+    for f in frames(region, cam, 2, seed=23, n_min=7):
+        V = f.obs.vectors[:7]
+        lazy = improved.triangle_bounds(V, SIGMA, lookup=False)
+        lazy["priority"] = np.argsort(np.argsort(-lazy["area"], kind="stable"))
+        full = improved.triangle_bounds(V, SIGMA, lookup=False)
+        improved._measure(full, np.arange(len(full["area"])))
+        for k in (0, 5, 34, 1):  # out of the batch order too
+            improved.count_of(lazy, k)
+            for key in ("area_bound", "moment", "moment_bound", "triple_sigma"):
+                assert lazy[key][k] == full[key][k]
+        measured = ~np.isnan(lazy["area_bound"])
+        assert 4 <= measured.sum() < len(measured)  # a few at a time, not all
+        done = np.flatnonzero(lazy["counts"] >= 0)
+        assert np.array_equal(lazy["moment"][done], full["moment"][done])
+
+
+def test_distinct_star_sets_and_lazy_hypotheses_layer():
+    from skyview.identify.triangle_lookup import _distinct_sets
+
+    rng = np.random.default_rng(5)
+    H = rng.integers(0, 40, size=(300, 3))
+    expect = np.unique(np.sort(H, axis=1), axis=0)[:200]
+    assert _distinct_sets(H) == list(map(tuple, expect.tolist())) and _distinct_sets(H[:0]) == []
+    # a step's layer samples its hypotheses when a sink reads them: the same rows as sampling at once
+    layer = Hypotheses.sample([4, 1, 7], H.astype(np.int32), cap=50, shared=[1])
+    assert (layer.used, layer.total, layer.shared) == ((4, 1, 7), 300, (1,))
+    keep = np.linspace(0, 299, 50).round().astype(int)
+    assert layer.rows.dtype == np.int64 and np.array_equal(layer.rows, H[keep])
+    import pickle
+
+    back = pickle.loads(pickle.dumps(layer))  # pickles (and copies) as a plain layer
+    assert type(back) is Hypotheses and np.array_equal(back.rows, layer.rows) and back.total == 300
+
+
 def test_join_on_shared_observed_stars():
     H = np.array([[10, 20, 30], [11, 21, 31], [12, 22, 32]])  # observed stars [0, 1, 2]
     # triangle (1, 2, 5): candidates in observed order

@@ -41,7 +41,8 @@ def _error(message: str, code: int, want_json: bool) -> int:
     print(f"skyview: {message}", file=sys.stderr)
     if want_json:
         try:
-            print(json.dumps({"status": "error", "exit_code": code, "error": message}))
+            text = message.removeprefix("error: ")  # the field says it is an error already
+            print(json.dumps({"status": "error", "exit_code": code, "error": text}))
         except (BrokenPipeError, OSError):
             pass
     return code

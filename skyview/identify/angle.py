@@ -227,7 +227,7 @@ class AngleMethod(PivotMethod):
                          np.zeros((0, 0), dtype=np.int64))
         a, b = int(ii[k]), int(jj[k])
         ci, cj = self._candidates(ctx, k)
-        H = np.concatenate([np.stack([ci, cj], axis=1), np.stack([cj, ci], axis=1)])
+        H = _both_orientations(ci, cj)
         used = [a, b]
         candidates.append(int(counts[k]))
         hyps.append(len(H))
@@ -250,13 +250,14 @@ class AngleMethod(PivotMethod):
             open_ = ~done
             in_used = np.zeros(n_obs, dtype=bool)
             in_used[used] = True
-            in_prev = np.zeros(n_obs, dtype=bool)
-            in_prev[list(prev)] = True
-            k = pick_next(open_ & in_used[ii] & in_used[jj]) if self.close_loops else -1
+            ui, uj = in_used[ii], in_used[jj]
+            k = pick_next(open_ & ui & uj) if self.close_loops else -1
             if k < 0:
+                in_prev = np.zeros(n_obs, dtype=bool)
+                in_prev[list(prev)] = True
                 k = pick_next(open_ & (in_prev[ii] | in_prev[jj]))
             if k < 0:  # nothing shares a star with the previous angle: any angle touching a used star
-                k = pick_next(open_ & (in_used[ii] | in_used[jj]))
+                k = pick_next(open_ & (ui | uj))
             if k < 0:
                 steps.append(Step("stop", f"no angle left to pivot to; {len(H)} hypotheses",
                                   observed=used.copy(), catalog=_distinct(H), numbers={"hypotheses": len(H)}))
@@ -269,7 +270,7 @@ class AngleMethod(PivotMethod):
                 continue
             ci, cj = self._candidates(ctx, k)
             before = len(H)
-            H, used, new = _join(H, used, p, q, ci, cj)
+            H, used, new = _join(H, used, p, q, ci, cj, len(self.catalog))
             pivots += 1
             candidates.append(int(counts[k]))
             hyps.append(len(H))
@@ -396,12 +397,13 @@ class AngleMethod(PivotMethod):
 
 # ---------------------------------------------------------------------- helpers
 
-def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np.ndarray):
+def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np.ndarray, n_catalog: int | None = None):
     """Join hypotheses with the oriented candidates of angle (p, q) on the shared observed star(s).
 
     Returns (H', used', new): new is the observed star added (None for a closed loop). Vectorised:
     the candidates are grouped by their catalog star on the shared observed star (`by_star`), and
-    each hypothesis meets the block of its star.
+    each hypothesis meets the block of its star. n_catalog: the number of catalog rows (every row
+    in H, ci and cj is below it), when the caller knows it.
     """
     cp = np.concatenate([ci, cj])  # catalog star of observed star p
     cq = np.concatenate([cj, ci])  # catalog star of observed star q
@@ -411,7 +413,7 @@ def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np
     if p not in used:
         raise ValueError("a pivot angle must share a star with the hypotheses")
     ip = used.index(p)
-    m = max(int(H.max(initial=0)), int(cp.max(initial=0))) + 1
+    m = n_catalog if n_catalog is not None else max(int(H.max(initial=0)), int(cp.max(initial=0))) + 1
     cqs, start, size = by_star(cp, cq, m)
     v = H[:, ip]
     cnt = size[v]
@@ -420,10 +422,21 @@ def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np
     if q in used:  # closed loop: the pair (H[p], H[q]) must be a candidate as it is
         hit = newq == H[rows, used.index(q)]
         return H[np.bincount(rows[hit], minlength=len(H)) > 0], used, None
-    Hn = H[rows]
-    ok = ~np.any(Hn == newq[:, None], axis=1)  # a catalog star is never two observed stars
-    H2 = np.concatenate([Hn[ok], newq[ok, None]], axis=1)
-    return H2, used + [q], q
+    k = H.shape[1]
+    H2 = np.empty((len(rows), k + 1), dtype=np.result_type(H, newq))
+    H2[:, :k] = H[rows]
+    H2[:, k] = newq
+    ok = ~np.any(H2[:, :k] == newq[:, None], axis=1)  # a catalog star is never two observed stars
+    return H2[ok], used + [q], q
+
+
+def _both_orientations(ci: np.ndarray, cj: np.ndarray) -> np.ndarray:
+    """The candidate pairs as rows over the angle's two observed stars, in both orientations
+    (= np.concatenate([np.stack([ci, cj], axis=1), np.stack([cj, ci], axis=1)]))."""
+    n = len(ci)
+    H = np.empty((2 * n, 2), dtype=np.result_type(ci, cj))
+    H[:n, 0], H[:n, 1], H[n:, 0], H[n:, 1] = ci, cj, cj, ci
+    return H
 
 
 def _n_pairs(P: np.ndarray) -> int:

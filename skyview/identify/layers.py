@@ -49,16 +49,53 @@ class Hypotheses:
 
     @classmethod
     def sample(cls, used, H, cap: int = HYPOTHESES_SAMPLE, shared=()) -> Hypotheses:
-        """The survivors H ((n, len(used)) catalog rows) as a layer: an even sample of `cap`, the total."""
-        H = np.asarray(H, dtype=np.int64).reshape(-1, len(used)) if len(used) else np.zeros((0, 0), np.int64)
-        keep = even_sample(len(H), cap)
-        return cls(tuple(int(u) for u in used), H[keep], int(len(H)), tuple(int(s) for s in shared))
+        """The survivors H ((n, len(used)) catalog rows) as a layer: an even sample of `cap`, the total.
+
+        The sample is taken when a sink first reads `rows` (the methods' hot paths record a layer per
+        step and most are never drawn); H must not be changed in place afterwards (the methods make a
+        new array at every step)."""
+        used = tuple(map(int, used))
+        if not isinstance(H, np.ndarray):  # a list the caller may go on changing: sample it now
+            return cls(used, _sample_rows(used, H, cap), _n_rows(used, H), tuple(map(int, shared)))
+        return _SampledHypotheses(used, H, cap, tuple(map(int, shared)))
 
     @classmethod
     def single(cls, hypothesis: dict[int, int]) -> Hypotheses:
         """One hypothesis (observed index -> catalog row) as a layer."""
         used = sorted(int(k) for k in hypothesis)
         return cls(tuple(used), np.array([[int(hypothesis[u]) for u in used]], dtype=np.int64).reshape(1, -1), 1)
+
+
+def _n_rows(used: tuple[int, ...], H) -> int:
+    return int(np.size(H) // len(used)) if len(used) else 0
+
+
+def _sample_rows(used: tuple[int, ...], H, cap: int) -> np.ndarray:
+    """`Hypotheses.sample`'s rows: an even sample of at most cap of the (n, len(used)) rows of H, int64."""
+    H = np.asarray(H, dtype=np.int64).reshape(-1, len(used)) if len(used) else np.zeros((0, 0), np.int64)
+    return H[even_sample(len(H), cap)]
+
+
+class _SampledHypotheses(Hypotheses):
+    """A `Hypotheses` whose rows are sampled from the survivors when first read (then kept); it pickles
+    and copies as a plain `Hypotheses`."""
+
+    def __init__(self, used: tuple[int, ...], H: np.ndarray, cap: int, shared: tuple[int, ...]):
+        object.__setattr__(self, "used", used)
+        object.__setattr__(self, "total", _n_rows(used, H))
+        object.__setattr__(self, "shared", shared)
+        object.__setattr__(self, "_source", (H, cap))
+
+    @property
+    def rows(self) -> np.ndarray:
+        src = self.__dict__.get("_source")
+        if src is not None:
+            object.__setattr__(self, "_rows", _sample_rows(self.used, *src))
+            object.__setattr__(self, "_source", None)
+        return self.__dict__["_rows"]
+
+    def __reduce__(self):
+        return Hypotheses, (self.used, self.rows, self.total, self.shared)
 
 
 @dataclass(frozen=True)

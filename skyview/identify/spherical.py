@@ -45,7 +45,19 @@ _CHUNK = 1024  # triangles per vectorised block in polar_moment (~1 MB per array
 
 def normalize(v: np.ndarray) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / _norm(v, keepdims=True)
+
+
+def _norm(v: np.ndarray, keepdims: bool = False) -> np.ndarray:
+    """np.linalg.norm(v, axis=-1) of a float64 array, the same sums, without its per-call checks."""
+    return np.sqrt(np.add.reduce(v * v, axis=-1, keepdims=keepdims))
+
+
+def _stack3(x, y, z) -> np.ndarray:
+    """np.stack([x, y, z]) of three arrays of one shape (float64), without its per-call overhead."""
+    out = np.empty((3,) + np.shape(x))
+    out[0], out[1], out[2] = x, y, z
+    return out
 
 
 def arc(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -82,7 +94,8 @@ def area_jacobian(a, b, c) -> np.ndarray:
     that a bound built on it accepts everything rather than nothing.
     """
     a, b, c = (np.asarray(x, dtype=np.float64) for x in (a, b, c))
-    q = np.stack([(a + b + c) / 4.0, (b + c - a) / 4.0, (a + c - b) / 4.0, (a + b - c) / 4.0])  # all four at once
+    q = np.empty((4,) + np.broadcast_shapes(a.shape, b.shape, c.shape))  # all four at once
+    q[0], q[1], q[2], q[3] = (a + b + c) / 4.0, (b + c - a) / 4.0, (a + c - b) / 4.0, (a + b - c) / 4.0
     t1, t2, t3, t4 = np.tan(q)
     s1, s2, s3, s4 = 1.0 / np.cos(q) ** 2
     u1 = s1 * t2 * t3 * t4  # eq. 23a
@@ -92,7 +105,9 @@ def area_jacobian(a, b, c) -> np.ndarray:
     z2 = np.maximum(t1 * t2 * t3 * t4, 0.0)
     z = np.sqrt(z2)  # eq. 21
     with np.errstate(divide="ignore", invalid="ignore"):
-        dz = np.stack([u1 - u2 + u3 + u4, u1 + u2 - u3 + u4, u1 + u2 + u3 - u4], axis=-1) / (8.0 * z[..., None])
+        dz = np.empty(z.shape + (3,))
+        dz[..., 0], dz[..., 1], dz[..., 2] = u1 - u2 + u3 + u4, u1 + u2 - u3 + u4, u1 + u2 + u3 - u4
+        dz /= 8.0 * z[..., None]
     H = 4.0 / (1.0 + z2[..., None]) * dz  # eq. 20
     return np.where(np.isfinite(H), H, np.inf)
 
@@ -106,13 +121,14 @@ def area_sigma_paper(a, b, c, sigma: float) -> np.ndarray:
 def vertex_angles(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """cos of the spherical angles at A, B and C (between the tangents towards the other two)."""
     A, B, C = (np.asarray(x, dtype=np.float64) for x in (A, B, C))
-    P, Q, R = np.stack([A, B, C]), np.stack([B, C, A]), np.stack([C, A, B])  # the three vertices at once
+    P, Q, R = _stack3(A, B, C), _stack3(B, C, A), _stack3(C, A, B)  # the three vertices at once
     tq = Q - np.einsum("...i,...i->...", Q, P)[..., None] * P
     tr = R - np.einsum("...i,...i->...", R, P)[..., None] * P
-    nq, nr = np.linalg.norm(tq, axis=-1), np.linalg.norm(tr, axis=-1)
+    nq, nr = _norm(tq), _norm(tr)
     with np.errstate(divide="ignore", invalid="ignore"):
         cs = np.einsum("...i,...i->...", tq, tr) / (nq * nr)
-    cs = np.clip(np.nan_to_num(cs, nan=1.0), -1.0, 1.0)
+    cs[np.isnan(cs)] = 1.0  # = np.clip(np.nan_to_num(cs, nan=1.0), -1.0, 1.0): +-inf clip to +-1 either way
+    np.minimum(np.maximum(cs, -1.0, out=cs), 1.0, out=cs)
     return cs[0], cs[1], cs[2]
 
 
@@ -270,8 +286,8 @@ def triple(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
 def triple_sigma(A: np.ndarray, B: np.ndarray, C: np.ndarray, sigma: float) -> np.ndarray:
     """1-sigma of the triple product for a tangent-plane error of sigma per axis on each vertex."""
     A, B, C = (np.asarray(x, dtype=np.float64) for x in (A, B, C))
-    P = np.stack([A, B, C])  # the three vertices at once
-    g = cross(np.stack([B, C, A]), np.stack([C, A, B]))  # the gradient of the triple product at each
+    P = _stack3(A, B, C)  # the three vertices at once
+    g = cross(_stack3(B, C, A), _stack3(C, A, B))  # the gradient of the triple product at each
     g = g - np.einsum("...i,...i->...", g, P)[..., None] * P  # the part a tangent-plane error sees
     v = np.einsum("...i,...i->...", g, g)
     return float(sigma) * np.sqrt(v[0] + v[1] + v[2])

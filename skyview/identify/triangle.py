@@ -316,7 +316,8 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                           used, H, suspects=used[::-1], culprit=used.copy(), candidates=candidates, hypotheses=hyps)
         prev = tuple(used)
         pivots = 0
-        while not self._settled(V, used, triangles, H, n_sets, sigma, t["tol"]):
+        checked = None  # the hypotheses `consistent` returned last (it would return them as they are)
+        while not self._settled(V, used, triangles, H, n_sets, sigma, t["tol"], checked=H is checked):
             if self.max_pivots is not None and pivots >= self.max_pivots:
                 steps.append(Step("stop", f"pivot limit {self.max_pivots} reached with {n_sets} candidate "
                                           f"star sets", observed=used.copy(), catalog=_distinct(H),
@@ -351,7 +352,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
             H, used, new = join(H, used, obs3, O)
             triangles.append(obs3)
             if self.vertex_order == "sides":  # every pair of stars, also across triangles
-                H = self.consistent(V, used, triangles, H, sigma)
+                H = checked = self.consistent(V, used, triangles, H, sigma)
             pivots += 1
             n_sets = _n_sets(H)
             candidates.append(int(counts[k]))
@@ -377,7 +378,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                               hypotheses=hyps)
             prev = tuple(obs3)
         # one set of catalog stars (or a few that differ by unresolved close pairs): its vertex order
-        Hc = self.consistent(V, used, triangles, H, sigma)
+        Hc = H if H is checked else self.consistent(V, used, triangles, H, sigma)
         if len(Hc) == 0:  # the paper would report this set; it fits in no vertex order, so it is wrong
             steps.append(Step("stop", "the one star set left fits the observed stars in no vertex order (sides or "
                                       "handedness)", observed=used.copy(), catalog=_distinct(H),
@@ -501,16 +502,16 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                       pivots=pivots, candidates=candidates, hypotheses=hyps)
 
     def _settled(self, V: np.ndarray, used: list[int], triangles: list[list[int]], H: np.ndarray, n_sets: int,
-                 sigma: float, tol: float) -> bool:
-        """One set of catalog stars left, or a few that differ only by unresolved close pairs."""
+                 sigma: float, tol: float, checked: bool = False) -> bool:
+        """One set of catalog stars left, or a few that differ only by unresolved close pairs (checked: H
+        is what `consistent` returned for these stars and triangles)."""
         if n_sets <= 1:
             return True
         if n_sets > MAX_EQUIVALENT:
             return False
-        stars = np.unique(H)
-        if self.vertex_order == "paper" and not _has_close_pair(self.catalog.xyz[stars], tol):
+        if self.vertex_order == "paper" and not _has_close_pair(self.catalog.xyz[np.unique(H)], tol):
             return False  # different sets can only be one pattern through catalog stars closer than tol
-        Hc = self.consistent(V, used, triangles, H, sigma)
+        Hc = H if checked else self.consistent(V, used, triangles, H, sigma)
         if self.vertex_order == "paper" and _n_sets(Hc) < n_sets:
             return False  # the paper tells sets apart by pivoting only, never by their sides
         return len(Hc) > 0 and (_n_sets(Hc) == 1 or self._equivalent(Hc, tol))

@@ -22,7 +22,8 @@ from skyview.identify.triangle_database import BLOCK, _block_search
 from skyview.identify.verify import angular_distance
 
 CAP = 200  # catalog rows / groups kept in one step
-MEASURE_BATCH = 16  # observed triangles measured at once when the search reaches an unmeasured one
+MEASURE_BATCH = 4  # observed triangles measured at once when the search reaches an unmeasured one
+# (a chain visits 1-3 triangles in most frames; a call costs mostly its fixed overhead)
 SCAN_LIMIT = 65536  # a triangle looked up alone is counted by listing its candidates up to this range
 SQ2 = float(np.sqrt(2.0))
 _PERMS = np.array([[0, 1, 2], [1, 2, 0], [2, 0, 1], [0, 2, 1], [2, 1, 0], [1, 0, 2]])
@@ -77,10 +78,12 @@ class TriangleLookup:
                 out[key] = np.full(len(area), -1, dtype=np.int64)
         return out
 
-    def _measure(self, t: dict, idx: np.ndarray) -> None:
+    def _measure(self, t: dict, idx: np.ndarray, moment: bool = True) -> None:
         """Fill the area bound, polar moment, its bound and the triple product's sigma of the observed
         triangles idx (the largest-area order measures only the triangles it visits, MEASURE_BATCH at a
-        time: the polar moments of all 220 triangles of 12 stars would cost more than the search)."""
+        time: the polar moments of all 220 triangles of 12 stars would cost more than the search).
+        moment=False leaves the polar moments to `join_pairs`, which computes them in one call with its
+        candidates' (t["moment_pending"] holds idx until then)."""
         V, sigma = t["V"], t["sigma"]
         A, B, C = V[t["ti"][idx]], V[t["tj"][idx]], V[t["tk"][idx]]
         if self.area_sigma == "paper":  # eq. 24 with each side's own sigma, sqrt(2) sigma (eq. 13)
@@ -91,25 +94,34 @@ class TriangleLookup:
             s_area = sph.area_sigma_paper(a, b, c, sigma)
         else:
             s_area = sph.area_sigma_stars(A, B, C, sigma)
-        moment = sph.polar_moment(A, B, C, self.depth)
         t["area_bound"][idx] = self.beta * s_area
-        t["moment"][idx] = moment
-        t["moment_bound"][idx] = self.beta * self.moment_sigma(moment, sigma)
+        if moment:
+            self._set_moment(t, idx, sph.polar_moment(A, B, C, self.depth))
+        else:
+            t["moment_pending"] = idx
         t["triple_sigma"][idx] = sph.triple_sigma(A, B, C, sigma)
 
+    def _set_moment(self, t: dict, idx: np.ndarray, moment: np.ndarray) -> None:
+        t["moment"][idx] = moment
+        t["moment_bound"][idx] = self.beta * self.moment_sigma(moment, t["sigma"])
+
     def _ensure(self, t: dict, k: int) -> None:
-        """Observed triangle k measured (`_measure`), with the next unmeasured ones in the search order."""
-        if not np.isnan(t["moment"][k]):
+        """Observed triangle k measured (`_measure`), with the next unmeasured ones in the search order
+        (database="pairs": but for the polar moments, which `join_pairs` computes next)."""
+        if not np.isnan(t["area_bound"][k]):
             return
-        todo = np.flatnonzero(np.isnan(t["moment"]))
+        todo = np.flatnonzero(np.isnan(t["area_bound"]))
         pr = t.get("priority")
         if pr is not None and len(todo) > MEASURE_BATCH:
-            todo = todo[np.argsort(pr[todo], kind="stable")[:MEASURE_BATCH]]
+            # never one triangle left over: measured alone, its polar moment would differ in the last bit
+            # (np.einsum sums one column another way) from the same triangle measured in a batch
+            take = MEASURE_BATCH + 1 if len(todo) == MEASURE_BATCH + 1 else MEASURE_BATCH
+            todo = todo[np.argsort(pr[todo], kind="stable")[:take]]
             if k not in todo:
                 todo = np.append(todo[:-1], k)
         elif pr is None:
             todo = np.array([k])
-        self._measure(t, np.sort(todo))
+        self._measure(t, np.sort(todo), moment=self.database != "pairs")
 
     def _count(self, t: dict) -> np.ndarray:
         """|area range ∩ polar-moment range| of each observed triangle, exact and vectorised.
@@ -218,13 +230,31 @@ class TriangleLookup:
             area = sph.area(A, B, C)
             ok = (area >= ar - da) & (area <= ar + da)
             a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
+        moment = self._moments(t, A, B, C)  # also the observed triangles' left pending by `_ensure`
         if len(a):
             mo, dm = float(t["moment"][k]), float(t["moment_bound"][k])
-            moment = sph.polar_moment(A, B, C, self.depth)
             ok = (moment >= mo - dm) & (moment <= mo + dm)
             a, b, c = a[ok], b[ok], c[ok]
         t.setdefault("side_counts", {})[k] = (int(sp[0] - st[0]), int(sp[1] - st[1]))
         return np.stack([a, b, c], axis=1)
+
+    def _moments(self, t: dict, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray | None:
+        """The polar moments of the catalog triangles (A, B, C) (None when there are none), and those of
+        the observed triangles `_measure` left pending, in one call (the observed ones as `_measure`
+        would compute them. A lone observed triangle is computed alone, as np.einsum sums a single
+        column another way, to the last bit; a lone candidate's moment may differ from its own call's
+        in the last bit, far inside the moment bound it is tested against)."""
+        pend = t.pop("moment_pending", None)
+        if pend is None or len(pend) == 0:
+            return sph.polar_moment(A, B, C, self.depth) if len(A) else None
+        V = t["V"]
+        P, Q, R = V[t["ti"][pend]], V[t["tj"][pend]], V[t["tk"][pend]]
+        if len(pend) >= 2 and len(A):
+            both = sph.polar_moment(np.concatenate([A, P]), np.concatenate([B, Q]), np.concatenate([C, R]), self.depth)
+            self._set_moment(t, pend, both[len(A):])
+            return both[:len(A)]
+        self._set_moment(t, pend, sph.polar_moment(P, Q, R, self.depth))
+        return sph.polar_moment(A, B, C, self.depth) if len(A) else None
 
     def oriented_candidates(self, t: dict, k: int, sigma: float) -> tuple[np.ndarray, list[tuple[int, ...]]]:
         """The oriented candidates of observed triangle k (rows over (ti, tj, tk)[k]) and the catalog
@@ -232,8 +262,7 @@ class TriangleLookup:
         if self.database == "pairs":
             self.count_of(t, k)
             H = t["oriented"][k]
-            shown = np.unique(np.sort(H[:64 * CAP], axis=1), axis=0)[:CAP] if len(H) else H
-            return H, list(map(tuple, shown.astype(int).tolist()))
+            return H, _distinct_sets(H[:64 * CAP])
         rows = self.candidates(t, k)
         H, src = self.orient(t, k, rows, sigma)
         return H, _groups(self.tri, rows, src)
@@ -317,7 +346,23 @@ def _n_sets(H: np.ndarray) -> int:
     if len(H) <= 1:
         return len(H)
     words = _star_words(int(H.max()) + 1)
-    return int(len(np.unique(words[H].sum(axis=1, dtype=np.uint64))))
+    key = np.sort(words[H].sum(axis=1, dtype=np.uint64))
+    return 1 + int(np.count_nonzero(key[1:] != key[:-1]))
+
+
+def _distinct_sets(H: np.ndarray) -> list[tuple[int, ...]]:
+    """The first CAP distinct star sets of the (h, 3) rows H, each sorted, in sorted order
+    (= np.unique(np.sort(H, axis=1), axis=0)[:CAP], by one integer key per set)."""
+    if not len(H):
+        return []
+    S = np.sort(H, axis=1).astype(np.int64)
+    m = int(S[:, 2].max()) + 1
+    key = np.sort((S[:, 0] * m + S[:, 1]) * m + S[:, 2])
+    keep = np.empty(len(key), dtype=bool)
+    keep[0] = True
+    np.not_equal(key[1:], key[:-1], out=keep[1:])
+    key = key[keep][:CAP]
+    return list(zip(*(x.tolist() for x in (key // (m * m), key // m % m, key % m))))
 
 
 _WORDS = np.zeros(0, dtype=np.uint64)

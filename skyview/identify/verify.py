@@ -1,5 +1,9 @@
 """The verification every identification method ends in.
 
+Long (~750 lines) because it is one procedure with its statistics (the calibrated Poisson-binomial and
+the tetra3 binomial), the per-star radii, the blend and crowding checks, and the exact fast paths it
+takes on small frames (each tested against its plain form in tests/test_verify.py).
+
 Given a hypothesis (observed index -> catalog row):
 
 1. estimate the attitude R from the hypothesis alone (Markley's SVD method), with its covariance P;
