@@ -80,7 +80,7 @@ from skyview.identify import database
 from skyview.identify.base import Search, Step
 from skyview.identify.kvector import KVector
 from skyview.identify.layers import Hypotheses
-from skyview.identify.pivot import (Chain, PivotMethod, PivotParams, by_star, first_pattern, next_by_priority,
+from skyview.identify.pivot import (Chain, PivotMethod, PivotParams, by_star, next_by_priority, take_pattern,
                                    pair_indices, uses_any)
 from skyview.identify.verify import angular_distance
 
@@ -220,8 +220,8 @@ class AngleMethod(PivotMethod):
         angle_numbers = partial(self._numbers, ctx)
 
         pick_next = partial(next_by_priority, priority=priority)
-        k = first_pattern(done, priority, lambda k: counts[k] > self.max_candidates,
-                          lambda k: self._skip(ctx, k, steps))
+        k = take_pattern(done, priority, lambda k: counts[k] > self.max_candidates,
+                         lambda k: self._skip(ctx, k, steps))
         if k < 0:
             return Chain("ambiguous", "no angle with at most max_candidates candidates to start from", [],
                          np.zeros((0, 0), dtype=np.int64))
@@ -308,15 +308,8 @@ class AngleMethod(PivotMethod):
         numbers = partial(self._numbers, ctx)
 
         def next_angle(mask):
-            while True:
-                idx = np.flatnonzero(mask & ~done)
-                if not len(idx):
-                    return -1
-                k = int(idx[np.argmin(priority[idx])])
-                done[k] = True
-                if counts[k] <= self.max_candidates:
-                    return k
-                self._skip(ctx, k, steps)
+            return take_pattern(done, priority, lambda k: counts[k] > self.max_candidates,
+                                lambda k: self._skip(ctx, k, steps), among=mask)
 
         k = next_angle(np.ones(len(theta), dtype=bool))
         if k < 0:

@@ -288,10 +288,10 @@ class Identifier(ABC):
         self.drive(search, self.hypotheses(search))
         return self.finish(search)
 
+    @abstractmethod
     def hypotheses(self, search: Search) -> HypothesisSource:
         """The method's search: record steps in `search.steps`, fill `search.stats`, yield `Hypothesis`
         records (each answered with its Verification) or a chosen passed Verification."""
-        raise NotImplementedError(f"{type(self).__name__} does not propose hypotheses")
 
     def begin(self, obs: Observation) -> Search:
         """The frame's sigma (the observation's when it is a positive number, else the method's), the

@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -76,11 +77,12 @@ def next_by_priority(mask: np.ndarray, priority: np.ndarray) -> int:
     return int(idx[np.argmin(priority[idx])]) if len(idx) else -1
 
 
-def first_pattern(done: np.ndarray, priority: np.ndarray, too_many, skip) -> int:
-    """The chain's first pattern: the highest-priority one not `done` whose candidates are not `too_many(k)`
-    (those are marked done and `skip(k)` records them); -1 when none is left. Marks the one taken done."""
+def take_pattern(done: np.ndarray, priority: np.ndarray, too_many, skip, among: np.ndarray | None = None) -> int:
+    """The next pattern of a chain: the highest-priority one (`among` those allowed, default all) not `done`
+    whose candidates are not `too_many(k)` (those are marked done and `skip(k)` records them); -1 when none
+    is left. Marks the one taken done."""
     while True:
-        k = next_by_priority(~done, priority)
+        k = next_by_priority(~done if among is None else among & ~done, priority)
         if k < 0:
             return -1
         done[k] = True
@@ -218,16 +220,18 @@ class PivotMethod(Identifier):
                     **tail,
                 })
 
+    @abstractmethod
     def _patterns(self, search: Search) -> tuple[dict, int]:
         """The observed patterns of the frame and their look-ups (the chains' context), and how many
         stars form them."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _chain(self, V: np.ndarray, excluded: frozenset, ctx: dict, steps: list[Step]) -> Chain:
-        raise NotImplementedError
+        """One chain by joins (pivoting="join"), without the `excluded` observed stars."""
 
+    @abstractmethod
     def _chain_lists(self, V: np.ndarray, excluded: frozenset, ctx: dict, steps: list[Step]) -> Chain:
-        raise NotImplementedError
+        """One chain by the paper's pairwise list pruning (pivoting="shared-star" / "lists")."""
 
     def _proposals(self, V: np.ndarray, chain: Chain, sigma: float) -> list[np.ndarray]:
         """What a unique chain sends to verification, in order: the best fit of its hypotheses."""

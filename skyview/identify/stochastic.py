@@ -481,7 +481,8 @@ class StochasticMethod(SequenceIdentifier):
 
         # identification
         result.status = INCONCLUSIVE
-        if not self.drive(search, self._candidates(search, state, fld, k)):
+        search.data.update(state=state, field=fld, frame=k)
+        if not self.drive(search, self.hypotheses(search)):
             result.reason = self.failure_reason(search)
         state.verifications = search.n_hypotheses
         self._finish_stats(state, search, fld)
@@ -761,9 +762,11 @@ class StochasticMethod(SequenceIdentifier):
                                             stars[top].copy(), mass[top].copy(), self._xi(stars[top])),)))
         state.history.append({kk: v for kk, v in numbers.items()} | {"designated": fld.designated})
 
-    def _candidates(self, search: Search, state: StochasticState, fld: _Field, k: int):
+    def hypotheses(self, search: Search):
         """The leading star when it dominates (and, with verify_top, the leading stars once a known turn
-        has been survived): each one's hypotheses (`_match`), for the shared verification."""
+        has been survived): each one's hypotheses (`_match`), for the shared verification. The frame's
+        state, field and number are in `search.data` (`update` puts them there)."""
+        state, fld, k = search.data["state"], search.data["field"], search.data["frame"]
         stars, mass, best = self.marginal(state)
         cand = [0] if mass[0] >= self.p_identify else []
         if state.frames >= 2:  # verify_top: only hypotheses that have survived a known turn

@@ -98,7 +98,7 @@ from skyview.identify import spherical as sph
 from skyview.identify.angle import load_pair_database
 from skyview.identify.base import Search, Step
 from skyview.identify.layers import Hypotheses
-from skyview.identify.pivot import (MAX_EQUIVALENT, Chain, PivotMethod, PivotParams, first_pattern, next_by_priority,
+from skyview.identify.pivot import (MAX_EQUIVALENT, Chain, PivotMethod, PivotParams, next_by_priority, take_pattern,
                                    pair_indices, uses_any)
 from skyview.identify.triangle_database import (MOMENT_PARAMS, MOMENT_SAMPLE_TRIANGLES, MOMENT_SIGMA_VERSION,
                                                 build_moment_sigma, load_triangle_database)
@@ -294,8 +294,8 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         hyps: list[int] = []
 
         pick_next = partial(next_by_priority, priority=priority)
-        k = first_pattern(done, priority, lambda k: self.count_of(t, k) > self.max_candidates,
-                          lambda k: self._skip(t, k, steps))
+        k = take_pattern(done, priority, lambda k: self.count_of(t, k) > self.max_candidates,
+                         lambda k: self._skip(t, k, steps))
         if k < 0:
             return Chain("ambiguous", "no triangle with at most max_candidates candidates to start from", [],
                          np.zeros((0, 0), dtype=np.int64))
@@ -408,15 +408,8 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         hyps: list[int] = []
 
         def next_triangle(mask):
-            while True:
-                idx = np.flatnonzero(mask & ~done)
-                if not len(idx):
-                    return -1
-                k = int(idx[np.argmin(priority[idx])])
-                done[k] = True
-                if self.count_of(t, k) <= self.max_candidates:
-                    return k
-                self._skip(t, k, steps)
+            return take_pattern(done, priority, lambda k: self.count_of(t, k) > self.max_candidates,
+                                lambda k: self._skip(t, k, steps), among=mask)
 
         def listed(k):
             rows = self.candidates(t, k)

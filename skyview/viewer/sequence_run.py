@@ -178,6 +178,15 @@ def frame_result(seq_solver: SequenceSolver, res: SequenceResult, k: int) -> Sol
         identify_ms=float(ident.stats.get("time_s", float("nan"))) * 1e3)
 
 
+def _simulated(scene: SceneConfig, config: SequenceConfig, solvers: Solvers, say):
+    """The checked controls and the simulated frames: (scene, config, magnitude limit, sources, turns)."""
+    scene, config = scene.checked(), config.checked()
+    mag_limit = _num("magnitude limit", scene.mag_limit, *MAG_RANGE)
+    say(f"simulating {config.n_frames} frames")
+    sources, turns = simulate_frames(scene, config, solvers.base_catalog)
+    return scene, config, mag_limit, sources, turns
+
+
 def solve_sequence_run(scene: SceneConfig, config: SequenceConfig, method: str, variant: str, solvers: Solvers,
                        label=None) -> SequenceRun:
     """Simulate the sequence the controls describe and solve it; every frame becomes a `Run`.
@@ -187,11 +196,8 @@ def solve_sequence_run(scene: SceneConfig, config: SequenceConfig, method: str, 
     method, variant = check_method(method, variant)
     if not needs_sequence(method):
         raise BadInput(f"method {method!r} identifies single images, not sequences")
-    scene, config = scene.checked(), config.checked()
-    mag_limit = _num("magnitude limit", scene.mag_limit, *MAG_RANGE)
-    say(f"simulating {config.n_frames} frames")
     t0 = time.perf_counter()
-    sources, turns = simulate_frames(scene, config, solvers.base_catalog)
+    scene, config, mag_limit, sources, turns = _simulated(scene, config, solvers, say)
     t1 = time.perf_counter()
     if not sequence_cached(solvers, sources[0], method, variant, mag_limit):
         say(f"loading the {method} database (built once per camera and catalog, then cached)")
@@ -384,11 +390,8 @@ def track_sequence_run(scene: SceneConfig, config: SequenceConfig, method: str, 
     if needs_sequence(method):
         raise BadInput(f"the {method} method identifies over the sequence itself (solve_sequence_run), "
                        f"it does not track")
-    scene, config = scene.checked(), config.checked()
-    mag_limit = _num("magnitude limit", scene.mag_limit, *MAG_RANGE)
-    say(f"simulating {config.n_frames} frames")
     t0 = time.perf_counter()
-    sources, turns = simulate_frames(scene, config, solvers.base_catalog)
+    scene, config, mag_limit, sources, turns = _simulated(scene, config, solvers, say)
     t1 = time.perf_counter()
     camera = sources[0].camera
     sigma = sigma_for(sources[0])
