@@ -16,7 +16,6 @@ import math
 import threading
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from skyview.catalog import radec_to_vec, vec_to_radec
 
@@ -64,17 +63,59 @@ def radec_roll_from_R(R: np.ndarray) -> tuple[float, float, float]:
 
 
 def quat_from_R(R: np.ndarray) -> np.ndarray:
-    """Scalar-first quaternion [w, x, y, z] (w >= 0) of the rotation R (v_cam = R v_icrs)."""
-    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat(scalar_first=True)
+    """Scalar-first quaternion [w, x, y, z] (w >= 0) of the rotation R (v_cam = R v_icrs).
+
+    scipy's Rotation.from_matrix(R).as_quat(scalar_first=True) to the bit (the same largest of the
+    diagonal and trace, the same sums, the same normalisation: tests/test_verify.py compares them),
+    in Python floats for a matrix orthogonal to 1e-13 (every estimate's), without importing
+    scipy.spatial (~0.1 s); any other matrix goes to scipy (which orthogonalises it, or refuses it)."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape == (3, 3) and np.all(np.abs(R @ R.T - _EYE3) <= 1e-13) and _det3(R) > 0:
+        (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+        tr = a + e + i
+        diag = [a, e, i, tr]
+        k = diag.index(max(diag))  # the first of the largest, as argmax
+        if k == 0:
+            x, y, z, w = 1 - tr + 2 * a, d + b, g + c, h - f
+        elif k == 1:
+            x, y, z, w = d + b, 1 - tr + 2 * e, h + f, c - g
+        elif k == 2:
+            x, y, z, w = g + c, h + f, 1 - tr + 2 * i, d - b
+        else:
+            x, y, z, w = h - f, c - g, d - b, 1 + tr
+        n = math.sqrt(x * x + y * y + z * z + w * w)
+        q = np.array([w / n, x / n, y / n, z / n])
+    else:
+        from scipy.spatial.transform import Rotation  # (imported here: scipy.spatial costs ~0.1 s to import)
+
+        q = Rotation.from_matrix(R).as_quat(scalar_first=True)
     return -q if q[0] < 0 else q
 
 
+def rotvec_from_R(R: np.ndarray) -> np.ndarray:
+    """The rotation vector (axis times angle, radians) of R: scipy's Rotation.from_matrix(R).as_rotvec()
+    to the bit (from the same quaternion, w >= 0, with the same series below 1e-3 rad), without
+    importing scipy.spatial for an orthogonal R."""
+    w, x, y, z = quat_from_R(R).tolist()
+    angle = 2 * math.atan2(math.sqrt(x * x + y * y + z * z), w)
+    if angle <= 1e-3:
+        a2 = angle * angle
+        scale = 2 + a2 / 12 + 7 * a2 * a2 / 2880
+    else:
+        scale = angle / math.sin(angle / 2)
+    return np.array([scale * x, scale * y, scale * z])
+
+
 def R_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_quat(np.asarray(q_wxyz, dtype=np.float64), scalar_first=True).as_matrix()
 
 
 def random_attitudes(n: int, rng: np.random.Generator) -> np.ndarray:
     """n attitudes uniform on SO(3), shape (n, 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.random(n, random_state=rng).as_matrix().reshape(n, 3, 3)
 
 
@@ -133,16 +174,19 @@ def _weights(n: int, sigma: float | np.ndarray) -> np.ndarray:
     return 1.0 / (s * s)
 
 
-def _inverse_3x3(F: np.ndarray) -> np.ndarray | None:
-    """Inverse of a symmetric 3x3 matrix by cofactors; None when it is near singular (then pinv)."""
-    (a, b, c), (_, d, e), (_, _, f) = F.tolist()  # Python floats: cheaper than numpy scalars here
+def _inverse_3x3(F) -> np.ndarray | None:
+    """Inverse of a symmetric 3x3 matrix (an array or nested lists) by cofactors; None when it is near
+    singular (then pinv)."""
+    (a, b, c), (_, d, e), (_, _, f) = F.tolist() if isinstance(F, np.ndarray) else F  # Python floats
     c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
     det = a * c00 + b * c01 + c * c02
     scale = max(abs(a), abs(d), abs(f))
     if not (scale > 0 and abs(det) > 1e-9 * scale ** 3):
         return None
     c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    return np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]]) / det
+    # each cofactor / det in Python: the numbers of np.array(cofactors) / det
+    c00, c01, c02, c11, c12, c22 = c00 / det, c01 / det, c02 / det, c11 / det, c12 / det, c22 / det
+    return np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]])
 
 
 _EYE3 = np.eye(3)
@@ -156,9 +200,13 @@ def attitude_covariance(b: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 def _covariance(w_sum: float, bwb: np.ndarray) -> np.ndarray:
     """attitude_covariance from sum w_i and sum w_i b_i b_i^T."""
-    F = w_sum * _EYE3 - bwb
+    # F = w_sum I - bwb in Python floats, as numpy computes it: the diagonal w_sum * 1 - bwb_ii, off it
+    # w_sum * 0 - bwb_ij = 0.0 - bwb_ij (w_sum > 0; the same zero's sign too)
+    (p, q, r), (s, t, u), (x, y, z) = bwb.tolist()
+    w_sum = float(w_sum)
+    F = [[w_sum - p, 0.0 - q, 0.0 - r], [0.0 - s, w_sum - t, 0.0 - u], [0.0 - x, 0.0 - y, w_sum - z]]
     inv = _inverse_3x3(F)
-    return np.linalg.pinv(F) if inv is None else inv
+    return np.linalg.pinv(np.array(F)) if inv is None else inv
 
 
 _W_SUMS: dict[tuple[int, float], float] = {}
@@ -307,7 +355,7 @@ def attitude_error_arcsec(R_est: np.ndarray, R_true: np.ndarray) -> dict:
     camera x and y axes; roll: about the boresight; total: the whole rotation angle. Arcseconds.
     """
     dR = np.asarray(R_est) @ np.asarray(R_true).T
-    phi = Rotation.from_matrix(dR).as_rotvec()
+    phi = rotvec_from_R(dR)
     # atan2 of the cross and dot products: exact for small angles, and insensitive to rows that are
     # unit only to a few digits (a reference attitude printed to 8 digits: arccos would add ~20")
     a, b = np.asarray(R_est, dtype=np.float64)[2], np.asarray(R_true, dtype=np.float64)[2]

@@ -11,6 +11,7 @@ used, the one the identification's step rows index.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -43,18 +44,26 @@ def matched_stars(catalog: GuideCatalog, uv: np.ndarray, matches: dict[int, int]
     ra_deg, dec_deg, mag, residual_arcsec}], by observed index: the catalog rows they refer to, ready
     for any sink."""
     idx = sorted(matches)
-    rows = np.array([matches[i] for i in idx], dtype=np.int64)
-    if not len(rows):
+    if not idx:
         return []
-    ra, dec = np.degrees(vec_to_radec(catalog.xyz[rows]))
-    uvl = np.asarray(uv)[idx].tolist()
-    cols = zip(idx, uvl, catalog.hip[rows].tolist(), ra.tolist(), dec.tolist(), catalog.mag[rows].tolist())
-    out = [{"index": int(i), "u": float(p[0]), "v": float(p[1]), "hip": int(h), "ra_deg": a, "dec_deg": d,
-            "mag": float(m)} for i, p, h, a, d, m in cols]
-    if residuals_rad is not None:
-        for m, res in zip(out, (np.asarray(residuals_rad) * RAD_TO_ARCSEC).tolist()):
-            m["residual_arcsec"] = res
-    return out
+    rows = np.array([matches[i] for i in idx], dtype=np.int64)
+    res = None if residuals_rad is None else (np.asarray(residuals_rad) * RAD_TO_ARCSEC).tolist()
+    return _matched_rows(catalog, uv, np.array(idx, dtype=np.int64), rows, catalog.xyz[rows], res)
+
+
+def _matched_rows(catalog: GuideCatalog, uv: np.ndarray, idx: np.ndarray, rows: np.ndarray, xyz: np.ndarray,
+                  residuals_arcsec: list[float] | None) -> list[dict]:
+    """`matched_stars` of the observed stars idx (increasing, not none) matched to the catalog rows
+    `rows` (their directions xyz), with their residuals in arcsec (a list) or none."""
+    ra, dec = np.degrees(vec_to_radec(xyz))
+    # Python numbers from tolist: what int() / float() of each array element gives
+    cols = (idx.tolist(), *np.asarray(uv, dtype=np.float64)[idx].T.tolist(), catalog.hip[rows].tolist(),
+            ra.tolist(), dec.tolist(), catalog.mag[rows].tolist())
+    if residuals_arcsec is None:
+        return [{"index": i, "u": u, "v": v, "hip": h, "ra_deg": a, "dec_deg": d, "mag": m}
+                for i, u, v, h, a, d, m in zip(*cols)]
+    return [{"index": i, "u": u, "v": v, "hip": h, "ra_deg": a, "dec_deg": d, "mag": m, "residual_arcsec": e}
+            for i, u, v, h, a, d, m, e in zip(*cols, residuals_arcsec)]
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -159,8 +168,9 @@ def result_from_identification(centroids: Centroids, obs: Observation, ident: Id
                            **common)
     result = SolveResult(status=NOT_SOLVED, reason=ident.reason or ident.status, identification=ident, **common)
     if ident.identified:
-        idx = np.array(sorted(ident.matches))
-        rows = np.array([ident.matches[i] for i in idx.tolist()])
+        idx = sorted(ident.matches)
+        rows = np.array([ident.matches[i] for i in idx], dtype=np.int64)
+        idx = np.array(idx, dtype=np.int64)
         b, r = obs.vectors[idx], catalog.xyz[rows]
         # the svd estimate from every match is the one the shared verification ended in: remembered
         est = (svd_attitude_remembered if estimator == "svd" else ESTIMATORS[estimator])(b, r, sigma_rad)
@@ -168,16 +178,18 @@ def result_from_identification(centroids: Centroids, obs: Observation, ident: Id
         result.R = est.R
         # The reported 1-sigma uses the noise measured from the residuals when there are enough
         # matches (2n - 3 degrees of freedom >= 5), else the assumed sigma.
-        resid = np.linalg.norm(_cross(b, r @ est.R.T), axis=1)
+        # (np.linalg.norm(c, axis=1) and np.sum(resid ** 2), written as the reductions they are)
+        c = _cross(b, r @ est.R.T)
+        resid = np.sqrt(np.add.reduce(c * c, axis=1))
         dof = 2 * len(idx) - 3
         scale = 1.0
         if dof >= 5:
-            result.sigma_measured_rad = float(np.sqrt(np.sum(resid ** 2) / dof))
+            result.sigma_measured_rad = math.sqrt(float(np.add.reduce(resid * resid)) / dof)
             scale = result.sigma_measured_rad / sigma_rad
         result.sigma_boresight_arcsec = est.sigma_boresight_arcsec * scale
         result.sigma_roll_arcsec = est.sigma_roll_arcsec * scale
         result.residuals_arcsec = (resid * RAD_TO_ARCSEC).tolist()
-        result.matches = matched_stars(catalog, obs.uv, ident.matches, resid)
+        result.matches = _matched_rows(catalog, obs.uv, idx, rows, r, result.residuals_arcsec)
     attitude_ms = (time.perf_counter() - t1) * 1e3
     result.time_ms = {"identify": identify_ms, "attitude": attitude_ms, "solve": identify_ms + attitude_ms}
     return result

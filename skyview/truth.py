@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 MATCH_RADIUS_PX = 3.0
 
@@ -19,6 +18,8 @@ def truth_points(truth: dict) -> tuple[np.ndarray, list[int]]:
 def wrong_matches(matches: list[tuple[int, float, float, int]], truth: dict,
                   radius_px: float = MATCH_RADIUS_PX) -> list[int]:
     """Indices of (index, u, v, hip) matches that are not the star rendered at (u, v)."""
+    from scipy.spatial import cKDTree  # here: scipy.spatial costs ~0.1 s to import, a solve without truth needs none
+
     pts, hips = truth_points(truth)
     tree = cKDTree(pts) if len(pts) else None
     wrong = []
@@ -37,5 +38,7 @@ def centroid_truth(uv: np.ndarray, truth: dict, radius_px: float = MATCH_RADIUS_
     pts, hips = truth_points(truth)
     if len(pts) == 0 or len(uv) == 0:
         return [None] * len(uv)
+    from scipy.spatial import cKDTree
+
     d, j = cKDTree(pts).query(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
     return [hips[k] if dist <= radius_px else None for dist, k in zip(d, j)]

@@ -9,7 +9,7 @@ from skyview.camera import Camera
 from skyview.errors import BadInput
 from skyview.identify import FAILED, IDENTIFIED, METHODS, make_identifier
 from skyview.identify import database
-from skyview.identify.angle import AngleMethod, _join
+from skyview.identify.angle import AngleMethod, _close, _join, _Ranges
 from skyview.identify.base import Observation
 from skyview.identify.pivot import Restarts
 from skyview.identify.synthetic import add_noise, synthetic_frame
@@ -297,10 +297,11 @@ def test_pattern_stars_are_the_brightest_and_every_star_verifies(cache, cat, cam
         make_identifier("angle", cat, cam, SIGMA, max_stars=2)
 
 
-def test_join_against_a_loop():
+@pytest.mark.parametrize("n_candidates", [3000, 100])  # few hypotheses per candidate, and many
+def test_join_against_a_loop(n_candidates):
     """The vectorised join (blocks by catalog star) gives the rows of a plain double loop, in its order."""
     rng = np.random.default_rng(5)
-    ci, cj = rng.integers(0, 300, 3000), rng.integers(0, 300, 3000)
+    ci, cj = rng.integers(0, 300, n_candidates), rng.integers(0, 300, n_candidates)
     H = np.stack([rng.integers(0, 300, 40), rng.integers(300, 600, 40)], axis=1)
     H[:10, 1] = ci[:10]  # some closed loops that hold
     H[:10, 0] = cj[:10]
@@ -319,6 +320,39 @@ def test_join_against_a_loop():
                 assert new == o and used == [0, 1, o]
             assert got.tolist() == ref
     assert len(_join(H, [0, 1], 0, 1, ci, cj)[0]) == 10
+
+
+def test_a_closed_loop_tested_by_its_angle_is_the_join(ident, cat):
+    """`_close` (the angle between the two catalog stars within the bounds) keeps the rows the join
+    with the database's candidates keeps, in their order: the database holds every pair in range."""
+    rng = np.random.default_rng(11)
+    bound = 3.0 * np.sqrt(2.0) * SIGMA
+    for theta in rng.uniform(0.005, 0.12, 20):
+        lo, hi = theta - bound, theta + bound
+        s, e = (int(x[0]) for x in ident.kv.ranges(lo, hi))
+        ci, cj = ident.pair_i[s:e], ident.pair_j[s:e]
+        near = np.stack([ci, cj], axis=1)[:30]  # candidates, both orientations, and pairs that are not
+        H = np.concatenate([near, near[:, ::-1], rng.integers(0, len(cat), (60, 2)),
+                            np.stack([ident.pair_i[e:e + 20], ident.pair_j[e:e + 20]], axis=1)])
+        H = np.concatenate([H, rng.integers(0, len(cat), (len(H), 1))], axis=1)  # a third star, unused
+        H = H[rng.permutation(len(H))]
+        for ip, iq in ((0, 1), (1, 0)):
+            ref, used, new = _join(H, [7, 8, 9], [7, 8, 9][ip], [7, 8, 9][iq], ci, cj, len(cat))
+            assert new is None and used == [7, 8, 9]
+            got = _close(H, ip, iq, cat.xyz, lo, hi)
+            assert got.tolist() == ref.tolist() and len(ref) >= 60 and got.dtype == ref.dtype
+
+
+def test_candidate_ranges_looked_up_when_read(ident):
+    """An angle's range, looked up alone when a chain reads it, is the batch look-up's."""
+    rng = np.random.default_rng(2)
+    theta = rng.uniform(0.0, 0.2, 50)
+    bound = 3.0 * np.sqrt(2.0) * SIGMA
+    start, stop = ident.kv.ranges(theta - bound, theta + bound)
+    lazy = _Ranges(ident.kv.sorted_values, theta, bound)
+    for k in rng.permutation(50):
+        assert lazy.span(int(k)) == (start[k], stop[k]) and lazy[k] == 2 * (stop[k] - start[k])
+    assert lazy.all().tolist() == (2 * (stop - start)).tolist()
 
 
 def test_join_is_a_join_on_the_shared_star():

@@ -108,3 +108,66 @@ def test_missing_or_corrupt_catalog_is_bad_input(tmp_path):
     bad.write_bytes(b"not a zip")
     with pytest.raises(BadInput):
         load_guide_catalog(bad)
+
+
+def _caps(rng, n):
+    """Directions anywhere, near the poles and on RA 0 / 2 pi, with radii from arcseconds to most of the sky."""
+    for k in range(n):
+        if k % 3:
+            dec = rng.choice([-1, 1]) * (np.pi / 2 - rng.exponential(0.1))
+        else:
+            dec = rng.uniform(-np.pi / 2, np.pi / 2)
+        ra = rng.uniform(0, 2 * np.pi) if k % 5 else float(rng.choice([0.0, 2 * np.pi - 1e-12, 1e-9]))
+        yield radec_to_vec(ra, dec), float(rng.choice([rng.uniform(0, 0.02), rng.uniform(0, 0.4), rng.uniform(0, 3.5)]))
+
+
+@pytest.mark.parametrize("run", [True, False], ids=["z-run", "cells"])
+def test_sky_index_gives_the_kd_tree_sets(catalog, monkeypatch, run):
+    """within / ball_rows from the sky index (both of its ways of reading a cap) are the k-d tree's sets."""
+    import skyview.catalog as C
+
+    monkeypatch.setattr(C, "CAP_RUN", 10 ** 9 if run else -1)
+    rng = np.random.default_rng(7)
+    for sub in (catalog, catalog.brighter_than(6.0)):
+        for d, r in _caps(rng, 300):
+            want = np.sort(np.asarray(sub.tree.query_ball_point(d, float(chord(r))), dtype=np.int64))
+            np.testing.assert_array_equal(sub.within(d, r), want)
+        # a superset of every cap from the cells alone, ascending within a cell
+        for d, r in _caps(rng, 100):
+            got = set(sub.sky.cap(d, r).tolist())
+            assert set(sub.tree.query_ball_point(d, float(chord(r)))) <= got
+
+
+def test_sky_index_counts_and_nearest_are_the_kd_tree_answers(catalog):
+    """ball_counts (with and without rows known to hold the stars) and nearest_chords answer as the tree,
+    chords exactly at a neighbour's distance and a hair either side included."""
+    rng = np.random.default_rng(11)
+    sub = catalog.brighter_than(7.0)
+    for spread in (0.01, 0.3, 3.0):
+        c0 = radec_to_vec(rng.uniform(0, 2 * np.pi), rng.uniform(-np.pi / 2, np.pi / 2))
+        c = c0 + rng.normal(0, spread, (300, 3))
+        c /= np.linalg.norm(c, axis=1)[:, None]
+        ch = chord(rng.uniform(0, 0.05, 300))
+        want = sub.tree.query_ball_point(c, ch, return_length=True)
+        np.testing.assert_array_equal(sub.ball_counts(c, ch), want)
+        np.testing.assert_array_equal(sub.ball_counts(c, float(ch[0])),
+                                      sub.tree.query_ball_point(c, float(ch[0]), return_length=True))
+    rows = rng.choice(len(sub), 400, replace=False)
+    nn = sub.tree.query(sub.xyz[rows], k=2)[0][:, 1]
+    got = sub.nearest_chords(rows, np.radians(2.0))
+    near = nn <= chord(np.radians(2.0))
+    np.testing.assert_array_equal(got[near], nn[near])
+    assert np.all(np.isinf(got[~near]))
+    for chords in (nn, nn * (1 + 1e-15), nn * (1 - 1e-15)):  # on the limit: the tree's own count
+        want = sub.tree.query_ball_point(sub.xyz[rows], chords, return_length=True)
+        np.testing.assert_array_equal(sub.ball_counts(sub.xyz[rows], chords), want)
+        among = np.unique(np.concatenate([sub.within(x, 0.05) for x in sub.xyz[rows]]))
+        np.testing.assert_array_equal(sub.ball_counts(sub.xyz[rows], chords, among), want)
+
+
+def test_sky_index_is_small_and_lazy(catalog):
+    fresh = load_guide_catalog()
+    assert "sky" not in fresh.__dict__ and "tree" not in fresh.__dict__
+    fresh.within(radec_to_vec(1.0, 0.5), np.radians(10))
+    assert "sky" in fresh.__dict__ and "tree" not in fresh.__dict__  # no k-d tree built for it
+    assert fresh.sky.nbytes <= 50 * len(fresh) + 56 * 6 * 16 * 16

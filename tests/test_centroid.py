@@ -437,18 +437,19 @@ def test_fast_background_statistics_near_the_reference_ones(cat):
             assert new[1] == ref[1] and new[2] == pytest.approx(sigma, rel=1e-6)
 
 
-def test_median_absolute_deviation_without_a_second_sort():
-    """The MAD from the two sorted runs of deviations is the value np.sort gives, bit for bit."""
-    from skyview.centroid import _median_abs_dev_sorted, _median_sorted
+def test_median_and_mad_from_one_partition():
+    """The median and the MAD from one partition each are np.median's values, bit for bit and in the
+    same dtype (odd and even counts, ties at the median as on integer images)."""
+    from skyview.centroid import _median_part
     rng = np.random.default_rng(11)
     for k in range(2000):
         r = rng.normal(0.0, 3.0, int(rng.integers(1, 80))).astype(np.float32)
         if k % 3 == 0:
             r = np.round(r)  # ties at the median (integer images)
-        rs = np.sort(r)
-        med = _median_sorted(rs)
-        mad = _median_abs_dev_sorted(rs, med)
-        ref = _median_sorted(np.sort(np.abs(r - med)))
+        med = _median_part(r)
+        assert med == np.median(r) and np.asarray(med).dtype == np.float32
+        mad = _median_part(np.abs(r - med))
+        ref = np.median(np.abs(r - np.median(r)))
         assert mad == ref and np.asarray(mad).dtype == np.asarray(ref).dtype
 
 
@@ -467,3 +468,65 @@ def test_sparse_labels_are_cv2_components():
         assert n2 == n and mine.min() == 1 and mine.max() == n - 1
         pairs = np.unique(np.stack([mine, theirs], axis=1), axis=0)
         assert len(pairs) == n - 1  # the same partition of the pixels
+
+
+def test_band_thresholding_finds_every_pixel_above():
+    """_above_idx (4-row band maxima, then the crossing bands compared) = np.flatnonzero(_above(...)),
+    on heights that are and are not multiples of the band, every native dtype and float32, few and many
+    crossing bands."""
+    from skyview.centroid import _above, _above_idx, _band_max
+    rng = np.random.default_rng(3)
+    for H, W in ((64, 50), (67, 31), (5, 9), (3, 3), (130, 64)):
+        for dtype in (np.uint8, np.uint16, np.int16, np.float32):
+            f = rng.normal(100.0, 5.0, (H, W))
+            f[rng.integers(0, H, 4), rng.integers(0, W, 4)] += 80.0  # a few bright pixels: few bands
+            f = f.astype(dtype)
+            for t in (130.4, 100.0, 60.0, 1e6, -1e6):
+                t32 = np.float32(t)
+                want = np.flatnonzero(_above(f, t32))
+                assert np.array_equal(_above_idx(f, t32), want)
+                assert np.array_equal(_above_idx(f, t32, _band_max(f)), want)
+
+
+def test_background_map_at_the_noise_samples_is_the_upsampled_map():
+    """_upsample_at (cached interpolation weights) gives _upsample's map (cv2.resize) at every
+    sample, phase and step, to float32 rounding."""
+    from skyview.centroid import _upsample, _upsample_at
+    rng = np.random.default_rng(4)
+    for gh, gw, by, bx, H, W in ((16, 16, 8, 16, 128, 256), (3, 5, 8, 8, 30, 47), (1, 4, 8, 8, 9, 40),
+                                 (2, 1, 4, 4, 11, 5), (4, 3, 5, 7, 23, 22)):
+        g = (rng.normal(0.0, 30.0, (gh, gw)) + 1000.0).astype(np.float32)
+        full = _upsample(g, by, bx, H, W)
+        for start, step in ((0, 1), (0, 2), (1, 2)):
+            at = _upsample_at(g, by, bx, H, W, start, step)
+            assert at.dtype == np.float32
+            np.testing.assert_allclose(at, full[start::step, start::step], rtol=1e-6, atol=0)
+
+
+def test_hot_pixels_and_stars_at_the_side_columns():
+    """Hot pixels and stars in the first and last columns and rows (the 3 x 3 neighbourhoods that
+    wrap into the next row are read through the zero-padded gather): as the reference."""
+    img = _star_image([[1.0, 40.0], [126.2, 70.3], [60.0, 60.0], [0.4, 100.0]], [20000.0, 15000.0, 30000.0, 9000.0],
+                      shape=(128, 128), noise=3.0, seed=2)
+    for (i, j) in ((20, 0), (90, 127), (50, 0), (0, 30), (127, 64)):
+        img[i, j] = 5000  # hot pixels on the borders
+    for im in (img, img[1:-1]):  # with and without hot pixels in the first and last rows
+        for est in ESTIMATORS:
+            fast = detect_centroids(im, estimator=est)
+            ref = _detect_centroids_reference(im, estimator=est)
+            assert fast.n_hot_pixels_rejected == ref.n_hot_pixels_rejected >= 3
+            _assert_close(fast, ref)
+
+
+def test_label_peaks_are_the_last_of_a_lexsort():
+    """Each label's brightest pixel (the last in order among equal values) is what np.lexsort gives."""
+    from skyview.centroid import _label_peaks
+    rng = np.random.default_rng(8)
+    for _ in range(300):
+        n_lab = int(rng.integers(2, 30))
+        lab = np.r_[np.arange(1, n_lab), rng.integers(1, n_lab, int(rng.integers(0, 200)))]
+        rng.shuffle(lab)
+        val = rng.integers(0, 6, lab.size).astype(np.float32)  # many ties
+        order = np.lexsort((val, lab))
+        last = np.r_[lab[order][1:] != lab[order][:-1], True]
+        assert np.array_equal(_label_peaks(lab, val, n_lab), order[last])

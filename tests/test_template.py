@@ -21,6 +21,7 @@ from skyview.errors import BadInput
 from skyview.identify import (FAILED, IDENTIFIED, INCONCLUSIVE, METHODS, Hypothesis, Identifier, Search, Status,
                               Step, make_identifier, register)
 from skyview.identify import database
+from skyview.identify.base import LazyStep
 from skyview.identify.layers import Hypotheses
 from skyview.identify.params import MethodParams, at_least, parameter_table, positive
 from skyview.identify.verify import angular_distance
@@ -174,6 +175,29 @@ def test_the_parameter_table_in_the_docs_is_current():
 def test_status_keeps_its_strings():
     assert json.dumps({"s": IDENTIFIED}) == '{"s": "identified"}' and f"{FAILED}" == "failed"
     assert Status("inconclusive") is INCONCLUSIVE
+
+
+def test_a_lazy_step_is_the_step_it_stands_for():
+    """A LazyStep computes its catalog rows and groups when first read, once, and reads, compares,
+    copies, replaces and pickles as the Step with those contents."""
+    import copy
+    import pickle
+
+    made = []
+    lazy = LazyStep("pivot", "pivoted", observed=[1, 2], catalog_of=lambda: made.append("c") or [5, 7],
+                    groups_of=lambda: made.append("g") or [(5, 7)], numbers={"hypotheses": 3.0})
+    assert made == []
+    plain = Step("pivot", "pivoted", [1, 2], [5, 7], [(5, 7)], {"hypotheses": 3.0})
+    assert lazy.catalog == [5, 7] and made == ["c"]
+    assert lazy == plain and plain == lazy and lazy.to_dict() == plain.to_dict()
+    assert made == ["c", "g"] and lazy.groups == [(5, 7)] and made == ["c", "g"]
+    back = pickle.loads(pickle.dumps(lazy))
+    assert type(back) is Step and back == plain and copy.deepcopy(lazy) == plain
+    assert dataclasses.asdict(lazy) == dataclasses.asdict(plain)
+    assert dataclasses.replace(lazy, note="other").note == "other"
+    lazy.catalog = [9]
+    assert lazy.catalog == [9] and lazy != plain
+    assert LazyStep("x", "y") == Step("x", "y")
 
 
 # ---------------------------------------------------------------------- the sinks: CLI, bench, drawables

@@ -161,6 +161,29 @@ def test_area_jacobian_and_sigma_against_monte_carlo():
     assert ratio == pytest.approx(np.sqrt(3), rel=1e-4)
 
 
+def test_fast_forms_give_the_same_numbers():
+    """The plain-float and fewer-call forms the search uses for a few triangles give the numbers of the
+    vectorised functions to the last bit (from slivers to wide triangles, one to many at once)."""
+    rng = np.random.default_rng(RNG_SEED)
+    for size in (1e-4, 3e-3, 0.05, 0.3):
+        for n in (1, 2, 5, 40):
+            A, B, C = random_triangles(rng, n, size_rad=size)
+            a, b, c = sph.sides(A, B, C)
+            s_area, s_triple = sph.triangle_sigmas(A, B, C, a, b, c, SIGMA)
+            assert np.array_equal(s_area, sph.area_sigma_stars(A, B, C, SIGMA))
+            assert np.array_equal(s_triple, sph.triple_sigma(A, B, C, SIGMA))
+            assert np.array_equal(sph.area_few(A.tolist(), B.tolist(), C.tolist()), sph.area(A, B, C))
+            assert np.array_equal(sph.lhuilier_zero_first(np.stack([np.zeros(n), a, b, c])), sph.lhuilier(a, b, c))
+            tr = [sph.dot3(p, sph.cross3(q, r)) for p, q, r in zip(A.tolist(), B.tolist(), C.tolist())]
+            assert np.array_equal(tr, sph.triple(A, B, C))
+            for depth in (0, 1, 3):
+                assert np.array_equal(sph.polar_moment_few(A, B, C, depth), sph.polar_moment(A, B, C, depth))
+    # a degenerate triangle (a repeated vertex): left to the vectorised forms, which bound it by inf
+    A, B, C = random_triangles(rng, 1)
+    assert sph.triangle_sigmas(A, A, C, *sph.sides(A, A, C), SIGMA) is None
+    assert sph.sign(-2.0) == -1 and sph.sign(0.0) == 0 and sph.sign(3.0) == 1
+
+
 def test_upper_line_lies_above_every_point():
     rng = np.random.default_rng(RNG_SEED)
     x = rng.uniform(0, 1, 300)
@@ -292,6 +315,24 @@ def test_database_on_a_tiny_catalog(tmp_path, monkeypatch, cam):
     np.testing.assert_array_equal(np.concatenate(pieces), tri)
 
 
+def test_kvector_built_in_chunks_is_the_kvector(monkeypatch):
+    """The build's k-vectors, made a chunk at a time to keep its memory low: KVector's k and curve."""
+    from skyview.identify import triangle_database as tdb
+    from skyview.identify.kvector import KVector
+
+    monkeypatch.setattr(tdb, "KVECTOR_CHUNK", 1000)
+    rng = np.random.default_rng(RNG_SEED)
+    for n in (1, 2, 3, 1000, 1001, 54321):
+        v = np.sort(rng.gamma(2.0, size=n).astype(np.float32))
+        for fit in ("line", "parabola"):
+            kv = KVector(v.astype(np.float64), fit=fit, presorted=True)
+            k, coef = tdb._kvector_arrays(v, fit)
+            assert k.dtype == np.int32 and np.array_equal(k, kv.k)
+            np.testing.assert_allclose(coef, kv.coef, rtol=1e-12)
+    with pytest.raises(ValueError):
+        tdb._kvector_arrays(np.array([1.0, 3.0, 2.0, 4.0], dtype=np.float32), "line")
+
+
 def test_candidates_are_the_intersection(paper, region, cam):
     f = frames(region, cam, 1, seed=4, n_min=7)[0]
     V = f.obs.vectors[:7]
@@ -368,8 +409,9 @@ def test_pair_join_gives_the_stored_candidates(improved, stored_sides, region, c
 
 
 def test_measured_as_visited_gives_the_figures_of_measuring_all(improved, region, cam):
-    """The largest-area order measures only the triangles it visits, a few at a time (their polar moments
-    with the first one's candidates): the same figures, to the last bit, as measuring every triangle."""
+    """The largest-area order measures only the triangles it visits (with database="pairs", one at a time
+    in plain floats, each polar moment with its candidates'): the same figures, to the last bit, as
+    measuring every triangle at once."""
     for f in frames(region, cam, 2, seed=23, n_min=7):
         V = f.obs.vectors[:7]
         lazy = improved.triangle_bounds(V, SIGMA, lookup=False)
@@ -381,18 +423,47 @@ def test_measured_as_visited_gives_the_figures_of_measuring_all(improved, region
             for key in ("area_bound", "moment", "moment_bound", "triple_sigma"):
                 assert lazy[key][k] == full[key][k]
         measured = ~np.isnan(lazy["area_bound"])
-        assert 4 <= measured.sum() < len(measured)  # a few at a time, not all
+        assert measured.sum() == 4  # the four visited, not all
         done = np.flatnonzero(lazy["counts"] >= 0)
         assert np.array_equal(lazy["moment"][done], full["moment"][done])
+
+
+def test_consistent_in_plain_floats_matches_the_vectorised_test(improved, region, cam):
+    """A few hypotheses are checked in plain floats (`_consistent_few`): the same survivors as the
+    vectorised test, for true hypotheses, mirrored ones and ones with a side just outside the bound."""
+    from skyview.identify.triangle import _triangle_index
+
+    for f in frames(region, cam, 3, seed=41, n_min=6):
+        V = f.obs.vectors[:6]
+        t = improved.triangle_bounds(V, SIGMA, lookup=False)
+        used, triangles = [0, 1, 2, 4], [[0, 1, 2], [0, 2, 4], [1, 2, 4]]
+        for tri in triangles:
+            improved.count_of(t, _triangle_index(*tri, 6))  # measured, as the chain's triangles are
+        truth = np.array([f.truth[u] for u in used])
+        rng = np.random.default_rng(2)
+        H = np.stack([truth, truth[[1, 0, 2, 3]], rng.permutation(truth),
+                      rng.integers(0, len(region), size=4), truth[[0, 1, 3, 2]]])
+        expect = improved.consistent(V, used, triangles, H, SIGMA)
+        got = improved.consistent(V, used, triangles, H, SIGMA, t)
+        assert np.array_equal(got, expect) and len(expect) >= 1 and expect[0].tolist() == truth.tolist()
+    # the triangle index is the position in itertools.combinations' order (triangle_bounds')
+    for m in (3, 5, 12):
+        expect = list(range(m * (m - 1) * (m - 2) // 6))
+        assert [_triangle_index(*c, m) for c in itertools.combinations(range(m), 3)] == expect
 
 
 def test_distinct_star_sets_and_lazy_hypotheses_layer():
     from skyview.identify.triangle_lookup import _distinct_sets
 
+    from skyview.identify.triangle import _distinct
+
     rng = np.random.default_rng(5)
     H = rng.integers(0, 40, size=(300, 3))
     expect = np.unique(np.sort(H, axis=1), axis=0)[:200]
     assert _distinct_sets(H) == list(map(tuple, expect.tolist())) and _distinct_sets(H[:0]) == []
+    for n in (1, 3, 21, 22):  # a few rows are taken in plain Python: the same sets and stars
+        assert _distinct_sets(H[:n]) == list(map(tuple, np.unique(np.sort(H[:n], axis=1), axis=0).tolist()))
+        assert _distinct(H[:n]) == np.unique(H[:n]).tolist()
     # a step's layer samples its hypotheses when a sink reads them: the same rows as sampling at once
     layer = Hypotheses.sample([4, 1, 7], H.astype(np.int32), cap=50, shared=[1])
     assert (layer.used, layer.total, layer.shared) == ((4, 1, 7), 300, (1,))

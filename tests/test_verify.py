@@ -332,6 +332,8 @@ def test_fast_paths_agree_with_the_general_ones(cat, cam, monkeypatch):
 
     fast = run()
     assert sum(r[0] for r in fast) >= 20  # correct hypotheses pass: the accepted branch is exercised
+    monkeypatch.setattr(V, "ONE_EACH_FAST", False)  # one-to-one frames paired as any other
+    assert run() == fast
     monkeypatch.setattr(V, "PREFILTER_PAIRS", 0)  # every frame's pairs through the dot-product prefilter
     assert run() == fast
     monkeypatch.setattr(V, "BRUTE_PAIRS", 0)  # every distance from a k-d tree
@@ -424,3 +426,71 @@ def test_result_cross_and_matched_stars(cat):
         assert m["ra_deg"] == float(ra[k]) and m["dec_deg"] == float(dec[k])
         assert m["residual_arcsec"] == pytest.approx((k + 1) * 1e-5 * 206264.806, rel=1e-6)
     assert matched_stars(cat, uv, {}) == []
+
+
+def test_local_density_from_the_stars_around_a_frame_is_the_kd_tree_count(cat, cam):
+    """The local density from the stars fetched around a frame (dot products, the few near the limit
+    measured) counts as the k-d tree does; so does the sky index without them."""
+    from skyview.catalog import chord
+    from skyview.identify.verify import LOCAL_RADIUS_RAD, _half_diagonal_rad, _Near, local_density
+
+    rng = np.random.default_rng(8)
+    area = 2.0 * np.pi * (1.0 - np.cos(LOCAL_RADIUS_RAD))
+    for seed in range(30):
+        f = frame_with(cat, cam, 3, seed=300 + seed)
+        d = f.obs.vectors @ f.R
+        near = _Near(cat, _half_diagonal_rad(cam) + LOCAL_RADIUS_RAD + 0.01)
+        near.rows(f.R[2], _half_diagonal_rad(cam))
+        assert near.covers(d, LOCAL_RADIUS_RAD)
+        n = cat.tree.query_ball_point(d, float(chord(LOCAL_RADIUS_RAD)), return_length=True)
+        leave = rng.integers(0, 2, len(d)).astype(float)
+        want = np.maximum(n - leave, 0.0)
+        want[want < 3] = 0.0
+        want /= area
+        np.testing.assert_array_equal(local_density(cat, d, leave, among=near.wide), want)
+        np.testing.assert_array_equal(local_density(cat, d, leave), want)
+    assert not near.covers(-d, LOCAL_RADIUS_RAD)  # the far side of the sky is not among its stars
+
+
+def test_quaternion_and_rotation_vector_are_scipys_to_the_bit():
+    from scipy.spatial.transform import Rotation
+
+    from skyview.attitude import quat_from_R, rotvec_from_R
+
+    rng = np.random.default_rng(4)
+    Rs = list(random_attitudes(3000, rng)) + [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]),
+                                              np.diag([-1.0, -1, 1])]
+    for scale in (1e-7, 1e-4, 1e-1, 2.0):  # small rotations: the series branch of the angle
+        Rs += [Rotation.from_rotvec(rng.normal(0, scale, 3)).as_matrix() for _ in range(300)]
+    Rs += [R + rng.normal(0, 1e-6, (3, 3)) for R in Rs[:50]]  # not orthogonal: scipy's own path
+    for R in Rs:
+        q = Rotation.from_matrix(R).as_quat(scalar_first=True)
+        assert np.array_equal(quat_from_R(R), -q if q[0] < 0 else q)
+        assert np.array_equal(rotvec_from_R(R), Rotation.from_matrix(R).as_rotvec())
+
+
+def test_calibrated_verification_imports_no_kd_tree():
+    """Verifying, estimating and reporting an attitude (the calibrated solve path) never imports
+    scipy.spatial (~0.1 s): the sky index answers the neighbour queries."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+import numpy as np
+from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, quat_from_R
+from skyview.camera import Camera
+from skyview.catalog import load_guide_catalog
+from skyview.identify.synthetic import synthetic_frame
+from skyview.identify.verify import verify
+cat = load_guide_catalog().brighter_than(6.0)
+cam = Camera.from_fov(20.0, 1024)
+R = R_from_radec_roll(1.4, -0.1, 0.2)
+f = synthetic_frame(cat, cam, R, 87e-6, np.random.default_rng(0))
+v = verify(f.obs.vectors, {i: int(f.truth[i]) for i in range(3)}, cat, cam, 87e-6)
+assert v.passed, v.reason
+quat_from_R(v.R), attitude_error_arcsec(v.R, R)
+print(sorted(m for m in sys.modules if m.startswith("scipy.spatial")))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

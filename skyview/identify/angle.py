@@ -51,9 +51,14 @@ sun20, with and without a false star).
 
 Speed (beyond the paper, same results). A join groups the candidate pairs by their catalog star on
 the shared observed star once (a radix sort and a bincount, `by_star`) and each hypothesis meets
-its star's block, a closed loop included (no binary search per hypothesis: ~0.1 ms instead of ~2.5 ms
-for 12,000 candidates at 20 deg); steps record capped samples (CAP rows, `Hypotheses.sample`), never
-the whole candidate lists.
+its star's block (no binary search per hypothesis: ~0.1 ms instead of ~2.5 ms for 12,000 candidates
+at 20 deg); after the first join only the candidates on the hypotheses' stars are grouped. A closed
+loop is tested by the angle between the hypothesis' two catalog stars itself (`_close`: the database
+holds every pair up to its range, and its angles are the same numbers). An angle's candidate range is
+looked up when a chain first reads it (a frame's chains read a handful of its angles), the next angle
+is picked in Python from each star's angles by priority (`_AngleWalk`), and steps record capped
+samples (CAP rows, `Hypotheses.sample`), never the whole candidate lists, computed when a sink first
+reads them (`LazyStep`).
 
 Backtracking (option, default off as in the paper). When the hypotheses go to zero (a false star or an
 angle outside its bound was used) or the unique hypothesis fails verification, the paper's method has
@@ -69,7 +74,7 @@ search loop, the restarts and the parameters it shares with the triangle method 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from functools import partial
+from functools import lru_cache, partial
 
 import numpy as np
 
@@ -77,14 +82,15 @@ from skyview.attitude import RAD_TO_ARCSEC
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog
 from skyview.identify import database
-from skyview.identify.base import Search, Step
+from skyview.identify.base import LazyStep, Search, Step
 from skyview.identify.kvector import KVector
 from skyview.identify.layers import Hypotheses
-from skyview.identify.pivot import (Chain, PivotMethod, PivotParams, by_star, next_by_priority, take_pattern,
-                                   pair_indices, uses_any)
+from skyview.identify.pivot import (Chain, PivotMethod, PivotParams, angles, by_star, pair_indices,
+                                   take_pattern, uses_any)
 from skyview.identify.verify import angular_distance
 
 CAP = 200  # catalog rows / groups kept in one step
+CLOSE_BY_ANGLE = 0.999  # a closing angle below this fraction of the database's range is tested by its angle
 DATABASE_VERSION = 1
 
 
@@ -173,18 +179,21 @@ class AngleMethod(PivotMethod):
         V, sigma = search.V, search.sigma
         m = search.n if self.max_stars is None else min(search.n, self.max_stars)  # the stars that form angles
         ii, jj = pair_indices(m)
-        theta = angular_distance(V[ii], V[jj])
+        theta = angles(V[ii], V[jj])
         bound = self.beta * np.sqrt(2.0) * sigma  # beta sigma_p, sigma_p = sqrt(2) sigma (eq. 14)
-        start, stop = self.kv.ranges(theta - bound, theta + bound)
-        counts = 2 * (stop - start)  # both orientations
+        counts = _Ranges(self.kv.sorted_values, theta, bound)
         if self.order == "largest":
             rank = np.argsort(-theta, kind="stable")
-        else:
-            rank = np.lexsort((-theta, counts))
+        else:  # the order needs every angle's count: one batch look-up
+            counts.fill(*self.kv.ranges(theta - bound, theta + bound))
+            rank = np.lexsort((-theta, counts.all()))
         priority = np.empty(len(theta), dtype=np.int64)
         priority[rank] = np.arange(len(theta))
-        return dict(ii=ii, jj=jj, theta=theta, start=start, stop=stop, counts=counts, priority=priority,
-                    bound=bound, tol=2.0 * search.radius), m
+        # the join chain picks its angles in Python (`_AngleWalk`): a handful of stars, where a numpy
+        # mask over every angle per pivot costs more
+        return dict(ii=ii, jj=jj, theta=theta, counts=counts, priority=priority, order=rank.tolist(),
+                    pairs=_pair_lists(m), deg=np.degrees(theta).tolist(), bound=bound,
+                    bound_arcsec=float(bound * RAD_TO_ARCSEC), tol=2.0 * search.radius), m
 
     def _proposals(self, V: np.ndarray, chain: Chain, sigma: float) -> list[np.ndarray]:
         """join: the best fit of equivalent hypotheses; lists: each orientation the lists left open."""
@@ -200,8 +209,7 @@ class AngleMethod(PivotMethod):
 
     # ------------------------------------------------------------------ one pivoting chain
     def _numbers(self, ctx: dict, k: int) -> dict[str, float]:
-        return {"angle_deg": float(np.degrees(ctx["theta"][k])), "bound_arcsec": float(ctx["bound"] * RAD_TO_ARCSEC),
-                "candidates": int(ctx["counts"][k])}
+        return {"angle_deg": ctx["deg"][k], "bound_arcsec": ctx["bound_arcsec"], "candidates": ctx["counts"][k]}
 
     def _skip(self, ctx: dict, k: int, steps: list[Step]) -> None:
         """Record angle k left out: more than max_candidates candidates."""
@@ -211,75 +219,81 @@ class AngleMethod(PivotMethod):
                           numbers=self._numbers(ctx, k) | {"max_candidates": self.max_candidates}))
 
     def _chain(self, V: np.ndarray, excluded: frozenset, ctx: dict, steps: list[Step]) -> Chain:
-        ii, jj, theta, counts, priority = ctx["ii"], ctx["jj"], ctx["theta"], ctx["counts"], ctx["priority"]
+        theta, deg, counts, order = ctx["theta"], ctx["deg"], ctx["counts"], ctx["order"]
+        ii, jj = ctx["pairs"][:2]
         bound = ctx["bound"]
-        n_obs = len(V)
-        done = uses_any(excluded, len(V), ii, jj)
+        # the angles left out: those done, and those of an excluded star
+        done = [a in excluded or b in excluded for a, b in zip(ii, jj)] if excluded else [False] * len(ii)
         candidates: list[int] = []
         hyps: list[int] = []
         angle_numbers = partial(self._numbers, ctx)
 
-        pick_next = partial(next_by_priority, priority=priority)
-        k = take_pattern(done, priority, lambda k: counts[k] > self.max_candidates,
-                         lambda k: self._skip(ctx, k, steps))
+        k = -1
+        for c in order:  # the first angle: the highest priority whose candidates are not too many
+            if not done[c]:
+                done[c] = True
+                if counts[c] <= self.max_candidates:
+                    k = c
+                    break
+                self._skip(ctx, c, steps)
         if k < 0:
             return Chain("ambiguous", "no angle with at most max_candidates candidates to start from", [],
                          np.zeros((0, 0), dtype=np.int64))
-        a, b = int(ii[k]), int(jj[k])
+        a, b = ii[k], jj[k]
         ci, cj = self._candidates(ctx, k)
         H = _both_orientations(ci, cj)
         used = [a, b]
         candidates.append(int(counts[k]))
         hyps.append(len(H))
-        steps.append(Step("pick", f"picked angle {a}-{b} ({np.degrees(theta[k]):.3f} deg +- "
-                                  f"{bound * RAD_TO_ARCSEC:.1f}\"): {counts[k]} candidates",
-                          observed=used.copy(), catalog=_distinct(H), groups=_groups(ci, cj),
-                          numbers=angle_numbers(k) | {"hypotheses": len(H)},
-                          layers=(Hypotheses.sample(used, H),)))
+        steps.append(LazyStep("pick", f"picked angle {a}-{b} ({deg[k]:.3f} deg +- "
+                                      f"{bound * RAD_TO_ARCSEC:.1f}\"): {counts[k]} candidates",
+                              observed=used.copy(), catalog_of=partial(_distinct, H),
+                              groups_of=partial(_groups, ci, cj), numbers=angle_numbers(k) | {"hypotheses": len(H)},
+                              layers=(Hypotheses.sample(used, H),)))
         if len(H) == 0:
             return Chain("empty", f"no catalog pair matches the first angle {a}-{b}", used, H,
                           suspects=[b, a], candidates=candidates, hypotheses=hyps)
         prev = (a, b)
         pivots = 0
+        walk = None
         while len(H) != 1 and not self._equivalent(H, ctx["tol"]):
             if self.max_pivots is not None and pivots >= self.max_pivots:
                 steps.append(Step("stop", f"pivot limit {self.max_pivots} reached with {len(H)} hypotheses",
                                   observed=used.copy(), catalog=_distinct(H), numbers={"hypotheses": len(H)}))
                 return Chain("ambiguous", f"{len(H)} hypotheses left after {pivots} pivots (the limit)", used, H,
                               pivots=pivots, candidates=candidates, hypotheses=hyps)
-            open_ = ~done
-            in_used = np.zeros(n_obs, dtype=bool)
-            in_used[used] = True
-            ui, uj = in_used[ii], in_used[jj]
-            k = pick_next(open_ & ui & uj) if self.close_loops else -1
-            if k < 0:
-                in_prev = np.zeros(n_obs, dtype=bool)
-                in_prev[list(prev)] = True
-                k = pick_next(open_ & (in_prev[ii] | in_prev[jj]))
-            if k < 0:  # nothing shares a star with the previous angle: any angle touching a used star
-                k = pick_next(open_ & (ui | uj))
+            if walk is None:  # made once a frame, for its first pivot
+                walk = ctx.get("walk")
+                if walk is None:
+                    walk = ctx["walk"] = _AngleWalk(ctx)
+            k = walk.next(done, used, prev, self.close_loops)
             if k < 0:
                 steps.append(Step("stop", f"no angle left to pivot to; {len(H)} hypotheses",
                                   observed=used.copy(), catalog=_distinct(H), numbers={"hypotheses": len(H)}))
                 return Chain("ambiguous", f"{len(H)} hypotheses left and no angle to pivot to", used, H,
                               pivots=pivots, candidates=candidates, hypotheses=hyps)
             done[k] = True
-            p, q = int(ii[k]), int(jj[k])
+            p, q = ii[k], jj[k]
             if counts[k] > self.max_candidates:
                 self._skip(ctx, k, steps)
                 continue
             ci, cj = self._candidates(ctx, k)
             before = len(H)
-            H, used, new = _join(H, used, p, q, ci, cj, len(self.catalog))
+            lo, hi = theta[k] - bound, theta[k] + bound
+            if p in used and q in used and hi < CLOSE_BY_ANGLE * self.max_sep_rad:
+                H, new = _close(H, used.index(p), used.index(q), self.catalog.xyz, lo, hi), None
+            else:
+                H, used, new = _join(H, used, p, q, ci, cj, len(self.catalog))
             pivots += 1
             candidates.append(int(counts[k]))
             hyps.append(len(H))
-            steps.append(Step("pivot", f"pivoted to angle {p}-{q} ({np.degrees(theta[k]):.3f} deg): "
-                                       f"{counts[k]} candidates, {before} -> {len(H)} hypotheses",
-                              observed=[p, q], catalog=_distinct(H), groups=_groups(ci, cj),
-                              numbers=angle_numbers(k) | {"hypotheses_before": before, "hypotheses_after": len(H),
-                                                          "pivot": pivots, "new_star": -1 if new is None else new},
-                              layers=(Hypotheses.sample(used, H),)))
+            steps.append(LazyStep("pivot", f"pivoted to angle {p}-{q} ({deg[k]:.3f} deg): "
+                                           f"{counts[k]} candidates, {before} -> {len(H)} hypotheses",
+                                  observed=[p, q], catalog_of=partial(_distinct, H),
+                                  groups_of=partial(_groups, ci, cj),
+                                  numbers=angle_numbers(k) | {"hypotheses_before": before, "hypotheses_after": len(H),
+                                                              "pivot": pivots, "new_star": -1 if new is None else new},
+                                  layers=(Hypotheses.sample(used, H),)))
             if len(H) == 0:
                 if new is not None:
                     first_suspect = new
@@ -384,11 +398,91 @@ class AngleMethod(PivotMethod):
                       pivots=pivots, candidates=candidates, hypotheses=hyps)
 
     def _candidates(self, ctx: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
-        s, e = int(ctx["start"][k]), int(ctx["stop"][k])
+        s, e = ctx["counts"].span(k)
         return self.pair_i[s:e], self.pair_j[s:e]
 
 
+class _Ranges:
+    """The candidate range of each angle of a frame (the slice [start, stop) of the database's sorted
+    angles within theta +- bound) and its count of oriented candidates (`counts[k]` = 2 (stop - start)).
+
+    A range is looked up when a chain first reads it: with order="largest" a frame's chains read a
+    handful of its 66 angles, and each look-up is two binary searches in a table of up to ~700,000
+    angles that is mostly out of the cache (~0.5 us of memory latency a query). The answers are those of
+    `KVector.ranges` (the same searchsorted on the same bounds); `fill` takes a batch of them."""
+
+    __slots__ = ("s", "theta", "bound", "start", "stop")
+
+    def __init__(self, sorted_values: np.ndarray, theta: np.ndarray, bound: float):
+        self.s, self.theta, self.bound = sorted_values, theta, bound
+        self.start = [-1] * len(theta)
+        self.stop = [-1] * len(theta)
+
+    def fill(self, start: np.ndarray, stop: np.ndarray) -> None:
+        self.start, self.stop = start.tolist(), stop.tolist()
+
+    def span(self, k: int) -> tuple[int, int]:
+        if self.start[k] < 0:
+            t = self.theta[k]
+            self.start[k] = int(self.s.searchsorted(t - self.bound, side="left"))
+            self.stop[k] = int(self.s.searchsorted(t + self.bound, side="right"))
+        return self.start[k], self.stop[k]
+
+    def __getitem__(self, k) -> int:
+        s, e = self.span(int(k))
+        return 2 * (e - s)  # both orientations
+
+    def all(self) -> np.ndarray:
+        return np.array([self[k] for k in range(len(self.start))], dtype=np.int64)
+
+
 # ---------------------------------------------------------------------- helpers
+
+@lru_cache(maxsize=64)
+def _pair_lists(m: int) -> tuple[list[int], list[int], list[list[int]]]:
+    """`pair_indices(m)` as Python lists, and the angle between two stars s and t as table[s][t] (-1 for
+    s == t); read-only by convention."""
+    ii, jj = pair_indices(m)
+    table = np.full((m, m), -1, dtype=np.int64)
+    table[ii, jj] = table[jj, ii] = np.arange(len(ii))
+    return ii.tolist(), jj.tolist(), table.tolist()
+
+
+class _AngleWalk:
+    """Which angle a join chain takes next, the first by priority among those not done: with
+    close_loops one between two used stars, else one sharing a star with the previous angle, else one
+    touching a used star (the masks of `next_by_priority`, answered from the few stars involved and
+    their angles instead of a pass over every angle)."""
+
+    def __init__(self, ctx: dict):
+        self.angle = ctx["pairs"][2]  # angle[s][t]: the angle between stars s and t (-1: s == t)
+        self.prio = ctx["priority"].tolist()
+
+    def _first(self, stars, done: list[bool]) -> int:
+        """The first angle by priority not done among those of `stars`, or -1."""
+        prio = self.prio
+        best, best_prio = -1, len(prio)
+        for s in stars:
+            for k in self.angle[s]:
+                if k >= 0 and not done[k] and prio[k] < best_prio:
+                    best, best_prio = k, prio[k]
+        return best
+
+    def next(self, done: list[bool], used: list[int], prev: tuple[int, int], close_loops: bool) -> int:
+        if close_loops:
+            prio = self.prio
+            best, best_prio = -1, len(prio)
+            for x in range(len(used)):
+                row = self.angle[used[x]]
+                for y in used[x + 1:]:
+                    k = row[y]
+                    if not done[k] and prio[k] < best_prio:
+                        best, best_prio = k, prio[k]
+            if best >= 0:
+                return best
+        k = self._first(prev, done)
+        return k if k >= 0 else self._first(used, done)
+
 
 def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np.ndarray, n_catalog: int | None = None):
     """Join hypotheses with the oriented candidates of angle (p, q) on the shared observed star(s).
@@ -407,20 +501,42 @@ def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np
         raise ValueError("a pivot angle must share a star with the hypotheses")
     ip = used.index(p)
     m = n_catalog if n_catalog is not None else max(int(H.max(initial=0)), int(cp.max(initial=0))) + 1
+    if 8 * len(H) < len(cp):
+        # few hypotheses (after the first join): only the candidates on their stars can join, so group
+        # just those (the same blocks in the same order: the selection keeps the candidates' order and
+        # the grouping is stable) instead of sorting every candidate of the angle
+        on = np.zeros(m, dtype=bool)
+        on[H[:, ip]] = True
+        sel = np.flatnonzero(on[cp])
+        cp, cq = cp[sel], cq[sel]
     cqs, start, size = by_star(cp, cq, m)
     v = H[:, ip]
     cnt = size[v]
-    rows = np.repeat(np.arange(len(H)), cnt)
-    newq = cqs[np.repeat(start[v] - np.cumsum(cnt) + cnt, cnt) + np.arange(int(cnt.sum()))]
+    rows = np.arange(len(H)).repeat(cnt)
+    # each hypothesis meets its star's block: the block's start plus the rank within it
+    newq = cqs[np.arange(int(cnt.sum())) + (start[v] - cnt.cumsum() + cnt).repeat(cnt)]
     if q in used:  # closed loop: the pair (H[p], H[q]) must be a candidate as it is
         hit = newq == H[rows, used.index(q)]
         return H[np.bincount(rows[hit], minlength=len(H)) > 0], used, None
     k = H.shape[1]
-    H2 = np.empty((len(rows), k + 1), dtype=np.result_type(H, newq))
-    H2[:, :k] = H[rows]
-    H2[:, k] = newq
-    ok = ~np.any(H2[:, :k] == newq[:, None], axis=1)  # a catalog star is never two observed stars
-    return H2[ok], used + [q], q
+    Hr = H[rows]
+    ok = Hr[:, 0] != newq  # a catalog star is never two observed stars
+    for c in range(1, k):
+        ok &= Hr[:, c] != newq
+    H2 = np.empty((int(np.count_nonzero(ok)), k + 1), dtype=np.result_type(H, newq))
+    H2[:, :k] = Hr[ok]
+    H2[:, k] = newq[ok]
+    return H2, used + [q], q
+
+
+def _close(H: np.ndarray, ip: int, iq: int, xyz: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """`_join` of a closed loop: the hypotheses whose catalog stars on the angle's two observed stars
+    (columns ip, iq) form a candidate pair. The candidates are every catalog pair whose database angle
+    lies in [lo, hi] (the look-up is exact and the database holds every pair up to its range, which
+    hi stays below), and the database's angle of a pair is `pivot.angles` of its two stars (the same
+    numbers, in either order): so the test is the angle itself, without grouping the candidates."""
+    d = angles(xyz[H[:, ip]], xyz[H[:, iq]])
+    return H[(d >= lo) & (d <= hi)]
 
 
 def _both_orientations(ci: np.ndarray, cj: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Generator
@@ -105,6 +106,48 @@ class Step:
             "groups": [[int(i) for i in g] for g in self.groups],
             "numbers": {k: (float(v) if v is not None else None) for k, v in self.numbers.items()},
         }
+
+
+class LazyStep(Step):
+    """A `Step` whose `catalog` rows and `groups` are computed when first read (then kept): a method's
+    hot path records a step per pick / pivot and most are never drawn. catalog_of / groups_of: functions
+    of no argument giving the lists (they must read arrays the method no longer changes). It reads,
+    compares, copies and pickles as the `Step` it stands for."""
+
+    def __init__(self, kind: str, note: str, observed: list[int] | None = None, catalog: list[int] | None = None,
+                 groups: list[tuple[int, ...]] | None = None, numbers: dict[str, float] | None = None,
+                 layers: tuple[Layer, ...] = (), *, catalog_of: Callable[[], list[int]] | None = None,
+                 groups_of: Callable[[], list[tuple[int, ...]]] | None = None):
+        self.kind, self.note = kind, note
+        self.observed = [] if observed is None else observed
+        self.numbers = {} if numbers is None else numbers
+        self.layers = layers
+        d = self.__dict__
+        d["_catalog"], d["_catalog_of"] = ([] if catalog is None else catalog), catalog_of
+        d["_groups"], d["_groups_of"] = ([] if groups is None else groups), groups_of
+
+    def _lazy(self, name: str):
+        d = self.__dict__
+        make = d[f"_{name}_of"]
+        if make is not None:
+            d[f"_{name}"], d[f"_{name}_of"] = make(), None
+        return d[f"_{name}"]
+
+    def _set(self, name: str, value) -> None:
+        self.__dict__[f"_{name}"], self.__dict__[f"_{name}_of"] = value, None
+
+    catalog = property(lambda self: self._lazy("catalog"), lambda self, v: self._set("catalog", v))
+    groups = property(lambda self: self._lazy("groups"), lambda self, v: self._set("groups", v))
+
+    def __eq__(self, other):
+        if not isinstance(other, Step):
+            return NotImplemented
+        return all(getattr(self, f.name) == getattr(other, f.name) for f in dataclasses.fields(Step))
+
+    __hash__ = None
+
+    def __reduce__(self):
+        return Step, tuple(getattr(self, f.name) for f in dataclasses.fields(Step))
 
 
 @dataclass
@@ -300,9 +343,9 @@ class Identifier(ABC):
 
         t0 = time.perf_counter()
         s = obs.sigma_rad
-        sigma = float(s) if (s is not None and np.isfinite(s) and s > 0) else self.sigma_rad
+        sigma = float(s) if (s is not None and math.isfinite(s) and s > 0) else self.sigma_rad
         V = np.asarray(obs.vectors, dtype=np.float64)
-        if len(obs) and (V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V))):
+        if len(obs) and (V.ndim != 2 or V.shape[1] != 3 or not np.isfinite(V).all()):
             raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
         result = Identification(method=self.name, status=FAILED, matches={}, steps=[],
                                 database_key=self.database_key_string)

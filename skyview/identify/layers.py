@@ -67,7 +67,9 @@ class Hypotheses:
 
 
 def _n_rows(used: tuple[int, ...], H) -> int:
-    return int(np.size(H) // len(used)) if len(used) else 0
+    if not used:
+        return 0
+    return H.size // len(used) if isinstance(H, np.ndarray) else int(np.size(H) // len(used))
 
 
 def _sample_rows(used: tuple[int, ...], H, cap: int) -> np.ndarray:

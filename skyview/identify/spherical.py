@@ -31,10 +31,16 @@ limit the depth-d sum is J (1 - 4^-d) exactly, J = A (a^2 + b^2 + c^2) / 36 the 
 the centroid (parallel-axis theorem: every piece is the triangle scaled by 2^-d, so the pieces' own
 moments add up to J 4^-d); depth 3 is 1.6 % below J, and the same for the catalog and the
 measurement, which is all that matters for matching.
+
+The search measures one to a few triangles at a time, where numpy's per-call overhead is the cost:
+`triangle_sigmas`, `area_few`, `dot3` / `cross3` (plain floats) and `polar_moment_few`,
+`lhuilier_zero_first` (fewer numpy calls) give the numbers of the vectorised functions to the last bit
+(tests/test_triangle.py checks them bit for bit).
 """
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -80,6 +86,14 @@ def lhuilier(a, b, c) -> np.ndarray:
     s = 0.5 * (a + b + c)
     p = np.tan(0.5 * s) * np.tan(0.5 * (s - a)) * np.tan(0.5 * (s - b)) * np.tan(0.5 * (s - c))
     return 4.0 * np.arctan(np.sqrt(np.maximum(p, 0.0)))
+
+
+def lhuilier_zero_first(S: np.ndarray) -> np.ndarray:
+    """lhuilier(S[1], S[2], S[3]) of sides stacked (4, ...) after a row of zeros, the same numbers: as
+    s - 0 = s, the four tangents are one np.tan call (for small arrays the calls are the cost)."""
+    s = 0.5 * np.add.reduce(S[1:], axis=0)  # (a + b) + c: a reduction over the first axis adds in order
+    T = np.tan(0.5 * (s - S))
+    return 4.0 * np.arctan(np.sqrt(np.maximum(np.multiply.reduce(T, axis=0), 0.0)))
 
 
 def area(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -315,3 +329,147 @@ def enclosing_cap_radius(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndar
     n = n * np.sign(np.einsum("...i,...i->...", n, A + B + C))[..., None]
     r_circ = arc(n, A)
     return np.where(inside | ~np.all(np.isfinite(n), axis=-1), r_diam, r_circ)
+
+
+def dot3(x, y) -> float:
+    """x . y of two 3-sequences of floats, summed as np.einsum("...i,...i->...") sums three terms (the
+    first and third, then the second), so that it gives its numbers to the last bit."""
+    return (x[0] * y[0] + x[2] * y[2]) + x[1] * y[1]
+
+
+def sign(v: float) -> int:
+    """np.sign of a float, as an int (0 for 0)."""
+    return (v > 0.0) - (v < 0.0)
+
+
+def cross3(u, v) -> tuple[float, float, float]:
+    """u x v of two 3-sequences of floats (the operations of `cross`)."""
+    return u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]
+
+
+def triangle_sigmas(A, B, C, a, b, c, sigma: float) -> tuple[list[float], list[float]] | None:
+    """(area_sigma_stars(A, B, C, sigma), triple_sigma(A, B, C, sigma)) of a few triangles (arrays or lists
+    of 3-vectors), with their sides (a, b, c) = sides(A, B, C) already measured: the same numbers to the
+    last bit (the same operations in the same order; tan and cos from numpy, whose SIMD forms differ
+    from math's in the last bit), as lists of floats. For one to a few triangles the numpy forms cost
+    ~90 us in call overheads; this costs ~10 us a triangle. None when a triangle is degenerate (a zero
+    division: use the numpy forms, which turn it into inf)."""
+    A, B, C, a, b, c = (x.tolist() if isinstance(x, np.ndarray) else x for x in (A, B, C, a, b, c))
+    n = len(A)
+    q = []  # the four quarter sums of eq. 23 of every triangle, for one np.tan and one np.cos call
+    for x, y, z in zip(a, b, c):
+        q += ((x + y + z) / 4.0, (y + z - x) / 4.0, (x + z - y) / 4.0, (x + y - z) / 4.0)
+    q = np.array(q)
+    tan, cos = np.tan(q).tolist(), np.cos(q).tolist()
+    s2 = float(sigma) ** 2
+    sig = float(sigma)
+    out_area, out_triple = [], []
+    for k in range(n):
+        t1, t2, t3, t4 = tan[4 * k:4 * k + 4]
+        s1, s2_, s3, s4 = (1.0 / (x * x) for x in cos[4 * k:4 * k + 4])
+        u1, u2, u3, u4 = s1 * t2 * t3 * t4, t1 * s2_ * t3 * t4, t1 * t2 * s3 * t4, t1 * t2 * t3 * s4  # eq. 23
+        z2 = t1 * t2 * t3 * t4
+        if not z2 > 0.0:
+            return None
+        z = math.sqrt(z2)
+        den = 8.0 * z
+        w = 4.0 / (1.0 + z2)
+        H = (w * ((u1 - u2 + u3 + u4) / den), w * ((u1 + u2 - u3 + u4) / den), w * ((u1 + u2 + u3 - u4) / den))
+        # cos of the vertex angles at A, B, C (vertex_angles) and the triple product's gradients (triple_sigma)
+        P = (A[k], B[k], C[k])
+        cs, v = [], []
+        for i in range(3):
+            p, qv, r = P[i], P[(i + 1) % 3], P[(i + 2) % 3]
+            qp, rp = dot3(qv, p), dot3(r, p)
+            tqv = (qv[0] - qp * p[0], qv[1] - qp * p[1], qv[2] - qp * p[2])
+            trv = (r[0] - rp * p[0], r[1] - rp * p[1], r[2] - rp * p[2])
+            nn = math.sqrt(tqv[0] * tqv[0] + tqv[1] * tqv[1] + tqv[2] * tqv[2]) * \
+                math.sqrt(trv[0] * trv[0] + trv[1] * trv[1] + trv[2] * trv[2])
+            if not nn > 0.0:
+                return None
+            cs.append(min(max(dot3(tqv, trv) / nn, -1.0), 1.0))
+            g = cross3(qv, r)
+            gp = dot3(g, p)
+            g = (g[0] - gp * p[0], g[1] - gp * p[1], g[2] - gp * p[2])
+            v.append(dot3(g, g))
+        cA, cB, cC = cs
+        d = 2.0 * s2
+        Cm = ((d, s2 * cB, s2 * cA), (s2 * cB, d, s2 * cC), (s2 * cA, s2 * cC, d))
+        var = 0.0
+        for i in range(3):
+            for j in range(3):
+                var += H[i] * Cm[i][j] * H[j]
+        out_area.append(math.sqrt(max(var, 0.0)) if math.isfinite(var) else np.inf)
+        out_triple.append(sig * math.sqrt(v[0] + v[1] + v[2]))
+    return out_area, out_triple
+
+
+def area_few(A, B, C) -> list[float]:
+    """area(A, B, C) of a few triangles (sequences of 3-vectors) as a list of floats: the same numbers to
+    the last bit (the same operations: the chords summed as np.einsum sums them, arcsin, tan and arctan
+    from numpy, one call each for every triangle), without the ~20 us of numpy calls on tiny arrays."""
+    half = []
+    for P in zip(A, B, C):
+        for u, v in ((0, 1), (1, 2), (2, 0)):  # the sides a, b, c of `sides`
+            x, y = P[u], P[v]
+            d = (x[0] - y[0], x[1] - y[1], x[2] - y[2])
+            half.append(min(math.sqrt(dot3(d, d)) / 2.0, 1.0))
+    side = (2.0 * np.arcsin(np.array(half))).tolist()
+    arg = []
+    for k in range(0, len(side), 3):
+        a, b, c = side[k:k + 3]
+        s = 0.5 * (a + b + c)
+        arg += (0.5 * s, 0.5 * (s - a), 0.5 * (s - b), 0.5 * (s - c))
+    tan = np.tan(np.array(arg)).tolist()
+    p = [max(tan[k] * tan[k + 1] * tan[k + 2] * tan[k + 3], 0.0) for k in range(0, len(tan), 4)]
+    return (4.0 * np.arctan(np.sqrt(np.array(p)))).tolist()
+
+
+@lru_cache(maxsize=None)
+def _few_plan(depth: int):
+    """`_plan(depth)` relabelled for `polar_moment_few`: the corners, then each level's new points in one
+    contiguous block ((start, stop, (2, k) ends) per level: written in place); the edges as one (2, e + 1)
+    index with a last, zero-length edge (0, 0), whose arc is exactly 0; each piece's (zero, a, b, c) edges
+    as (4, pieces) (then s - 0 = s: the four L'Huilier tangents in one call); the pieces as (3, pieces + 1)
+    with a last "piece" (A, B, C), whose normalised vertex sum is the centroid."""
+    n_pts, corners, levels, tris, edges, tri_edges = _plan(depth)
+    order = list(corners) + [int(p) for new, _, _ in levels for p in new]
+    relabel = np.empty(n_pts, dtype=np.intp)
+    relabel[order] = np.arange(n_pts)
+    blocks, pos = [], 3
+    for new, e1, e2 in levels:
+        blocks.append((pos, pos + len(new), np.stack([relabel[e1], relabel[e2]])))
+        pos += len(new)
+    edge_ends = np.concatenate([relabel[edges], [[0, 0]]]).T
+    piece_edges = np.concatenate([np.full((1, len(tris)), len(edges)), tri_edges.T])
+    pieces = np.concatenate([relabel[tris], [[0, 1, 2]]]).T
+    return n_pts, blocks, edge_ends, piece_edges, pieces
+
+
+def polar_moment_few(A: np.ndarray, B: np.ndarray, C: np.ndarray, depth: int = MOMENT_DEPTH) -> np.ndarray:
+    """polar_moment(A, B, C, depth) of (n, 3) arrays, the same numbers to the last bit (the same operations
+    on the same values, the same final np.einsum), in half of the numpy calls: each level's points written
+    in place, one gather per group of points, sums of two or three terms as one reduction over the first
+    axis (which adds in order), the centroid normalised with the pieces' vertex sums, the arcs of the sides
+    and of the pieces' centroids in one pass, the four L'Huilier tangents in one call. For a few
+    triangles, where the calls are the cost."""
+    n_pts, blocks, edge_ends, piece_edges, pieces = _few_plan(int(depth))
+    n_edges, n_pieces = edge_ends.shape[1], pieces.shape[1] - 1
+    out = np.empty(len(A))
+    for s in range(0, len(A), _CHUNK):
+        e = min(s + _CHUNK, len(A))
+        P = np.empty((n_pts, e - s, 3))
+        P[0], P[1], P[2] = A[s:e], B[s:e], C[s:e]
+        for lo, hi, ends in blocks:
+            v = np.add.reduce(P[ends], axis=0)
+            np.divide(v, np.sqrt(np.add.reduce(v * v, axis=-1, keepdims=True)), out=P[lo:hi])  # normalize
+        Q = np.add.reduce(P[pieces], axis=0)  # the pieces' vertex sums, then the whole triangle's
+        Q /= np.sqrt(np.add.reduce(Q * Q, axis=-1, keepdims=True))  # centroids (normalize)
+        d = np.empty((n_edges + n_pieces, e - s, 3))  # the sides' ends, then each piece's centroid from G
+        np.subtract(P[edge_ends[0]], P[edge_ends[1]], out=d[:n_edges])
+        np.subtract(Q[:-1], Q[-1:], out=d[n_edges:])
+        arcs = 2.0 * np.arcsin(np.minimum(np.sqrt(np.einsum("...i,...i->...", d, d)) / 2.0, 1.0))  # arc
+        dA = lhuilier_zero_first(arcs[piece_edges])
+        theta = arcs[n_edges:]
+        out[s:e] = np.einsum("ij,ij->j", theta * theta, dA)
+    return out

@@ -87,6 +87,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import partial
+from math import comb, sqrt
 
 import numpy as np
 
@@ -102,7 +103,7 @@ from skyview.identify.pivot import (MAX_EQUIVALENT, Chain, PivotMethod, PivotPar
                                    pair_indices, uses_any)
 from skyview.identify.triangle_database import (MOMENT_PARAMS, MOMENT_SAMPLE_TRIANGLES, MOMENT_SIGMA_VERSION,
                                                 build_moment_sigma, load_triangle_database)
-from skyview.identify.triangle_lookup import _PERMS, CAP, SQ2, TriangleLookup, _groups, _n_sets
+from skyview.identify.triangle_lookup import _PERMS, CAP, SMALL, SQ2, TriangleLookup, _groups, _n_sets
 from skyview.identify.verify import angular_distance
 
 # eq. 24 with the pair sigma sqrt(2) sigma ("paper": its 3 sigma bound then holds), with the star sigma
@@ -206,29 +207,67 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         return self._n_patterns
 
     def consistent(self, V: np.ndarray, used: list[int], triangles: list[list[int]], H: np.ndarray,
-                   sigma: float) -> np.ndarray:
+                   sigma: float, t: dict | None = None) -> np.ndarray:
         """The hypotheses whose every pair of stars matches the observed angle within beta sigma_p and
-        whose every triangle of the chain has the observed handedness where that is certain."""
+        whose every triangle of the chain has the observed handedness where that is certain (t: the
+        frame's observed triangles, `triangle_bounds`, which hold the triple products and their sigmas
+        of the chain's triangles: measured, the same numbers)."""
         if len(H) == 0:
             return H
-        xyz = self.catalog.xyz
-        col = {s: c for c, s in enumerate(used)}
         tol = self.beta * SQ2 * sigma
         x, y = pair_indices(len(used))  # every pair of stars at once
+        if t is not None and len(H) * len(x) <= SMALL:
+            return self._consistent_few(V, used, triangles, H, t, tol)
+        xyz = self.catalog.xyz
+        col = {s: c for c, s in enumerate(used)}
         u = np.asarray(used)
         obs_angle = angular_distance(V[u[x]], V[u[y]])
         P = xyz[H]
         ok = np.all(np.abs(angular_distance(P[:, x], P[:, y]) - obs_angle) <= tol, axis=1)
         T = np.asarray(triangles)  # every triangle of the chain at once
-        A, B, C = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
-        tr = sph.triple(A, B, C)
-        certain = np.abs(tr) > self.beta * sph.triple_sigma(A, B, C, sigma)
+        if t is not None:
+            k = [_triangle_index(*tri, len(t["V"])) for tri in triangles]
+            tr, trs = t["triple"][k], t["triple_sigma"][k]
+        else:
+            A, B, C = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
+            tr, trs = sph.triple(A, B, C), sph.triple_sigma(A, B, C, sigma)
+        certain = np.abs(tr) > self.beta * trs
         if np.any(certain):
             c = np.array([[col[s] for s in tri] for tri in T[certain].tolist()])  # (t, 3) columns of H
             Pc = P[:, c]  # (h, t, 3 vertices, 3)
             hand = np.sign(sph.triple(Pc[:, :, 0], Pc[:, :, 1], Pc[:, :, 2])) == np.sign(tr[certain])
             ok &= np.all(hand, axis=1)
         return H[ok]
+
+    def _consistent_few(self, V: np.ndarray, used: list[int], triangles: list[list[int]], H: np.ndarray, t: dict,
+                        tol: float) -> np.ndarray:
+        """`consistent` for a few hypotheses, in plain floats: the same angles (the chords summed as
+        np.linalg.norm sums them, then one np.arcsin call for all of them: numpy's arcsin differs from
+        math's in the last bit) and the same signs of the triple products."""
+        x, y = pair_indices(len(used))
+        pairs = list(zip(x.tolist(), y.tolist()))
+        cat = self.catalog.xyz[H].tolist()  # (h, stars, 3)
+        half = []
+        for pts in [V[used].tolist()] + cat:  # the observed stars, then each hypothesis'
+            for i, j in pairs:
+                a, b = pts[i], pts[j]
+                d0, d1, d2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
+                half.append(min(max(sqrt(d0 * d0 + d1 * d1 + d2 * d2) / 2.0, 0.0), 1.0))
+        angle = (2.0 * np.arcsin(np.array(half))).tolist()  # = angular_distance
+        n = len(pairs)
+        obs = angle[:n]
+        ok = [all(abs(angle[n * (h + 1) + p] - obs[p]) <= tol for p in range(n)) for h in range(len(H))]
+        col = {s: c for c, s in enumerate(used)}
+        for tri in triangles:
+            k = _triangle_index(*tri, len(t["V"]))
+            tr = float(t["triple"][k])
+            if not abs(tr) > self.beta * float(t["triple_sigma"][k]):
+                continue  # the observed handedness is not certain
+            c0, c1, c2 = (col[s] for s in tri)
+            for h, pts in enumerate(cat):
+                if ok[h]:
+                    ok[h] = sph.sign(sph.dot3(pts[c0], sph.cross3(pts[c1], pts[c2]))) == sph.sign(tr)
+        return H[np.array(ok, dtype=bool)]
 
     # ------------------------------------------------------------------ identify (the template's parts)
     def _patterns(self, search: Search) -> tuple[dict, int]:
@@ -317,7 +356,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         prev = tuple(used)
         pivots = 0
         checked = None  # the hypotheses `consistent` returned last (it would return them as they are)
-        while not self._settled(V, used, triangles, H, n_sets, sigma, t["tol"], checked=H is checked):
+        while not self._settled(V, used, triangles, H, n_sets, sigma, t["tol"], checked=H is checked, t=t):
             if self.max_pivots is not None and pivots >= self.max_pivots:
                 steps.append(Step("stop", f"pivot limit {self.max_pivots} reached with {n_sets} candidate "
                                           f"star sets", observed=used.copy(), catalog=_distinct(H),
@@ -352,7 +391,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
             H, used, new = join(H, used, obs3, O)
             triangles.append(obs3)
             if self.vertex_order == "sides":  # every pair of stars, also across triangles
-                H = checked = self.consistent(V, used, triangles, H, sigma)
+                H = checked = self.consistent(V, used, triangles, H, sigma, t)
             pivots += 1
             n_sets = _n_sets(H)
             candidates.append(int(counts[k]))
@@ -378,7 +417,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                               hypotheses=hyps)
             prev = tuple(obs3)
         # one set of catalog stars (or a few that differ by unresolved close pairs): its vertex order
-        Hc = H if H is checked else self.consistent(V, used, triangles, H, sigma)
+        Hc = H if H is checked else self.consistent(V, used, triangles, H, sigma, t)
         if len(Hc) == 0:  # the paper would report this set; it fits in no vertex order, so it is wrong
             steps.append(Step("stop", "the one star set left fits the observed stars in no vertex order (sides or "
                                       "handedness)", observed=used.copy(), catalog=_distinct(H),
@@ -483,7 +522,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                               culprit=new_obs.copy(), pivots=pivots, candidates=candidates, hypotheses=hyps)
         one, one_obs = (cur, cur_obs) if _n_sets(cur) == 1 else (prev, prev_obs)
         H = one if oriented else one[:1][:, _PERMS].reshape(-1, 3)
-        Hc = self.consistent(V, one_obs, [one_obs], H, sigma)
+        Hc = self.consistent(V, one_obs, [one_obs], H, sigma, t)
         if len(Hc) == 0:  # the paper would report this set; it fits in no vertex order, so it is wrong
             steps.append(Step("stop", "the one star set left fits the observed stars in no vertex order (sides or "
                                       "handedness)", observed=one_obs.copy(), catalog=_distinct(H)))
@@ -495,16 +534,17 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                       pivots=pivots, candidates=candidates, hypotheses=hyps)
 
     def _settled(self, V: np.ndarray, used: list[int], triangles: list[list[int]], H: np.ndarray, n_sets: int,
-                 sigma: float, tol: float, checked: bool = False) -> bool:
+                 sigma: float, tol: float, checked: bool = False, t: dict | None = None) -> bool:
         """One set of catalog stars left, or a few that differ only by unresolved close pairs (checked: H
-        is what `consistent` returned for these stars and triangles)."""
+        is what `consistent` returned for these stars and triangles; t: the frame's triangles, for
+        `consistent`)."""
         if n_sets <= 1:
             return True
         if n_sets > MAX_EQUIVALENT:
             return False
         if self.vertex_order == "paper" and not _has_close_pair(self.catalog.xyz[np.unique(H)], tol):
             return False  # different sets can only be one pattern through catalog stars closer than tol
-        Hc = H if checked else self.consistent(V, used, triangles, H, sigma)
+        Hc = H if checked else self.consistent(V, used, triangles, H, sigma, t)
         if self.vertex_order == "paper" and _n_sets(Hc) < n_sets:
             return False  # the paper tells sets apart by pivoting only, never by their sides
         return len(Hc) > 0 and (_n_sets(Hc) == 1 or self._equivalent(Hc, tol))
@@ -553,6 +593,12 @@ def join(H: np.ndarray, used: list[int], obs3: list[int], O: np.ndarray) -> tupl
     return np.concatenate([Hn[ok], newc[ok, None]], axis=1), used + [new], new
 
 
+def _triangle_index(i: int, j: int, k: int, m: int) -> int:
+    """The position of the triangle (i < j < k) among itertools.combinations(range(m), 3) (`triangle_bounds`'
+    order): the triangles before i, then those of i before j, then those of (i, j) before k."""
+    return comb(m, 3) - comb(m - i, 3) + comb(m - i - 1, 2) - comb(m - j, 2) + k - j - 1
+
+
 def _pair_keys(S: np.ndarray, M: int) -> np.ndarray:
     """(n, 3) keys of the three unordered star pairs of each star set."""
     a = np.sort(S, axis=1)
@@ -569,4 +615,6 @@ def _has_close_pair(xyz: np.ndarray, tol: float) -> bool:
 
 def _distinct(H: np.ndarray) -> list[int]:
     """Distinct catalog rows of the first hypotheses, capped."""
-    return np.unique(H[:4 * CAP]).astype(int)[:CAP].tolist() if H.size else []
+    if H.size <= SMALL:  # the usual one or few hypotheses: a set, not np.unique's calls
+        return sorted(set(H.ravel().tolist()))[:CAP]
+    return np.unique(H[:4 * CAP]).astype(int)[:CAP].tolist()

@@ -23,16 +23,17 @@ Databases: which variant reads what, and why.
   relative, is 10^4 times below the smallest 3-sigma bound), a k-vector on the area (parabola fit,
   as the paper) and one on the polar moment through a sort permutation (the paper's "two linked
   lists"), each triangle's rank in polar-moment order and those ranks sorted within blocks (the
-  counter below): 38 bytes a triangle, 55 MB at 8 deg, memory-mapped on load (~5 ms). The build
-  holds about BUILD_FIXED_BYTES + BYTES_PER_TRIANGLE bytes a triangle at its peak (400 MB + 52 B),
-  the estimate checked against the memory budget (`database.check_memory`, 4 GB by default) before
-  it starts. Measured peak RSS (/usr/bin/time -v, the whole process): 447 MB for 8 deg / Hp 6
-  (1.45 M triangles, built in 11 s at load 1.6 on the shared 2-core machine, 21 s at load 5) and
-  616 MB for 11 deg / Hp 6 (5.3 M triangles, 142 s at load 5), i.e. ~380 MB + 45 bytes a triangle.
-  At 20 deg / Hp 6 the
-  database would hold ~54 M triangles: ~3 GB at the peak (within the 4 GB budget, where the
-  former one-piece build needed an estimated 12.9 GB), 2 GB on disk and ~10 minutes of polar
-  moments. The paper variant still builds it when asked; the improved variant does not need it.
+  counter below): 38 bytes a triangle, 55 MB at 8 deg, memory-mapped on load (~2 ms). The build
+  holds about BUILD_FIXED_BYTES + BYTES_PER_TRIANGLE bytes a triangle at its peak (400 MB + 52 B a
+  triangle of `triangles_estimate`, which counts ~1.3 times the triangles kept), the estimate checked
+  against the memory budget (`database.check_memory`, 4 GB by default) before it starts: ~300 MB of
+  chunk work, then ~60 bytes a kept triangle while the arrays are sorted and indexed (one array
+  replaced at a time, the k-vectors a chunk at a time: `_kvector_arrays`). Measured peak RSS
+  (/usr/bin/time, the whole process): 434 MB for 8 deg / Hp 6 (1.45 M triangles, built in 11 s at
+  load 0.5 on the shared 2-core machine) and 2.8 GB for 20 deg / Hp 6 (48.4 M triangles, 1.8 GB on
+  disk, built in 7 minutes at low priority and load 2.5, most of it the polar moments; 5.3 GB,
+  over the budget, before the k-vectors were built in chunks). The paper variant still builds it
+  when asked; the improved variant does not need it.
 - database="pairs" (the improved variant): no triangle database at all. The candidates of an
   observed triangle are joined from the angle method's pair database (`angle.load_pair_database`,
   the same cached file the angle method reads: ~683,000 pairs, 11 MB at 20 deg / Hp 6) and then
@@ -61,7 +62,7 @@ from skyview.identify.verify import angular_distance
 
 DATABASE_VERSION = 5
 MOMENT_SIGMA_VERSION = 1
-BYTES_PER_TRIANGLE = 52  # peak memory of the chunked build per kept triangle (arrays, the sort, the k-vectors)
+BYTES_PER_TRIANGLE = 52  # peak memory of the build per estimated triangle (~60 B a kept one: the sort, the index)
 BUILD_FIXED_BYTES = 400 * 2 ** 20  # and what it holds whatever the size (Python, one chunk, the moment fit)
 CHUNK_CANDIDATES = 1_000_000  # candidate third stars made and tested at once while building (~100 MB)
 BLOCK = 256  # triangles per block of the candidate counter
@@ -196,39 +197,94 @@ def build_triangle_database(catalog: GuideCatalog, max_radius_rad: float, depth:
         parts_tri.append(tri.astype(idx_dtype))
         parts_area.append(sph.area(A, B, C).astype(np.float32))
         parts_moment.append(sph.polar_moment(A, B, C, depth).astype(np.float32))
+    del pairs
+    # one array at a time, each freed as soon as it is replaced: the peak stays near the arrays kept
+    # (the build's peak is BYTES_PER_TRIANGLE a triangle; 48 M triangles at 20 deg)
     tri = np.concatenate(parts_tri) if parts_tri else np.zeros((0, 3), dtype=idx_dtype)
+    del parts_tri
     area = np.concatenate(parts_area) if parts_area else np.zeros(0, dtype=np.float32)
+    del parts_area
     moment = np.concatenate(parts_moment) if parts_moment else np.zeros(0, dtype=np.float32)
+    del parts_moment
     cap = np.concatenate(parts_cap) if parts_cap else np.zeros(0, dtype=np.float32)
-    del parts_tri, parts_area, parts_moment, parts_cap, pairs
+    del parts_cap
     counts = np.array([n_sides, len(tri)], dtype=np.int64)
     order = np.lexsort((tri[:, 2], tri[:, 1], tri[:, 0], area))
-    tri, area, moment, cap = tri[order], area[order], moment[order], cap[order]
+    tri = tri[order]
+    area = area[order]
+    moment = moment[order]
+    cap = cap[order]
     del order
     m_order = np.argsort(moment, kind="stable").astype(np.int32)
     rank = np.empty(len(m_order), dtype=np.int32)
     rank[m_order] = np.arange(len(m_order), dtype=np.int32)
-    kv_a = KVector(area.astype(np.float64), fit=fit, presorted=True)
-    area_k, area_coef = kv_a.k.astype(np.int32), kv_a.coef
-    del kv_a
+    area_k, area_coef = _kvector_arrays(area, fit)
     moment_sorted = moment[m_order]
-    kv_m = KVector(moment_sorted.astype(np.float64), fit=fit, presorted=True)
+    del moment
+    moment_k, moment_coef = _kvector_arrays(moment_sorted, fit)
     block_rank = _block_sorted(rank, BLOCK)
     return {
         "tri": tri, "cap": cap,
         "area": area, "area_k": area_k, "area_coef": area_coef,
         "moment_sorted": moment_sorted, "moment_order": m_order, "moment_rank": rank,
-        "moment_k": kv_m.k.astype(np.int32), "moment_coef": kv_m.coef, "block_rank": block_rank,
+        "moment_k": moment_k, "moment_coef": moment_coef, "block_rank": block_rank,
         "fit": np.array(fit), "counts": counts,
     }
+
+
+KVECTOR_CHUNK = 1 << 20  # values per step of `_kvector_arrays`
+
+
+def _kvector_arrays(sorted_values: np.ndarray, fit: str) -> tuple[np.ndarray, np.ndarray]:
+    """(k as int32, coef) of KVector(sorted_values as float64, fit, presorted=True), KVECTOR_CHUNK values
+    at a time: KVector holds ~60 bytes a value of float64 temporaries (the fit's x, g and r, the curve z),
+    3 GB for the 48 M triangles at 20 deg, where this holds one float64 copy of the values and the k.
+    The same curve and k but for the fit's two sums, added chunk by chunk (their rounding differs from
+    one dot product's in the last bits): every look-up is exact whatever the curve (`KVector.range`
+    trims its superset by bisection)."""
+    s = np.asarray(sorted_values, dtype=np.float64)  # float32 values: exact in float64
+    n = s.size
+    if n <= 2:
+        kv = KVector(s, fit=fit, presorted=True)
+        return kv.k.astype(np.int32), kv.coef
+    for i in range(0, n, KVECTOR_CHUNK):
+        c = s[i:i + KVECTOR_CHUNK + 1]
+        if not (np.all(np.isfinite(c)) and np.all(c[1:] >= c[:-1])):
+            raise ValueError("k-vector values must be finite and sorted")
+    L = float(n - 1)
+    # KVector's end points z0 = s_min - eps and z0 + delta = s_max + eps: those of the two end values'
+    z0, delta = (float(c) for c in KVector(s[[0, -1]], presorted=True).coef[:2])
+    a = 0.0
+    if fit == "parabola":  # KVector's least-squares curvature, its sums a chunk at a time
+        gg = gr = 0.0
+        for i in range(0, n, KVECTOR_CHUNK):
+            x = np.arange(i, min(i + KVECTOR_CHUNK, n), dtype=np.float64)
+            g = x * x - L * x
+            gg += float(g @ g)
+            gr += float(g @ (s[i:i + len(x)] - (z0 + delta / L * x)))
+        if gg > 0:
+            a = gr / gg
+        lim = 0.999 * delta / (L * L)
+        a = float(np.clip(a, -lim, lim))
+    b = delta / L - a * L
+    k = np.empty(n, dtype=np.int32)
+    for i in range(0, n, KVECTOR_CHUNK):
+        j = np.arange(i, min(i + KVECTOR_CHUNK, n), dtype=np.float64)
+        z = z0 + b * j + a * j * j
+        if i == 0:
+            z[0] = z0
+        if i + len(j) == n:
+            z[-1] = z0 + delta  # above s_max: k = n, as KVector's
+        k[i:i + len(j)] = np.searchsorted(s, z, side="right")
+    return k, np.array([z0, b, a])
 
 
 def _camera_moment_sigma(xyz: np.ndarray, tri: np.ndarray, cap: np.ndarray, cap_limit: float, depth: int
                          ) -> dict[str, np.ndarray]:
     """fit_moment_sigma on the stored triangles that fit a camera (cap <= cap_limit), in their stored
     order: the draw a database built for that camera alone makes (the same seed, the same rows)."""
-    rows = np.flatnonzero(np.asarray(cap) <= cap_limit)
-    coef, samples = fit_moment_sigma(xyz, np.asarray(tri[rows], dtype=np.int64), depth,
+    # the rows in their stored dtype (int16): an int64 copy of 48 M triangles would take 1.2 GB
+    coef, samples = fit_moment_sigma(xyz, tri[np.asarray(cap) <= cap_limit], depth,
                                      np.random.default_rng(MOMENT_SIGMA_SEED))
     return {"moment_sigma_coef": coef, "moment_sigma_samples": samples}
 

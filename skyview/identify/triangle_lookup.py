@@ -23,9 +23,11 @@ from skyview.identify.verify import angular_distance
 
 CAP = 200  # catalog rows / groups kept in one step
 MEASURE_BATCH = 4  # observed triangles measured at once when the search reaches an unmeasured one
-# (a chain visits 1-3 triangles in most frames; a call costs mostly its fixed overhead)
+# (a chain visits 1-3 triangles in most frames; a call costs mostly its fixed overhead; database="pairs"
+# with area_sigma="stars" measures one at a time in plain floats, ~15 us: `_measure_one`)
 SCAN_LIMIT = 65536  # a triangle looked up alone is counted by listing its candidates up to this range
 SQ2 = float(np.sqrt(2.0))
+SMALL = 64  # up to this many catalog rows, distinct stars / sets are taken in plain Python (numpy's calls cost more)
 _PERMS = np.array([[0, 1, 2], [1, 2, 0], [2, 0, 1], [0, 2, 1], [2, 1, 0], [1, 0, 2]])
 _PARITY = np.array([1, 1, 1, -1, -1, -1])
 _SIDE = np.array([[-1, 0, 2], [0, -1, 1], [2, 1, -1]])  # side index of vertex pair (x, y): ij=0, jk=1, ki=2
@@ -47,18 +49,23 @@ class TriangleLookup:
         (`count_of`): the largest-area order needs only those.
         """
         ti, tj, tk = _combinations(len(V))
-        A, B, C = V[ti], V[tj], V[tk]
-        a, b, c = sph.sides(A, B, C)
-        area = sph.lhuilier(a, b, c)
+        ii, jj, side_of = _side_pairs(len(V))
+        # the sides a = AB, b = BC, c = CA of every triangle (as sph.sides) are angles between two stars:
+        # each pair's once (the arc of C, A is that of A, C: the difference only changes sign)
+        arcs = np.zeros(len(ii) + 1)
+        arcs[:-1] = sph.arc(V[ii], V[jj])
+        S4 = arcs[side_of]  # (4, n): 0, a, b, c
+        S = S4[1:]
+        area = sph.lhuilier_zero_first(S4)  # = sph.lhuilier(*S)
         n = len(area)
-        out = dict(ti=ti, tj=tj, tk=tk, sides=np.stack([a, b, c], axis=1), area=area, triple=sph.triple(A, B, C),
-                   sigma=sigma, V=V, area_bound=np.full(n, np.nan), moment=np.full(n, np.nan),
-                   moment_bound=np.full(n, np.nan), triple_sigma=np.full(n, np.nan))
+        # the rest are measured as the search visits them (`_measure`); the triple product with them
+        nan = np.full((5, n), np.nan)
+        out = dict(ti=ti, tj=tj, tk=tk, sides=S.T, area=area, triple=nan[0], sigma=sigma, V=V, area_bound=nan[1],
+                   moment=nan[2], moment_bound=nan[3], triple_sigma=nan[4])
         if lookup or self.order == "fewest":
             self._measure(out, np.arange(n))
         if self.database == "pairs":  # no ranges: each triangle's candidates are joined when it is visited
-            for key in ("s1", "e1", "s2", "e2", "counts"):
-                out[key] = np.full(len(area), -1, dtype=np.int64)
+            out.update(zip(("s1", "e1", "s2", "e2", "counts"), np.full((5, n), -1, dtype=np.int64)))
             if lookup:
                 for k in range(len(area)):
                     self.count_of(out, k)
@@ -74,8 +81,7 @@ class TriangleLookup:
                     out.setdefault("rows", {})[k] = rows = self._scan(out, k)
                     out["counts"][k] = len(rows)
         else:
-            for key in ("s1", "e1", "s2", "e2", "counts"):
-                out[key] = np.full(len(area), -1, dtype=np.int64)
+            out.update(zip(("s1", "e1", "s2", "e2", "counts"), np.full((5, n), -1, dtype=np.int64)))
         return out
 
     def _measure(self, t: dict, idx: np.ndarray, moment: bool = True) -> None:
@@ -100,6 +106,23 @@ class TriangleLookup:
         else:
             t["moment_pending"] = idx
         t["triple_sigma"][idx] = sph.triple_sigma(A, B, C, sigma)
+        t["triple"][idx] = sph.triple(A, B, C)
+
+    def _measure_one(self, t: dict, k: int) -> bool:
+        """database="pairs", area_sigma="stars": `_measure` of observed triangle k alone, in plain floats
+        (`sph.triangle_sigmas`: the same numbers as the batch; its polar moment is left to `join_pairs`,
+        which computes it with the candidates' in a batch of two or more, as `_moments` explains). False
+        when the triangle is degenerate (then `_measure` does it)."""
+        A, B, C = t["V"][[t["ti"][k], t["tj"][k], t["tk"][k]]].tolist()
+        a, b, c = t["sides"][k].tolist()
+        sig = sph.triangle_sigmas([A], [B], [C], [a], [b], [c], t["sigma"])
+        if sig is None:
+            return False
+        t["area_bound"][k] = self.beta * sig[0][0]
+        t["triple_sigma"][k] = sig[1][0]
+        t["triple"][k] = sph.dot3(A, sph.cross3(B, C))  # = sph.triple
+        t["moment_pending"] = np.array([k])
+        return True
 
     def _set_moment(self, t: dict, idx: np.ndarray, moment: np.ndarray) -> None:
         t["moment"][idx] = moment
@@ -107,8 +130,11 @@ class TriangleLookup:
 
     def _ensure(self, t: dict, k: int) -> None:
         """Observed triangle k measured (`_measure`), with the next unmeasured ones in the search order
-        (database="pairs": but for the polar moments, which `join_pairs` computes next)."""
+        (database="pairs": but for the polar moments, which `join_pairs` computes next; with
+        area_sigma="stars" too, k alone, in plain floats: `_measure_one`)."""
         if not np.isnan(t["area_bound"][k]):
+            return
+        if self.database == "pairs" and self.area_sigma == "stars" and self._measure_one(t, k):
             return
         todo = np.flatnonzero(np.isnan(t["area_bound"]))
         pr = t.get("priority")
@@ -220,13 +246,17 @@ class TriangleLookup:
         d = angular_distance(xyz[c], xyz[a])
         ok = (d >= lo[2]) & (d <= hi[2]) & (d <= self.pair_max_sep_rad)
         a, b, c = a[ok], b[ok], c[ok]
-        A, B, C = xyz[a], xyz[b], xyz[c]
         tr, trs = float(t["triple"][k]), float(t["triple_sigma"][k])
-        if len(a) and abs(tr) > self.beta * trs:
-            ok = np.sign(sph.triple(A, B, C)) == np.sign(tr)
-            a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
-        if len(a):
-            ar, da = float(t["area"][k]), float(t["area_bound"][k])
+        ar, da = float(t["area"][k]), float(t["area_bound"][k])
+        if len(a) <= SMALL:  # the usual few: in plain floats, the same numbers (`sph.area_few`)
+            keep = _hand_and_area(xyz, a, b, c, tr if abs(tr) > self.beta * trs else None, ar, da)
+            a, b, c = a[keep], b[keep], c[keep]
+            A, B, C = xyz[a], xyz[b], xyz[c]
+        else:
+            A, B, C = xyz[a], xyz[b], xyz[c]
+            if abs(tr) > self.beta * trs:
+                ok = np.sign(sph.triple(A, B, C)) == np.sign(tr)
+                a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
             area = sph.area(A, B, C)
             ok = (area >= ar - da) & (area <= ar + da)
             a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
@@ -240,21 +270,27 @@ class TriangleLookup:
 
     def _moments(self, t: dict, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray | None:
         """The polar moments of the catalog triangles (A, B, C) (None when there are none), and those of
-        the observed triangles `_measure` left pending, in one call (the observed ones as `_measure`
-        would compute them. A lone observed triangle is computed alone, as np.einsum sums a single
-        column another way, to the last bit; a lone candidate's moment may differ from its own call's
-        in the last bit, far inside the moment bound it is tested against)."""
+        the observed triangles `_measure` / `_measure_one` left pending, in one call (np.einsum sums a
+        single column another way, to the last bit, so an observed triangle is always computed in a call of
+        two or more triangles, as a batch of `_measure` computes it; but the frame's only triangle, which
+        was always computed alone. A lone candidate's moment may differ from its own call's in the last
+        bit, far inside the moment bound it is tested against)."""
         pend = t.pop("moment_pending", None)
         if pend is None or len(pend) == 0:
-            return sph.polar_moment(A, B, C, self.depth) if len(A) else None
+            return sph.polar_moment_few(A, B, C, self.depth) if len(A) else None
         V = t["V"]
         P, Q, R = V[t["ti"][pend]], V[t["tj"][pend]], V[t["tk"][pend]]
-        if len(pend) >= 2 and len(A):
-            both = sph.polar_moment(np.concatenate([A, P]), np.concatenate([B, Q]), np.concatenate([C, R]), self.depth)
-            self._set_moment(t, pend, both[len(A):])
-            return both[:len(A)]
-        self._set_moment(t, pend, sph.polar_moment(P, Q, R, self.depth))
-        return sph.polar_moment(A, B, C, self.depth) if len(A) else None
+        if len(t["area"]) == 1:  # the frame's one triangle: computed alone, as it always was
+            self._set_moment(t, pend, sph.polar_moment_few(P, Q, R, self.depth))
+            return sph.polar_moment_few(A, B, C, self.depth) if len(A) else None
+        # the observed first, then the candidates, in one call of two or more triangles: a column's sum
+        # is then the same whatever the others (a lone observed triangle is doubled to make two)
+        n = len(pend)
+        if len(A) or n == 1:
+            P, Q, R = (np.concatenate([X, Y if len(A) else X]) for X, Y in ((P, A), (Q, B), (R, C)))
+        both = sph.polar_moment_few(P, Q, R, self.depth)
+        self._set_moment(t, pend, both[:n])
+        return both[n:] if len(A) else None
 
     def oriented_candidates(self, t: dict, k: int, sigma: float) -> tuple[np.ndarray, list[tuple[int, ...]]]:
         """The oriented candidates of observed triangle k (rows over (ti, tj, tk)[k]) and the catalog
@@ -337,6 +373,36 @@ def _combinations(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return out
 
 
+def _hand_and_area(xyz: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, tr: float | None, area: float,
+                   bound: float) -> list[int]:
+    """`join_pairs`' last two tests of a few catalog triangles (a, b, c), in plain floats: the sign of
+    the triple product is that of the observed tr (None: not certain, not tested), then the area lies
+    within bound of the observed area. Returns the positions that pass."""
+    keep = list(range(len(a)))
+    if not keep:
+        return keep
+    P, Q, R = xyz[a].tolist(), xyz[b].tolist(), xyz[c].tolist()
+    if tr is not None:
+        keep = [i for i in keep if sph.sign(sph.dot3(P[i], sph.cross3(Q[i], R[i]))) == sph.sign(tr)]
+    found = sph.area_few([P[i] for i in keep], [Q[i] for i in keep], [R[i] for i in keep])
+    return [i for i, v in zip(keep, found) if area - bound <= v <= area + bound]
+
+
+@lru_cache(maxsize=64)
+def _side_pairs(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs (ii, jj) of n stars (np.triu_indices(n, 1)) and, for every triangle of `_combinations(n)`,
+    a (4, n_triangles) index into their angles with one more, zero entry appended: that zero, then the
+    pairs of the sides ij, jk and ik (read-only, cached)."""
+    ii, jj = np.triu_indices(n, 1)
+    pair = np.full((n, n), -1, dtype=np.intp)
+    pair[ii, jj] = np.arange(len(ii))
+    ti, tj, tk = _combinations(n)
+    out = (ii, jj, np.stack([np.full(len(ti), len(ii)), pair[ti, tj], pair[tj, tk], pair[ti, tk]]))
+    for a in out:
+        a.flags.writeable = False
+    return out
+
+
 def _n_sets(H: np.ndarray) -> int:
     """How many distinct sets of catalog stars the hypotheses hold (vertex orders of one set count once).
 
@@ -355,6 +421,8 @@ def _distinct_sets(H: np.ndarray) -> list[tuple[int, ...]]:
     (= np.unique(np.sort(H, axis=1), axis=0)[:CAP], by one integer key per set)."""
     if not len(H):
         return []
+    if H.size <= SMALL:  # the usual one or few: tuples (ints below m sort as their keys do)
+        return sorted({tuple(sorted(r)) for r in H.tolist()})[:CAP]
     S = np.sort(H, axis=1).astype(np.int64)
     m = int(S[:, 2].max()) + 1
     key = np.sort((S[:, 0] * m + S[:, 1]) * m + S[:, 2])

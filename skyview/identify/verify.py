@@ -1,6 +1,6 @@
 """The verification every identification method ends in.
 
-Long (~750 lines) because it is one procedure with its statistics (the calibrated Poisson-binomial and
+Long (~850 lines) because it is one procedure with its statistics (the calibrated Poisson-binomial and
 the tetra3 binomial), the per-star radii, the blend and crowding checks, and the exact fast paths it
 takes on small frames (each tested against its plain form in tests/test_verify.py).
 
@@ -59,14 +59,18 @@ near 2e-4 at worst, inside the project's 0.1 %.
 Speed (the same answers). A frame holds tens of stars on each side, so the nearest catalog stars of
 the tested stars (nearest, second nearest, the crowding count) come from one array of distances
 (`_nearest_two`, `_count_within`; a k-d tree only beyond BRUTE_PAIRS pairs) instead of building a
-k-d tree per round; the catalog stars around the frame are fetched once per verification, a little
-wider (NEAR_SLACK_RAD), and every refined attitude reuses them (`_Near`); the radii of all stars are
-computed once per estimate. Only the (observed, catalog) pairs within a radius are measured (all of a
-small frame's, or those a dot-product prefilter keeps on a larger one: `_Frame._within`) and they are
-paired in Python lists (`_Frame.agreeing`); whether a matched catalog star has a neighbour within the blend radius
-comes from each star's nearest-neighbour chord, looked up once per catalog (`_has_neighbour`); the
-estimate from every match is remembered for the solver's attitude stage (`attitude.remember_svd`). Each
-of these gives the general path's numbers to the last bit (tests/test_verify.py compares them).
+k-d tree per round; the catalog stars around the frame are fetched once per verification from the
+catalog's sky index (`GuideCatalog.sky`: numpy, no scipy.spatial), a little wider (NEAR_SLACK_RAD)
+and as far as the local density of the observed stars reaches, and every refined attitude reuses
+them (`_Near`); the local density counts among those stars (`local_density`, `among`); the radii of
+all stars are computed once per estimate. Only the (observed, catalog) pairs within a radius are
+measured (all of a small frame's, or those a dot-product prefilter keeps on a larger one:
+`_Frame._within`); a frame whose pairs are one-to-one agrees pair for pair, any other is paired in
+Python lists (`_Frame.agreeing`); whether a matched catalog star has a neighbour within the blend
+radius comes from each star's nearest-neighbour chord, looked up once per catalog (`_has_neighbour`);
+the estimate from every match is remembered for the solver's attitude stage (`attitude.remember_svd`).
+Each of these gives the general path's (and the k-d tree's) numbers to the last bit
+(tests/test_verify.py and tests/test_catalog.py compare them).
 
 Statistic "tetra3": the classic tetra3 form for comparison: per star p1 = N_nearby (r / FOV)^2
 (r as a fraction of the horizontal FOV, no pi), P = BinomCDF(n_obs - (n_matched - 2), n_obs, 1 - p1)
@@ -82,12 +86,16 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.special import bdtr, bdtrc
 
 from skyview.attitude import RAD_TO_ARCSEC, remember_svd, svd_attitude
 from skyview.camera import Camera
 from skyview.catalog import GuideCatalog, chord
+
+try:  # the C function behind np.einsum (the same numbers, without its Python dispatch: ~1 us a call)
+    from numpy._core.multiarray import c_einsum as _einsum
+except ImportError:  # pragma: no cover
+    _einsum = np.einsum
 
 CALIBRATED = "calibrated"
 TETRA3 = "tetra3"
@@ -104,16 +112,20 @@ BLEND_RADIUS_PX = 5.0
 
 
 def local_density(catalog: GuideCatalog, directions_icrs: np.ndarray, leave_out: np.ndarray | None = None,
-                  radius_rad: float = LOCAL_RADIUS_RAD, min_count: int = LOCAL_MIN_COUNT) -> np.ndarray:
+                  radius_rad: float = LOCAL_RADIUS_RAD, min_count: int = LOCAL_MIN_COUNT,
+                  among: np.ndarray | None = None) -> np.ndarray:
     """Catalog stars per steradian within radius_rad of each direction, 0 where fewer than min_count.
 
     leave_out: how many stars to discount per direction (the star it landed on). With fewer than
     min_count stars the count is Poisson noise (0.35 expected within 1 deg at mag 6), not a density.
+    among: catalog rows known to hold every star within radius_rad of the directions (the stars
+    around a frame: fewer to measure). The counts are the k-d tree's (`GuideCatalog.ball_counts`).
     """
-    d = np.atleast_2d(np.asarray(directions_icrs, dtype=np.float64))
+    d = np.asarray(directions_icrs, dtype=np.float64)
+    d = d[None] if d.ndim == 1 else d  # = np.atleast_2d
     if len(d) == 0:
         return np.zeros(0)
-    n = catalog.tree.query_ball_point(d, float(chord(radius_rad)), return_length=True).astype(np.float64)
+    n = catalog.ball_counts(d, float(chord(radius_rad)), among).astype(np.float64)
     if leave_out is not None:
         n = np.maximum(n - leave_out, 0.0)
     n[n < min_count] = 0.0
@@ -167,6 +179,8 @@ def _states(k: int, ps: np.ndarray, qs: np.ndarray, absorb: bool = False):
     """The distribution of a sum of Bernoulli(p_i) (q_i = 1 - p_i given, not recomputed: no
     cancellation when p_i is near 1) over the counts 0 .. k-1, plus with absorb=True a last state
     "k or more" that the mass moving past k-1 joins."""
+    if k == 1 and not absorb:  # one state: the product of the q_i, in order (the loop below, unrolled)
+        return [math.prod(qs.tolist())]
     if k <= 32:
         dist = [1.0] + [0.0] * (k - 1 + absorb)
         for p, q in zip(ps.tolist(), qs.tolist()):
@@ -214,7 +228,8 @@ def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     A small attitude error dphi (camera frame, covariance P) moves a direction b by dphi x b, whose
     covariance is [b]x P [b]x^T; this returns the square root of its largest eigenvalue per star.
     """
-    b = np.atleast_2d(np.asarray(vectors, dtype=np.float64))
+    b = np.asarray(vectors, dtype=np.float64)
+    b = b[None] if b.ndim == 1 else b  # = np.atleast_2d
     if len(b) == 0:
         return np.zeros(0)
     # In closed form (no batched eigensolver): [b]x P [b]x^T is |b|^2 times P restricted to the plane
@@ -229,10 +244,10 @@ def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     (a, q, c), (_, d, e), (_, _, f) = rows  # symmetric: six numbers, as Python floats
     a01, a02, a12 = c * e - q * f, q * e - c * d, q * c - a * e
     adj = np.array([[d * f - e * e, a01, a02], [a01, a * f - c * c, a12], [a02, a12, a * d - q * q]])
-    s2 = np.einsum("ij,ij->i", b, b)
+    s2 = _einsum("ij,ij->i", b, b)
     n = b / np.sqrt(np.where(s2 > 0, s2, 1.0))[:, None]
-    t = (a + d + f) - np.einsum("ij,ij->i", n @ P, n)
-    det = np.einsum("ij,ij->i", n @ adj, n)
+    t = (a + d + f) - _einsum("ij,ij->i", n @ P, n)
+    det = _einsum("ij,ij->i", n @ adj, n)
     lam = 0.5 * t + np.sqrt(np.maximum(0.25 * t * t - det, 0.0))
     return np.sqrt(np.maximum(lam * s2, 0.0))
 
@@ -284,7 +299,10 @@ class Verification:
 
 def angular_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle between unit vectors (rows), accurate for small angles."""
-    return 2.0 * np.arcsin(np.clip(np.linalg.norm(np.asarray(a) - np.asarray(b), axis=-1) / 2.0, 0.0, 1.0))
+    # = 2 arcsin(clip(np.linalg.norm(a - b, axis=-1) / 2, 0, 1)): the norm is sqrt(add.reduce(d * d)) as
+    # numpy computes it, and a norm is >= 0 (NaN stays NaN either way): the same numbers, fewer calls
+    d = np.asarray(a) - np.asarray(b)
+    return 2.0 * np.arcsin(np.minimum(np.sqrt(np.add.reduce(d * d, axis=-1)) / 2.0, 1.0))
 
 
 def match_one_to_one(query: np.ndarray, ref: np.ndarray, radius_rad
@@ -324,7 +342,7 @@ def _chords(query: np.ndarray, ref: np.ndarray) -> np.ndarray:
         diff = np.empty((n, m, 3))
         for k in range(3):
             np.subtract(query[:, k, None], ref[None, :, k], out=diff[..., k])
-    return np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+    return np.sqrt(_einsum("ijk,ijk->ij", diff, diff))
 
 
 def _nearest_two(query: np.ndarray, ref: np.ndarray, bound: float, keep: np.ndarray | None = None
@@ -350,6 +368,8 @@ def _nearest_two(query: np.ndarray, ref: np.ndarray, bound: float, keep: np.ndar
         j0[out] = mk
         d1[d1 > bound] = np.inf
         return d0, j0, d1
+    from scipy.spatial import cKDTree  # (only for frames of hundreds of stars: not imported on the usual path)
+
     k = 2 if m > 1 else 1
     d, j = cKDTree(ref).query(query, k=k, distance_upper_bound=bound)
     d1 = d.reshape(n, k)[:, 1] if k == 2 else np.full(n, np.inf)
@@ -365,9 +385,21 @@ def _nearest_two(query: np.ndarray, ref: np.ndarray, bound: float, keep: np.ndar
 
 def _count_within(query: np.ndarray, ref: np.ndarray, chords: np.ndarray) -> np.ndarray:
     """How many ref rows lie within each query's chord (= cKDTree(ref).query_ball_point(query, chords,
-    return_length=True))."""
-    if len(query) * len(ref) <= BRUTE_PAIRS:
+    return_length=True)). The chords are _chords's; from PREFILTER_PAIRS pairs only those a dot product
+    puts within reach (as _Frame._within, with both lengths) are measured."""
+    n, m = len(query), len(ref)
+    if n * m < PREFILTER_PAIRS:
         return np.count_nonzero(_chords(query, ref) <= chords[:, None], axis=1)
+    if n * m <= BRUTE_PAIRS:
+        qq = _einsum("ij,ij->i", query, query)
+        rr = _einsum("ij,ij->i", ref, ref)
+        ks, js = np.nonzero((qq[:, None] + rr[None, :]) - 2.0 * (query @ ref.T)
+                            <= (chords * chords + PREFILTER_MARGIN)[:, None])
+        diff = query[ks] - ref[js]
+        ok = np.sqrt(_einsum("ij,ij->i", diff, diff)) <= chords[ks]
+        return np.bincount(ks[ok], minlength=n)
+    from scipy.spatial import cKDTree
+
     return np.asarray(cKDTree(ref).query_ball_point(query, chords, return_length=True))
 
 
@@ -401,17 +433,22 @@ def _one_to_one(d0: np.ndarray, j0: np.ndarray, cq: np.ndarray) -> tuple[np.ndar
 
 
 ONE_TO_ONE_PY = 64  # up to this many pairs within the radius _one_to_one runs in Python lists
+ONE_EACH_FAST = True  # _Frame.agreeing answers a frame of one-to-one pairs without pairing them, and pairs
+# surely within their radius are not measured (_Frame._within(chords=False))
 
 
 _NEAREST: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # catalog -> chord to each star's nearest
-NEAREST_UNSURE = 1e-9  # relative: a chord this close to the limit is decided by the k-d tree's own count
+NEAREST_UNSURE = 1e-9  # relative: a chord this close to the limit is decided by the exact count
+NEAREST_REACH_RAD = float(np.radians(1.0))  # nearest neighbours are looked for this far (inf beyond)
 
 
 def _has_neighbour(catalog: GuideCatalog, rows: np.ndarray, chords: np.ndarray) -> np.ndarray:
     """catalog.tree.query_ball_point(catalog.xyz[rows], chords, return_length=True) >= 2: whether
-    another catalog star lies within each chord. From the chord to each star's nearest neighbour,
-    looked up once per star and catalog and remembered (NaN until then); a neighbour within
-    NEAREST_UNSURE of the limit is counted by the k-d tree itself, so the answer is its answer."""
+    another catalog star lies within each chord. From the chord to each star's nearest neighbour
+    (`GuideCatalog.nearest_chords`: the tree's k=2 distance; inf beyond NEAREST_REACH_RAD), looked up
+    once per star and catalog and remembered (NaN until then); a neighbour within NEAREST_UNSURE of
+    the limit, or a chord beyond half the reach, is counted exactly (`GuideCatalog.ball_counts`), so
+    the answer is the tree's answer."""
     nn = _NEAREST.get(catalog)
     if nn is None:
         nn = _NEAREST[catalog] = np.full(len(catalog.xyz), np.nan)
@@ -419,15 +456,16 @@ def _has_neighbour(catalog: GuideCatalog, rows: np.ndarray, chords: np.ndarray) 
     miss = np.isnan(d)
     if miss.any():
         new = rows[miss]
-        dd, _ = catalog.tree.query(catalog.xyz[new], k=2)
-        nn[new] = dd[:, 1]
+        nn[new] = catalog.nearest_chords(new, NEAREST_REACH_RAD)
         d = nn[rows]
     out = d <= chords
-    unsure = np.abs(d - chords) <= NEAREST_UNSURE * chords
+    unsure = (np.abs(d - chords) <= NEAREST_UNSURE * chords) | (chords > 0.5 * _NEAREST_REACH_CHORD)
     if unsure.any():
-        out[unsure] = np.asarray(catalog.tree.query_ball_point(catalog.xyz[rows[unsure]], chords[unsure],
-                                                               return_length=True)) >= 2
+        out[unsure] = catalog.ball_counts(catalog.xyz[rows[unsure]], chords[unsure]) >= 2
     return out
+
+
+_NEAREST_REACH_CHORD = float(chord(NEAREST_REACH_RAD))
 
 
 def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
@@ -439,6 +477,12 @@ def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad
 def _half_diagonal_rad(camera: Camera) -> float:
     """camera.half_diagonal_rad, computed once per camera (it unprojects the corners: ~0.1 ms a call)."""
     return camera.half_diagonal_rad
+
+
+@lru_cache(maxsize=64)
+def _focal_centre(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """[fx, fy] and [cx, cy] as arrays, made once per camera."""
+    return np.array([camera.fx, camera.fy]), np.array([camera.cx, camera.cy])
 
 
 NEAR_SLACK_RAD = float(np.radians(0.25))  # the catalog stars near a frame are fetched this much wider
@@ -453,30 +497,45 @@ def _solid_angle_sr(camera: Camera) -> float:
 class _Near:
     """The catalog stars within some radius of a direction, fetched once per verification and reused
     by every re-estimated attitude whose frame they still cover (a refit moves the boresight by
-    arcseconds): `rows(b, radius)` is exactly catalog.within(b, radius) or a superset of it."""
+    arcseconds): `rows(b, radius)` is catalog.within(b, radius) or a superset of it, ascending; and
+    `wide`, the stars within `wide_rad` (the local density's reach) or a superset."""
 
-    def __init__(self, catalog: GuideCatalog):
+    def __init__(self, catalog: GuideCatalog, wide_rad: float = 0.0):
         self.catalog = catalog
         self.center = None
         self.radius = -1.0
+        self.wide_rad = wide_rad
         self.idx = np.zeros(0, dtype=np.int64)
         self.xyz = np.zeros((0, 3))
+        self.wide = self.idx
 
     def rows(self, b: np.ndarray, radius: float) -> np.ndarray:
-        """The rows (and `self.xyz`, their directions)."""
+        """The rows (and `self.xyz`, their directions), ascending."""
         if self.center is not None:
             d = self.center - b
             moved = 2.0 * math.asin(min(1.0, math.sqrt(float(d @ d)) / 2.0))
             if moved + radius <= self.radius:
                 return self.idx
         self.center, self.radius = np.array(b, dtype=np.float64), radius + NEAR_SLACK_RAD
-        # = catalog.within(b, self.radius) but for b's norm (an attitude's row: 1 to ~1e-16) and the
-        # chord's last bit, which no star that matters can notice: every star a frame takes lies
-        # 1e-9 rad inside the radius asked for, and that is NEAR_SLACK_RAD inside this one
-        self.idx = np.array(self.catalog.tree.query_ball_point(self.center, 2.0 * math.sin(self.radius / 2.0),
-                                                               return_sorted=True), dtype=np.int64)
+        self.wide_rad = max(self.wide_rad, self.radius)
+        # the stars of the sky index's cells around b (ascending, as catalog.within gives them), less
+        # those a dot product puts beyond each radius (a 1e-9 margin on the cosine: a superset)
+        cand = np.sort(self.catalog.sky.cap(self.center, self.wide_rad))
+        cos_b = self.catalog.xyz[cand] @ (self.center / math.sqrt(float(self.center @ self.center)))
+        self.wide = cand[cos_b >= math.cos(min(self.wide_rad, math.pi)) - 1e-9]
+        self.idx = cand[cos_b >= math.cos(min(self.radius, math.pi)) - 1e-9]
         self.xyz = self.catalog.xyz[self.idx]
         return self.idx
+
+    def covers(self, directions: np.ndarray, radius_rad: float) -> bool:
+        """Whether every star within radius_rad of the directions (unit vectors) is in `wide`."""
+        if self.center is None:
+            return False
+        if len(directions) == 0:
+            return True
+        c = self.center / math.sqrt(float(self.center @ self.center))
+        cos_far = float((directions @ c).min())
+        return math.acos(max(-1.0, min(1.0, cos_far))) + radius_rad + 1e-7 <= self.wide_rad
 
 
 class _Frame:
@@ -484,7 +543,7 @@ class _Frame:
     density), and the pool of stars an observed star may match (grown by the largest radius)."""
 
     def __init__(self, catalog: GuideCatalog, camera: Camera, R: np.ndarray, r: float, r_pool: float,
-                 near: _Near | None = None):
+                 near: _Near | None = None, count: bool = True):
         R = np.asarray(R, dtype=np.float64)
         grow = max(float(r), float(r_pool), 0.0)
         radius = _half_diagonal_rad(camera) + grow + 1e-9
@@ -495,42 +554,51 @@ class _Frame:
         if len(rows):
             if camera.distorted:
                 uv, front = camera.project(v)  # NaN pixels behind the camera compare False below
-                x, y = uv[:, 0], uv[:, 1]
             else:  # = camera.project without its per-call overhead: the same numbers
                 z = v[:, 2]
                 front = z > 1e-12
                 z = np.where(front, z, 1.0)
-                x = camera.fx * (v[:, 0] / z) + camera.cx
-                y = camera.fy * (v[:, 1] / z) + camera.cy
+                # x = fx (v_x / z) + cx and y likewise, both columns at once (the same operations)
+                fxy, cxy = _focal_centre(camera)
+                uv = (v[:, :2] / z[:, None]) * fxy + cxy
 
             def inside(margin):  # = camera.in_image(uv, margin) without its per-call overhead
-                return ((x >= -0.5 + margin) & (x <= camera.width - 0.5 - margin)
-                        & (y >= -0.5 + margin) & (y <= camera.height - 0.5 - margin))
+                hi = np.array([camera.width - 0.5 - margin, camera.height - 0.5 - margin])
+                ok = (uv >= -0.5 + margin) & (uv <= hi)
+                return ok[:, 0] & ok[:, 1]
 
             pool = front & inside(-grow * f)
-            self.n_frame = int(np.count_nonzero(front & inside(-max(float(r), 0.0) * f)))
+            # (n_frame only where it is asked for: a refit needs the pool alone)
+            self.n_frame = int(np.count_nonzero(front & inside(-max(float(r), 0.0) * f))) if count else -1
         else:
             pool = np.zeros(0, dtype=bool)
             self.n_frame = 0
         self.rows = rows[pool]
         self.v = v[pool]
 
-    def _within(self, q: np.ndarray, cq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _within(self, q: np.ndarray, cq: np.ndarray, chords: bool = True
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """The pairs (row k of q, pool star j, chord) with chord <= cq[k], k ascending and j ascending
         within a row. The chords are _chords's numbers (the same differences and sums, pair by pair);
         on larger frames only the pairs a dot product puts within reach (a 1e-12 margin on the squared
-        chord, a thousand times its rounding) are measured."""
+        chord, a thousand times its rounding) are measured. chords=False: the chords may be left out
+        (None) where every pair the dot product keeps lies within reach by more than that margin (they
+        are then surely within: only the pairs are asked for)."""
         n, m = len(q), len(self.v)
         if n * m < PREFILTER_PAIRS:
             D = _chords(q, self.v)
-            ks, js = np.nonzero(D <= cq[:, None])
+            ks, js = (D <= cq[:, None]).nonzero()
             return ks, js, D[ks, js]
-        qq = np.einsum("ij,ij->i", q, q)
-        vv = np.einsum("ij,ij->i", self.v, self.v)
-        approx = (qq[:, None] + vv[None, :]) - 2.0 * (q @ self.v.T)  # |q - v|^2 to ~1e-15
-        ks, js = np.nonzero(approx <= (cq * cq + PREFILTER_MARGIN)[:, None])
+        # |q - v|^2 = |q|^2 + |v|^2 - 2 q.v <= cq^2, with |v|^2 = 1 to ~1e-15 (catalog unit vectors
+        # turned by an attitude): q.v >= (|q|^2 + 1 - cq^2) / 2, less the margin
+        qq = _einsum("ij,ij->i", q, q)
+        g = q @ self.v.T
+        reach = 0.5 * ((qq + 1.0) - cq * cq)
+        ks, js = (g >= (reach - 0.5 * PREFILTER_MARGIN)[:, None]).nonzero()
+        if not chords and np.all(g[ks, js] >= (reach + 0.5 * PREFILTER_MARGIN)[ks]):
+            return ks, js, None
         diff = q[ks] - self.v[js]
-        d = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        d = np.sqrt(_einsum("ij,ij->i", diff, diff))
         ok = d <= cq[ks]
         return ks[ok], js[ok], d[ok]
 
@@ -541,21 +609,33 @@ class _Frame:
         cq = chord(_per_item(radii, len(q)))
         if len(q) * len(self.v) > BRUTE_PAIRS:
             return _nearest_two(q, self.v, float(cq.max()))[2] <= cq
-        return np.bincount(self._within(q, cq)[0], minlength=len(q)) >= 2  # = second nearest within
+        pairs = self._within(q, cq, chords=not ONE_EACH_FAST)[0]
+        return np.bincount(pairs, minlength=len(q)) >= 2  # = second nearest within
 
-    def agreeing(self, vectors: np.ndarray, others: np.ndarray, exclude_rows: np.ndarray, radii
-                 ) -> tuple[dict[int, int], set[int]]:
+    def agreeing(self, vectors: np.ndarray, others: np.ndarray, exclude_rows: np.ndarray, radii,
+                 q: np.ndarray | None = None) -> tuple[dict[int, int], set[int]]:
         """Observed stars among `others` within their radius of a catalog star not in exclude_rows
-        (one-to-one), and those with two or more catalog stars within it (ambiguous: not in the dict)."""
+        (one-to-one), and those with two or more catalog stars within it (ambiguous: not in the dict).
+        q: vectors[others], where the caller has it."""
         if len(others) == 0 or len(self.rows) == 0:
             return {}, set()
+        q = vectors[others] if q is None else q
+        cq = 2.0 * np.sin(_per_item(radii, len(others)) / 2.0)  # = chord(radii)
+        if len(others) * len(self.v) <= BRUTE_PAIRS:
+            qs, cs, ds = self._within(q, cq, chords=not ONE_EACH_FAST)
+            q_l, c_l = qs.tolist(), cs.tolist()
+            if ONE_EACH_FAST and len(set(q_l)) == len(q_l) and len(set(c_l)) == len(c_l):
+                rows_c = self.rows[cs].tolist()
+                if set(rows_c).isdisjoint(np.asarray(exclude_rows).ravel().tolist()):
+                    # the usual frame: every star has at most one catalog star within its radius, none
+                    # of the hypothesis, and no catalog star is wanted twice: no ambiguity, all agree
+                    return dict(zip(others[qs].tolist(), rows_c)), set()
         ex = np.asarray(exclude_rows).ravel()
         keep = (self.rows[:, None] != ex[None, :]).all(axis=1) if ex.size <= 16 else ~np.isin(self.rows, ex)
-        cq = chord(_per_item(radii, len(others)))
         # the nearest catalog star not in the hypothesis; ambiguity is judged against every catalog
         # star, those of the hypothesis included
         if len(others) * len(self.v) > BRUTE_PAIRS:
-            d0, j0, d1 = _nearest_two(vectors[others], self.v, float(cq.max()), keep)
+            d0, j0, d1 = _nearest_two(q, self.v, float(cq.max()), keep)
             amb_mask = d1 <= cq
             qi, rj, _ = _one_to_one(d0, j0, cq)
             pool = self.rows[keep]
@@ -566,12 +646,14 @@ class _Frame:
         # ambiguous with two or more of them (= its second nearest within), and its nearest catalog
         # star not in the hypothesis (= argmin over those: the first column on a tie) is within the
         # radius exactly when one of its pairs is such a star
-        qs, cs, ds = self._within(vectors[others], cq)
+        if ds is None:
+            qs, cs, ds = self._within(q, cq)
+            q_l, c_l = qs.tolist(), cs.tolist()
         ds = ds.tolist()
         keep_l = keep.tolist()
         count = [0] * len(others)
         best: dict[int, tuple[float, int]] = {}
-        for qk, ck, dk in zip(qs.tolist(), cs.tolist(), ds):
+        for qk, ck, dk in zip(q_l, c_l, ds):
             count[qk] += 1
             if keep_l[ck]:
                 b = best.get(qk)
@@ -618,17 +700,19 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     if len(hypothesis) < 2:
         out.reason = "a hypothesis needs at least two stars to give an attitude"
         return out
-    h_obs = np.array(sorted(hypothesis), dtype=np.int64)
-    h_cat = np.array([hypothesis[i] for i in h_obs], dtype=np.int64)
+    h_keys = sorted(hypothesis)
+    h_obs = np.array(h_keys, dtype=np.int64)
+    h_cat = np.array([hypothesis[i] for i in h_keys], dtype=np.int64)
     if h_obs[0] < 0 or h_obs[-1] >= n_obs:  # sorted
         raise ValueError("hypothesis refers to an observed star that does not exist")
     if len(set(h_cat.tolist())) != len(h_cat):
         out.reason = "the hypothesis assigns one catalog star to two observed stars"
         return out
 
-    est = svd_attitude(vectors[h_obs], catalog.xyz[h_cat], sigma_rad)
+    b_h, r_h = vectors[h_obs], catalog.xyz[h_cat]
+    est = svd_attitude(b_h, r_h, sigma_rad)
     R = est.R
-    resid = angular_distance(vectors[h_obs], catalog.xyz[h_cat] @ R.T)
+    resid = angular_distance(b_h, r_h @ R.T)
     out.max_residual_rad = float(resid.max())
     if out.max_residual_rad > r:
         out.reason = (f"the hypothesis does not fit itself: a residual of {out.max_residual_rad * RAD_TO_ARCSEC:.1f}\" "
@@ -641,19 +725,24 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     out.n_tested = int(len(others))
     radii = star_radii(vectors[others], est.covariance, sigma_rad, r)
     out.radius_max_rad = float(radii.max()) if len(radii) else r
-    near = _Near(catalog)  # the catalog stars around the frame, fetched once for every round below
+    # the catalog stars around the frame, fetched once for every round below, as far as the local
+    # density of the observed stars reaches (an observed star lies acos(z) from the boresight)
+    z_min = float(vectors[:, 2].min())
+    near = _Near(catalog, math.acos(max(-1.0, min(1.0, z_min))) + LOCAL_RADIUS_RAD + NEAR_SLACK_RAD)
     frame = _Frame(catalog, camera, R, r, out.radius_max_rad, near)
     out.n_frame = frame.n_frame
     solid_angle = _solid_angle_sr(camera)
     out.p_single = p_single(out.n_frame, solid_angle, r)
-    agree, amb = frame.agreeing(vectors, others, h_cat, radii)
+    q = vectors[others]
+    agree, amb = frame.agreeing(vectors, others, h_cat, radii, q)
     out.n_agree = len(agree) + len(amb)  # an unresolved close pair still is a catalog star
     out.agreeing = agree
     # density: the frame's, or the local one around each tested star where that is higher (a
     # cluster); the star a tested star landed on is left out of its own neighbourhood
     landed = np.array([o in agree or o in amb for o in others.tolist()], dtype=np.float64)
-    dens = np.maximum(out.n_frame / solid_angle,
-                      local_density(catalog, vectors[others] @ R, leave_out=landed))
+    tested = q @ R
+    dens = np.maximum(out.n_frame / solid_angle, local_density(
+        catalog, tested, leave_out=landed, among=near.wide if near.covers(tested, LOCAL_RADIUS_RAD) else None))
     ps = np.minimum(1.0, dens * np.pi * radii ** 2)
     out.p_tested = ps.tolist()
     if statistic == CALIBRATED:
@@ -686,20 +775,21 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         est = _estimate(vectors, current, catalog, sigma_rad)
         radii_all = star_radii(vectors, est.covariance, sigma_rad, r)  # every star's radius for this estimate
         radii = radii_all[others]
-        frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r, near)
-        agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii)
+        frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r, near, count=False)
+        agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii, q)
         done = (current, est)
         current = {**hyp, **agree_i}
-    h_amb = frame.ambiguous(vectors[h_obs], radii_all[h_obs])
-    final = {int(o): int(c) for o, c, a in zip(h_obs, h_cat, h_amb) if not a}
+    h_amb = frame.ambiguous(b_h, radii_all[h_obs])
+    final = {o: c for o, c, a in zip(h_obs.tolist(), h_cat.tolist(), h_amb.tolist()) if not a}  # Python ints
     final.update(agree_i)
     ambiguous = set(h_obs[h_amb].tolist()) | amb_i
     if len(final) >= 2:
         same = final == done[0]
         est = done[1] if same else _estimate(vectors, final, catalog, sigma_rad)
         done = (dict(final), est)
-        f_obs = np.array(sorted(final), dtype=np.int64)
-        f_cat = np.array([final[o] for o in f_obs], dtype=np.int64)
+        f_keys = sorted(final)
+        f_obs = np.array(f_keys, dtype=np.int64)
+        f_cat = np.array([final[o] for o in f_keys], dtype=np.int64)
         rad = radii_all[f_obs] if same else star_radii(vectors[f_obs], est.covariance, sigma_rad, r)
         pred = catalog.xyz[f_cat] @ est.R.T
         # every reported star must fit the final attitude (a hypothesis star that only just fitted
@@ -724,7 +814,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     out.reason = f"{out.n_agree} of {out.n_tested} other stars agree, P(false) = {out.p_false:.2e}"
     out.R = est.R
     out.covariance = est.covariance
-    out.matches = {int(k): int(v) for k, v in sorted(final.items())}
+    out.matches = dict(sorted(final.items()))  # Python ints: from tolist() and int()
     return out
 
 
