@@ -228,10 +228,10 @@ def _svd3(B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """U, V^T of a 3x3 matrix: the LAPACK routine np.linalg.svd calls, without its wrapper (checks,
     error-state context: ~4 us of its ~8); np.linalg.svd itself (and its LinAlgError) for input that
     is not finite."""
-    if _SVD_F is None or not math.isfinite(sum(B.ravel().tolist())):
+    if _SVD_F is None or B.dtype != np.float64 or not math.isfinite(sum(B.ravel().tolist())):
         U, _, Vt = np.linalg.svd(B)
         return U, Vt
-    U, _, Vt = _SVD_F(B, signature="d->ddd")
+    U, _, Vt = _SVD_F(B)  # float64: the "d->ddd" loop np.linalg.svd names, found without the signature
     return U, Vt
 
 

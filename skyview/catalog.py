@@ -24,6 +24,11 @@ import numpy as np
 
 from skyview.errors import BadInput, SkyviewError
 
+try:  # the C function behind np.einsum (the same numbers, without its Python dispatch)
+    from numpy._core.multiarray import c_einsum as _einsum
+except ImportError:  # pragma: no cover
+    _einsum = np.einsum
+
 HIP2_EPOCH = 1991.25
 DEFAULT_EPOCH = 2025.0
 DEFAULT_BUILD_MAG_LIMIT = 9.0
@@ -152,17 +157,22 @@ class SkyIndex:
                                                   if isinstance(a, np.ndarray)]
         return int(sum(a.nbytes for a in held))
 
-    def cap(self, center: np.ndarray, angle: float) -> np.ndarray:
-        """Rows of every star within `angle` of `center` (a direction of any length) and some farther:
-        from the run of z (declination) the cap spans, less those a dot product puts beyond it (a
-        1e-9 margin on the cosine), where that run is short (CAP_RUN stars); else cell by cell."""
+    def _run(self, center: np.ndarray, angle: float) -> tuple[np.ndarray, float, int, int]:
+        """(center normalised, angle, i0, i1): the stars z-sorted from i0 to i1 hold the declinations the
+        cap spans."""
         c = np.asarray(center, dtype=np.float64)
         c = c / math.sqrt(float(c @ c))
         a = float(angle)
         dec = math.asin(max(-1.0, min(1.0, float(c[2]))))
         lo = math.sin(max(dec - a, -0.5 * math.pi)) - 1e-9
         hi = math.sin(min(dec + a, 0.5 * math.pi)) + 1e-9
-        i0, i1 = int(self.z.searchsorted(lo)), int(self.z.searchsorted(hi))
+        return c, a, int(self.z.searchsorted(lo)), int(self.z.searchsorted(hi))
+
+    def cap(self, center: np.ndarray, angle: float) -> np.ndarray:
+        """Rows of every star within `angle` of `center` (a direction of any length) and some farther:
+        from the run of z (declination) the cap spans, less those a dot product puts beyond it (a
+        1e-9 margin on the cosine), where that run is short (CAP_RUN stars); else cell by cell."""
+        c, a, i0, i1 = self._run(center, angle)
         if i1 - i0 <= CAP_RUN:
             keep = np.flatnonzero(self.xyz_z[i0:i1] @ c >= math.cos(min(a, math.pi)) - 1e-9)
             return self.by_z[keep + i0]
@@ -176,6 +186,22 @@ class SkyIndex:
         n = stop - start
         pos = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n - start, n)
         return rows[pos]
+
+    def cap_cosines(self, center: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
+        """`cap`'s rows, ascending, less those a dot product puts beyond `angle` (the same 1e-9 margin on
+        the cosine: every star within the angle is kept), and each row's cosine to `center` (normalised)."""
+        c, a, i0, i1 = self._run(center, angle)
+        limit = math.cos(min(a, math.pi)) - 1e-9
+        if i1 - i0 <= CAP_RUN:  # cap's run, its dot products kept (they are what it compared)
+            cos = self.xyz_z[i0:i1] @ c
+            keep = (cos >= limit).nonzero()[0]  # (np.flatnonzero of a 1-d mask)
+            rows = self.by_z[keep + i0]
+            order = np.argsort(rows)
+            return rows[order], cos[keep[order]]
+        rows = np.sort(self.cap(c, a))
+        cos = self.xyz[rows] @ c
+        keep = cos >= limit
+        return rows[keep], cos[keep]
 
 
 def squared_chords(points: np.ndarray, centers: np.ndarray) -> np.ndarray:
@@ -210,6 +236,13 @@ class GuideCatalog:
     @cached_property
     def ra_dec(self) -> tuple[np.ndarray, np.ndarray]:
         return vec_to_radec(self.xyz)
+
+    @cached_property
+    def radec_deg(self) -> tuple[np.ndarray, np.ndarray]:
+        """RA and Dec of every star in degrees: np.degrees(vec_to_radec(xyz)), made once (element by
+        element: a row's numbers are those vec_to_radec gives for that row alone)."""
+        ra, dec = np.degrees(self.ra_dec)
+        return ra, dec
 
     @cached_property
     def tree(self):
@@ -356,28 +389,36 @@ class GuideCatalog:
         return_length=True). among: rows known to hold every star within the chords (fewer to measure)."""
         c = np.asarray(centers, dtype=np.float64)
         c = c[None] if c.ndim == 1 else c  # = np.atleast_2d
-        ch = np.asarray(chords, dtype=np.float64)
-        ch = np.full(len(c), float(ch)) if ch.ndim == 0 else np.array(np.broadcast_to(ch, (len(c),)))
         if len(c) == 0:
             return np.zeros(0, dtype=np.int64)
+        if isinstance(chords, float):  # one chord (the local density's): its square, a Python float, for all
+            ch, lim = np.full(len(c), chords), chords * chords
+        else:
+            ch = np.asarray(chords, dtype=np.float64)
+            ch = np.full(len(c), float(ch)) if ch.ndim == 0 else np.array(np.broadcast_to(ch, (len(c),)))
+            lim = None
         if among is not None and len(c) * len(among) <= PAIRS_AT_ONCE:
-            return self._counts_among(c, ch, np.asarray(among, dtype=np.int64))
+            return self._counts_among(c, ch, np.asarray(among, dtype=np.int64), lim)
         ci, _, _, unsure = self._pairs_within(c, ch, among)
         n = np.bincount(ci, minlength=len(c))
         if len(unsure):
             n[unsure] = self.tree.query_ball_point(c[unsure], ch[unsure], return_length=True)
         return n
 
-    def _counts_among(self, c: np.ndarray, ch: np.ndarray, among: np.ndarray) -> np.ndarray:
+    def _counts_among(self, c: np.ndarray, ch: np.ndarray, among: np.ndarray, lim_all: float | None = None
+                      ) -> np.ndarray:
         """ball_counts over the rows `among`, from dot products: |p - c|^2 = 1 + |c|^2 - 2 p.c (p a
         unit vector to ~1e-16) is within ~1e-15 of the squared chord the tree sums, so a pair whose
         dot product lies more than 1e-10 from the limit's is decided by it; the few nearer are measured
         as the tree measures them (`squared_chords`)."""
         g = c @ self.xyz[among].T
-        qq = np.einsum("ij,ij->i", c, c)
-        lim = ch * ch
-        e = g - 0.5 * ((1.0 + qq) - lim)[:, None]  # s <= lim where e >= 0
+        qq = _einsum("ij,ij->i", c, c)
+        # (lim_all: the square of the one chord of every center: the numbers of ch * ch, without the array)
+        e = g - 0.5 * ((1.0 + qq) - (ch * ch if lim_all is None else lim_all))[:, None]  # s <= lim where e >= 0
         n = (e > 1e-10).sum(axis=1)
+        if e.size == 0 or np.abs(e).min() > 1e-10:  # (the usual case: every pair decided by its product)
+            return n
+        lim = ch * ch
         ks, js = np.nonzero(np.abs(e) <= 1e-10)
         if len(ks):
             s = squared_chords(self.xyz[among[js]], c[ks])

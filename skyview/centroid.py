@@ -60,11 +60,21 @@ Fast forms (issue 11) and what each keeps; tests/test_centroid.py checks them ag
   float32 result to ~1e-7 relative. The noise sigma moves by ~1e-7 relative, the threshold with it.
 - 3 x 3 neighbourhoods of the above-threshold pixels on a flat sky read in the frame's dtype as 9
   rows (the ring's maximum from contiguous rows, the background subtracted after it: the same
-  numbers; pixels in the first or last column through the zero-padded gather).
+  numbers; pixels in the first or last column or row get the gather's zero-padded neighbourhood, read
+  with indices clipped to the image).
 - each blob's brightest pixel by np.maximum.at and a table by label (`_label_peaks`: the last pixel
   at the maximum in index order, what the last of np.lexsort((val, lab)) per label is): the same peak.
 - the fit: the products of the two profiles it uses (not the unused fourth), no weights when no pixel
-  is left out, the updates without index copies while every star iterates: ~1e-14 px.
+  is left out, the updates without index copies while every star iterates: ~1e-14 px. With every
+  pixel used (the usual case) the model is separable, so the 3 x 3 Gram matrix is the product of the
+  two axes' 2 x 2 Grams of (profile, derivative) (`_GUV`) and the products with the data are
+  (fv, dfv) V (fu, dfu)^T: two small batched products instead of the (N, 3, n^2) model; the system
+  solved for (A + dA, A du, A dv) (no residual vector), the determinant by one product, the first step's
+  stop test step > _FIT_TOL alone (with no previous step the error left is step^2 / 1e-12): the same
+  positions to ~1e-13 px (tested against the weighted form: `test_separable_fit_is_the_weighted_form`).
+- `_gauss3_fast`: the log-parabola's curvature and slope negated and doubled (exact), so no division
+  by zero and no error-state switch: _gauss3's numbers. `_axis_ratio_mm`: every second moment from one
+  chain of batched products (Dy w Dx^T): _axis_ratio's ratio to ~1e-15 relative.
 - iwcog's weighted sums by batched matrix products instead of einsum: ~1e-13 px.
 """
 
@@ -358,7 +368,7 @@ def _background_stats(f: np.ndarray, block: int = 64):
     # phases of the 4-pixel column step, as the reference's sample has them: JPEG's 8 x 8 blocks);
     # an integer sample less the float32 map is float32 (the values of its float32 copy less the map)
     parts = ((0, 2), (1, 2)) if sy > sx else ((0, 1),)
-    r = np.empty(sum(sub[a::st, a::st].size for a, st in parts), dtype=np.float32)
+    r = np.empty(sum(-(-(sh - a) // st) * -(-(sw - a) // st) for a, st in parts), dtype=np.float32)  # their sizes
     o = 0
     for a, st in parts:
         s_part = sub[a::st, a::st]
@@ -704,20 +714,36 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
     # hot pixels (see the reference): counted, taken out of the mask, repaired on read
     nb9 = None  # (9, n): each pixel's raw 3 x 3 neighbourhood (values exact in float32), row-major
     i_lo, i_hi = idx[0] // W, idx[-1] // W  # idx ascends
-    if resid is None and idx.size <= _GATHER_HOT_MAX and i_lo > 0 and i_hi < H - 1 and W > 2:
-        # a flat sky with every pixel's neighbourhood on the image rows (the usual case): the 3 x 3 values
-        # read in their own dtype as 9 rows of n, the ring's maximum from contiguous rows; the background
-        # is subtracted after the max (float64 of an exact value less a scalar keeps the order: the numbers
-        # of the gather below). Pixels in the first or last column are read there too: their row wraps
-        # into the next one, so those get the gather's zero-padded neighbourhood
+    if resid is None and idx.size <= _GATHER_HOT_MAX and H > 2 and W > 2:
+        # a flat sky (the usual case): the 3 x 3 values read in their own dtype as 9 rows of n, the ring's
+        # maximum from contiguous rows; the background is subtracted after the max (float64 of an exact
+        # value less a scalar keeps the order: the numbers of the gather below). Pixels in the first or
+        # last column are read there too: their row wraps into the next one, so those get the gather's
+        # zero-padded neighbourhood, and so do pixels in the first or last row (their indices clipped to
+        # the image for this read)
         j = idx % W
-        nb9 = f.reshape(-1)[_NB9_ROWS[:, None] * W + _NB9_COLS[:, None] + idx]
+        nbi = _NB9_ROWS[:, None] * W + _NB9_COLS[:, None] + idx
+        border_rows = i_lo == 0 or i_hi == H - 1
+        if border_rows:
+            np.minimum(np.maximum(nbi, 0, out=nbi), H * W - 1, out=nbi)
+        nb9 = f.reshape(-1)[nbi]
         nb_max = np.maximum(nb9[:4].max(axis=0), nb9[5:].max(axis=0)).astype(np.float64) - bkg
         centre = nb9[4].astype(np.float64) - bkg
-        side = _flatnonzero((j == 0) | (j == W - 1))
+        at_side = (j == 0) | (j == W - 1)
+        if border_rows:
+            at_side |= (idx < W) | (idx >= (H - 1) * W)
+        side = _flatnonzero(at_side)
         if side.size:
-            nb_max[side] = _neighbour_max(px, H, W, bkg, resid, idx[side])
-            nb9[:, side] = _gather_px(px, H, W, bkg, resid, idx[side] // W, j[side], 1)[2].reshape(side.size, 9).T
+            # their zero-padded neighbourhoods (the gather's numbers, no hot pixel repaired yet): rows and
+            # columns clipped to the image for the read, the neighbours off it 0 in the maximum
+            rr = (idx[side] // W)[:, None] + _NB9_ROWS
+            cc = j[side, None] + _NB9_COLS
+            on = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
+            raw9 = f.reshape(-1)[np.minimum(np.maximum(rr, 0), H - 1) * W + np.minimum(np.maximum(cc, 0), W - 1)]
+            nb9[:, side] = raw9.T
+            v = np.where(on, raw9.astype(np.float64) - bkg, 0.0)
+            v[:, 4] = -np.inf
+            nb_max[side] = v.max(axis=1)
     elif idx.size <= _GATHER_HOT_MAX:
         # each pixel's 3 x 3 neighbourhood, once: the hot-pixel test, the repair and the deblender's
         # local-maximum test read it
@@ -819,7 +845,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     # a second one only when the measured PSF wants another size
     h0 = int(window) // 2 if window is not None else 3
     vals, valid, rawv = gather(h0)
-    g_ok, g_uv, g_s2 = _gauss3(vals, h0, pi, pj)
+    g_ok, g_uv, g_s2 = _gauss3_fast(vals, h0, pi, pj)
     if psf_sigma_px is None:
         good = g_ok & ~saturated & valid[:, h0 - 1:h0 + 2, h0 - 1:h0 + 2].all(axis=(1, 2)) & (peak_val > 20.0 * sigma)
         g = np.sort(g_s2[good])  # _median_sorted of the sorted values = np.median
@@ -856,8 +882,9 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         iw = _flatnonzero(~psf_like)
         start = g_uv.copy()
         if iw.size:
-            uv_cog = _cog(vals, X, Y, pi, pj)
-            start[iw] = _iwcog_sep(vals[iw], X[iw], Y[iw], uv_cog[iw], s_eff, h, pi[iw], pj[iw], iterations)
+            v_iw, x_iw, y_iw, pi_iw, pj_iw = vals[iw], X[iw], Y[iw], pi[iw], pj[iw]  # (each star's cog is its own)
+            start[iw] = _iwcog_sep(v_iw, x_iw, y_iw, _cog(v_iw, x_iw, y_iw, pi_iw, pj_iw), s_eff, h, pi_iw, pj_iw,
+                                   iterations)
         use = valid & (rawv < sat)
         uv, amp = _psf_fit_sep(vals, use, X, Y, start, psf_used, h, pi, pj, iterations)
         failed = _flatnonzero((amp <= 0) & psf_like)
@@ -889,7 +916,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
             vals[b] = vb
 
     brightness = vals.sum(axis=(1, 2))
-    ratio = _axis_ratio(vals, X, Y, uv, sigma)
+    ratio = _axis_ratio_mm(vals, X[:, 0, :], Y[:, :, 0], uv, sigma)
     psnr = peak_val / sigma
     ratio_limit = max_axis_ratio + 0.5 * np.minimum(np.maximum((20.0 - psnr) / 10.0, 0.0), 1.0)
     elongated = (ratio > ratio_limit) & (psnr >= 10.0)
@@ -959,6 +986,10 @@ _QV, _QU = np.array([0, 0, 1]), np.array([0, 1, 0])  # P, dP/du, dP/dv: v and u 
 # the adjugate of a symmetric 3 x 3 matrix from its 9 entries (row-major): rows r1 x r2, r2 x r0, r0 x r1
 _ADJ3 = np.array([[4, 5, 3, 7, 8, 6, 1, 2, 0], [8, 6, 7, 2, 0, 1, 5, 3, 4],
                   [5, 3, 4, 8, 6, 7, 2, 0, 1], [7, 8, 6, 1, 2, 0, 4, 5, 3]])
+# the Gram matrix of the unweighted separable model from each axis's 2 x 2 Gram of (profile, derivative):
+# S[a, b] = (u factors of a . u factors of b) (v factors of a . v factors of b); the per-axis Grams come
+# flattened as axis * 4 + kind_a * 2 + kind_b (axis 0 = u, 1 = v): the u then the v entries of S, row-major
+_GUV = np.concatenate([(2 * _QU[:, None] + _QU[None, :]).ravel(), (4 + 2 * _QV[:, None] + _QV[None, :]).ravel()])
 
 
 def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None):
@@ -966,10 +997,10 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
     windows `vals` (N, n, n), pixels where `use` is False left out (saturated, off the image), by
     Gauss-Newton from uv0 (steps limited to 0.5 px; the amplitude starts at its linear least-squares
     value): the reference's _psf_fit, computed on the separable model (the u and v profiles of all stars
-    from one erf and one exp of their pixel edges, the normal equations from one batched product, the
-    3 x 3 systems solved by their adjugates); a star stops once its step, or the error left after it
-    (step^2 / (previous step - step): the rest of a geometric series with its last two steps' ratio),
-    is below _FIT_TOL (near the minimum Gauss-Newton contracts by a small ratio, so a 1e-3 px step
+    from one erf and one exp of their pixel edges, the normal equations from the two axes' Grams when no
+    pixel is left out (else from one batched product), the 3 x 3 systems solved by their adjugates); a
+    star stops once its step, or the error left after it (step^2 / (previous step - step): the rest of a
+    geometric series with its last two steps' ratio), is below _FIT_TOL (near the minimum Gauss-Newton contracts by a small ratio, so a 1e-3 px step
     after a 0.05 px one leaves ~2e-5 px: the step that would only confirm it is not made).
     (uv (N, 2), amplitude (N,)); where the fit fails, uv0 and amplitude 0."""
     n_st = len(vals)
@@ -980,17 +1011,18 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
     edges[:, 0] = X[:, 0, :1]  # each window's first column and row
     edges[:, 1] = Y[:, :1, 0]
     edges += np.arange(n + 1) - 0.5
-    if use.all():  # no pixel left out (the usual case): the products without the weights of 1
-        w, vw = None, vals.reshape(n_st, n * n, 1)
+    if use.all():  # no pixel left out (the usual case): the separable products, no weights
+        w = vw = None
     else:
         w = use.reshape(n_st, 1, n * n).astype(np.float64)
         vw = vals.reshape(n_st, n * n, 1) * w.reshape(n_st, n * n, 1)
     uv = np.array(uv0, dtype=np.float64)
     A = None
     k = 1.0 / (s * math.sqrt(2.0))
-    c = -1.0 / (s * math.sqrt(2.0 * math.pi))
+    scale = np.array([[0.5], [-1.0 / (s * math.sqrt(2.0 * math.pi))]])  # profiles' and derivatives' factors
     act = np.arange(n_st)
-    prev = np.zeros(n_st)  # each star's last step (px)
+    prev = None  # each star's last step (px)
+    first = True
     err = np.seterr(divide="ignore", invalid="ignore")
     try:
         for _ in range(max(3, iterations)):
@@ -1000,42 +1032,60 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
             every = m == n_st  # no star has stopped yet: no index copies
             z = ((edges if every else edges[act]) - (uv if every else uv[act])[:, :, None]) * k
             pe = erf(z)
-            pe *= 0.5  # exact: 0.5 (a - b) = 0.5 a - 0.5 b
             z *= z
             np.negative(z, out=z)
             ge = np.exp(z, out=z)
-            ge *= c  # the Gaussian's scale before the difference (the same to rounding)
             Q = np.empty((m, 2, 2, n))  # [u or v][profile or its derivative]
             np.subtract(pe[:, :, 1:], pe[:, :, :-1], out=Q[:, :, 0])
             np.subtract(ge[:, :, 1:], ge[:, :, :-1], out=Q[:, :, 1])
-            # (m, 3, n*n): P = fv fu, dP/du = fv dfu, dP/dv = dfv fu
-            M = (Q[:, 1, _QV, :, None] * Q[:, 0, _QU, None, :]).reshape(m, 3, n * n)
-            Mw = M if w is None else M * (w if every else w[act])
-            S9 = (Mw @ M.transpose(0, 2, 1)).reshape(m, 9)  # the weighted Gram matrix, row-major
-            b = (M @ (vw if every else vw[act]))[:, :, 0]  # (m, 3) weighted products with the data
+            Q *= scale  # 0.5 (exact) and the Gaussian's scale c, after the differences (the same to rounding)
+            if w is None:
+                # no pixel left out: the model is separable, P = fv fu, dP/du = fv dfu, dP/dv = dfv fu, so
+                # the Gram matrix is made of the two axes' 2 x 2 Grams (_GUV) and the products with the data
+                # are (fv, dfv) V (fu, dfu)^T: the same sums as the (m, 3, n*n) products below, regrouped
+                G = (Q @ Q.transpose(0, 1, 3, 2)).reshape(m, 8)[:, _GUV]
+                S9 = G[:, :9] * G[:, 9:]
+                B = Q[:, 1] @ ((vals if every else vals[act]) @ Q[:, 0].transpose(0, 2, 1))
+                b = B.reshape(m, 4)[:, :3]  # (m, 3): P, dP/du, dP/dv with the data
+            else:
+                # (m, 3, n*n): P = fv fu, dP/du = fv dfu, dP/dv = dfv fu
+                M = (Q[:, 1, _QV, :, None] * Q[:, 0, _QU, None, :]).reshape(m, 3, n * n)
+                S9 = ((M * (w if every else w[act])) @ M.transpose(0, 2, 1)).reshape(m, 9)  # weighted Gram
+                b = (M @ (vw if every else vw[act]))[:, :, 0]  # (m, 3) weighted products with the data
             if A is None:
                 A = b[:, 0] / S9[:, 0]  # the linear least-squares amplitude at uv0
             Aa = A if every else A[act]
-            # unknowns x = (dA, A du, A dv): S3 x = r, the residual's products with P, dP/du, dP/dv
-            r = b - Aa[:, None] * S9[:, :3]
+            # S3 y = b for y = (A + dA, A du, A dv) (S3 x = b - A S3 e0 for x = (dA, A du, A dv), less
+            # the residual's products): the new amplitude, and A times the step
             g = S9[:, _ADJ3]
             adj = (g[:, 0] * g[:, 1] - g[:, 2] * g[:, 3]).reshape(m, 3, 3)
-            det = (S9[:, :3] * adj[:, 0]).sum(axis=1)
-            x = (adj @ r[:, :, None])[:, :, 0] / det[:, None]
-            d = x[:, 1:] / Aa[:, None]
-            d = np.where(np.isfinite(d), d, 0.0)
+            y = (adj @ b[:, :, None])[:, :, 0]
+            y /= (S9[:, None, :3] @ adj[:, 0, :, None])[:, 0]  # the determinant (first row . first column)
+            y[:, 1:] /= Aa[:, None]  # (A + dA, du, dv)
+            if not math.isfinite(float(y.sum())):  # a singular system or a zero amplitude: no step there
+                bad = ~np.isfinite(y)
+                y[:, 1:][bad[:, 1:]] = 0.0
+                y[:, 0] = np.where(bad[:, 0], Aa, y[:, 0])
+            d = y[:, 1:]
             np.minimum(np.maximum(d, -0.5, out=d), 0.5, out=d)
-            dA = np.where(np.isfinite(x[:, 0]), x[:, 0], 0.0)
             # a star stops once its step, or the error its steps predict are left (the next steps of a
             # contraction with the ratio of its last two: step^2 / (previous step - step)), is below _FIT_TOL
-            step = np.abs(d).max(axis=1)
+            ad = np.abs(d)
+            step = np.maximum(ad[:, 0], ad[:, 1])  # = ad.max(axis=1), without a reduction's overhead
+            if first:  # no previous step: the error left (step^2 / 1e-12) is above _FIT_TOL wherever step is
+                A = y[:, 0]
+                uv += d
+                prev = step
+                act = act[step > _FIT_TOL]
+                first = False
+                continue
             if every:  # the same updates without the index copies
-                A += dA
+                A = y[:, 0]
                 uv += d
                 left = step * step / np.maximum(prev - step, 1e-12)
                 prev = step
             else:
-                A[act] = Aa + dA
+                A[act] = y[:, 0]
                 uv[act] += d
                 left = step * step / np.maximum(prev[act] - step, 1e-12)
                 prev[act] = step
@@ -1145,6 +1195,36 @@ def _gauss3(vals, h, pi, pj):
     return ok, uv, np.where(ok, s2, np.nan)
 
 
+# -2 x the log-parabola's curvature and minus its slope: t = 2 (2 lg1 - lg0 - lg2), e = lg2 - lg0
+_G3_STENCIL_NEG = np.array([[-2.0, -1.0], [4.0, 0.0], [-2.0, 1.0]])
+
+
+def _gauss3_fast(vals, h, pi, pj):
+    """_gauss3 without an error-state switch (the fast path's form): the curvature and slope come negated
+    and doubled (t = -2 c, exact), so the offset e / t and sigma^2 = 1/t_u + 1/t_v are the same
+    numbers; t is kept >= 1e-300 (no division by zero: a star with t <= 0 fails the test anyway) and
+    the test c < 0 and |d| < 1 reads |e| < t."""
+    n_st = len(vals)
+    c = vals[:, h - 1: h + 2, h - 1: h + 2]
+    m = np.empty((n_st, 2, 3))
+    c.sum(axis=1, out=m[:, 0])  # along u
+    c.sum(axis=2, out=m[:, 1])  # along v
+    good = np.empty((n_st, 8), dtype=bool)  # the 6 marginals positive, then |e| < t on both axes
+    pos = good[:, :6].reshape(n_st, 2, 3)
+    np.greater(m, 0.0, out=pos)
+    cs = np.log(np.where(pos, m, 1.0)) @ _G3_STENCIL_NEG  # (N, 2, 2): t and e of both axes
+    ct, e = cs[:, :, 0], cs[:, :, 1]
+    np.less(np.abs(e), ct, out=good[:, 6:])
+    ok = good.all(axis=1)
+    t = np.maximum(ct, 1e-300)
+    d = e / t
+    inv = 1.0 / t
+    uv = np.empty((n_st, 2))
+    uv[:, 0], uv[:, 1] = pj, pi
+    uv += np.where(ok[:, None], d, 0.0)
+    return ok, uv, np.where(ok, inv[:, 0] + inv[:, 1], np.nan)
+
+
 def _axis_ratio(vals, X, Y, uv, sigma):
     """sqrt(l1 / l2) of the intensity second moments (pixels above 2 sigma) about the centroid."""
     w = np.where(vals > 2.0 * sigma, vals, 0.0)
@@ -1164,6 +1244,31 @@ def _axis_ratio(vals, X, Y, uv, sigma):
     l1 = tr / 2.0 + disc
     l2 = np.maximum(tr / 2.0 - disc, 1e-12)
     return np.where(ok, np.sqrt(l1 / l2), np.nan)
+
+
+def _axis_ratio_mm(vals, x, y, uv, sigma):
+    """_axis_ratio from one chain of batched products (the fast path's form): with Dx = (1, dx, dx^2) by
+    column (x: (N, n) column coordinates) and Dy = (1, dy, dy^2) by row, Dy w Dx^T holds every moment
+    (sum w, sum w dx^2, sum w dy^2, sum w dx dy); the half-difference of the eigenvalues by np.hypot.
+    The same sums in another order: the same ratio to ~1e-15 relative."""
+    w = np.where(vals > 2.0 * sigma, vals, 0.0)
+    n_st, n = x.shape
+    D = np.empty((n_st, 2, 3, n))  # [u or v][1, d, d^2]
+    D[:, :, 0] = 1.0
+    np.subtract(x, uv[:, 0, None], out=D[:, 0, 1])
+    np.subtract(y, uv[:, 1, None], out=D[:, 1, 1])
+    np.square(D[:, :, 1], out=D[:, :, 2])
+    m = (D[:, 1] @ w @ D[:, 0].transpose(0, 2, 1)).reshape(n_st, 9)  # [dy power * 3 + dx power]
+    s = m[:, 0]
+    ok = s > 0
+    q = m[:, _MOMENTS] / np.where(ok, s, 1.0)[:, None]  # mxx, myy, mxy less the pixel's 1/12
+    half_tr = (q[:, 0] + q[:, 1]) * 0.5 + 1.0 / 12.0
+    disc = np.hypot((q[:, 0] - q[:, 1]) * 0.5, q[:, 2])
+    l2 = np.maximum(half_tr - disc, 1e-12)
+    return np.where(ok, np.sqrt((half_tr + disc) / l2), np.nan)
+
+
+_MOMENTS = np.array([2, 6, 4])  # sum w dx^2, sum w dy^2, sum w dx dy in _axis_ratio_mm's 3 x 3 moments
 
 
 def _is_adc_max(x: float) -> bool:

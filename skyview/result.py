@@ -20,7 +20,7 @@ import numpy as np
 
 from skyview.attitude import ESTIMATORS, RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R, svd_attitude_remembered
 from skyview.camera import Camera
-from skyview.catalog import DEFAULT_EPOCH, GuideCatalog, vec_to_radec
+from skyview.catalog import DEFAULT_EPOCH, GuideCatalog
 from skyview.centroid import Centroids
 from skyview.identify.base import Identification, Observation
 from skyview.jsonable import plain
@@ -48,14 +48,16 @@ def matched_stars(catalog: GuideCatalog, uv: np.ndarray, matches: dict[int, int]
         return []
     rows = np.array([matches[i] for i in idx], dtype=np.int64)
     res = None if residuals_rad is None else (np.asarray(residuals_rad) * RAD_TO_ARCSEC).tolist()
-    return _matched_rows(catalog, uv, np.array(idx, dtype=np.int64), rows, catalog.xyz[rows], res)
+    return _matched_rows(catalog, uv, np.array(idx, dtype=np.int64), rows, res)
 
 
-def _matched_rows(catalog: GuideCatalog, uv: np.ndarray, idx: np.ndarray, rows: np.ndarray, xyz: np.ndarray,
+def _matched_rows(catalog: GuideCatalog, uv: np.ndarray, idx: np.ndarray, rows: np.ndarray,
                   residuals_arcsec: list[float] | None) -> list[dict]:
     """`matched_stars` of the observed stars idx (increasing, not none) matched to the catalog rows
-    `rows` (their directions xyz), with their residuals in arcsec (a list) or none."""
-    ra, dec = np.degrees(vec_to_radec(xyz))
+    `rows` (RA/Dec from the catalog's table of them: `GuideCatalog.radec_deg`), with their residuals in
+    arcsec (a list) or none."""
+    ra_all, dec_all = catalog.radec_deg
+    ra, dec = ra_all[rows], dec_all[rows]
     # Python numbers from tolist: what int() / float() of each array element gives
     cols = (idx.tolist(), *np.asarray(uv, dtype=np.float64)[idx].T.tolist(), catalog.hip[rows].tolist(),
             ra.tolist(), dec.tolist(), catalog.mag[rows].tolist())
@@ -189,7 +191,7 @@ def result_from_identification(centroids: Centroids, obs: Observation, ident: Id
         result.sigma_boresight_arcsec = est.sigma_boresight_arcsec * scale
         result.sigma_roll_arcsec = est.sigma_roll_arcsec * scale
         result.residuals_arcsec = (resid * RAD_TO_ARCSEC).tolist()
-        result.matches = _matched_rows(catalog, obs.uv, idx, rows, r, result.residuals_arcsec)
+        result.matches = _matched_rows(catalog, obs.uv, idx, rows, result.residuals_arcsec)
     attitude_ms = (time.perf_counter() - t1) * 1e3
     result.time_ms = {"identify": identify_ms, "attitude": attitude_ms, "solve": identify_ms + attitude_ms}
     return result

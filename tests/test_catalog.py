@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from skyview.catalog import (ASSET_PATH, FLAG_DOUBLE, build_guide_catalog, chord, load_guide_catalog,
-                             radec_to_vec, save_guide_catalog)
+                             radec_to_vec, save_guide_catalog, vec_to_radec)
 from skyview.errors import BadInput
 
 ARCSEC = np.radians(1 / 3600)
@@ -163,6 +163,36 @@ def test_sky_index_counts_and_nearest_are_the_kd_tree_answers(catalog):
         np.testing.assert_array_equal(sub.ball_counts(sub.xyz[rows], chords), want)
         among = np.unique(np.concatenate([sub.within(x, 0.05) for x in sub.xyz[rows]]))
         np.testing.assert_array_equal(sub.ball_counts(sub.xyz[rows], chords, among), want)
+        one = float(chords[0])  # one chord for all (the local density's)
+        np.testing.assert_array_equal(sub.ball_counts(sub.xyz[rows], one, among),
+                                      sub.tree.query_ball_point(sub.xyz[rows], one, return_length=True))
+
+
+@pytest.mark.parametrize("run", [True, False], ids=["z-run", "cells"])
+def test_sky_index_cap_cosines(catalog, monkeypatch, run):
+    """cap_cosines: every star within the angle, ascending, each with its cosine to the centre; nothing
+    a dot product puts beyond the angle."""
+    import skyview.catalog as C
+
+    monkeypatch.setattr(C, "CAP_RUN", 10 ** 9 if run else -1)
+    rng = np.random.default_rng(9)
+    for d, r in _caps(rng, 200):
+        rows, cos = catalog.sky.cap_cosines(d, r)
+        want = np.sort(np.asarray(catalog.tree.query_ball_point(d, float(chord(r))), dtype=np.int64))
+        assert np.all(np.diff(rows) > 0) and set(want.tolist()) <= set(rows.tolist())
+        np.testing.assert_allclose(cos, catalog.xyz[rows] @ (d / np.linalg.norm(d)), rtol=0, atol=1e-15)
+        assert np.all(cos >= np.cos(min(r, np.pi)) - 1e-9)
+
+
+def test_radec_table_is_each_rows_own_conversion(catalog):
+    """GuideCatalog.radec_deg, row for row, is np.degrees(vec_to_radec(xyz[rows])) of any subset to the bit
+    (what a solve's matched stars report)."""
+    rng = np.random.default_rng(12)
+    ra, dec = catalog.radec_deg
+    for k in range(300):
+        rows = rng.choice(len(catalog), int(rng.integers(1, 70)), replace=False)
+        want_ra, want_dec = np.degrees(vec_to_radec(catalog.xyz[rows]))
+        assert np.array_equal(ra[rows], want_ra) and np.array_equal(dec[rows], want_dec)
 
 
 def test_sky_index_is_small_and_lazy(catalog):

@@ -530,3 +530,65 @@ def test_label_peaks_are_the_last_of_a_lexsort():
         order = np.lexsort((val, lab))
         last = np.r_[lab[order][1:] != lab[order][:-1], True]
         assert np.array_equal(_label_peaks(lab, val, n_lab), order[last])
+
+
+def _random_windows(rng, n_st, n=7, amp=(20.0, 5000.0), noise=3.0):
+    """(n_st, n, n) background-subtracted windows of Gaussian stars off-centre by up to 1.5 px, with noise."""
+    d = np.arange(n) - n // 2
+    off = rng.uniform(-1.5, 1.5, (n_st, 2))
+    s2 = rng.uniform(0.6, 2.5, n_st) ** 2
+    g = np.exp(-((d[None, None, :] - off[:, 0, None, None]) ** 2 + (d[None, :, None] - off[:, 1, None, None]) ** 2)
+               / (2 * s2[:, None, None]))
+    return rng.uniform(*amp, n_st)[:, None, None] * g + rng.normal(0.0, noise, (n_st, n, n))
+
+
+def test_fast_gauss3_and_axis_ratio_are_the_plain_forms():
+    """_gauss3_fast (negated, doubled curvature; no error-state switch) gives _gauss3's numbers, including
+    the windows it rejects (non-positive marginals, flat or rising profiles); _axis_ratio_mm (all moments
+    from one chain of products) gives _axis_ratio's ratios to ~1e-15."""
+    from skyview.centroid import _axis_ratio, _axis_ratio_mm, _gauss3, _gauss3_fast
+    rng = np.random.default_rng(11)
+    n_rejected = 0
+    for trial in range(300):
+        n_st, n = int(rng.integers(1, 40)), int(rng.choice([5, 7, 9]))
+        vals = _random_windows(rng, n_st, n, amp=(0.0, 3000.0), noise=float(rng.uniform(0.5, 20.0)))
+        pi, pj = rng.integers(10, 500, n_st), rng.integers(10, 500, n_st)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ok, uv, s2 = _gauss3(vals, n // 2, pi, pj)
+        ok_f, uv_f, s2_f = _gauss3_fast(vals, n // 2, pi, pj)
+        assert np.array_equal(ok, ok_f)
+        np.testing.assert_allclose(uv_f, uv, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(s2_f, s2, rtol=1e-14, equal_nan=True)
+        n_rejected += int((~ok).sum())
+        d = np.arange(n, dtype=np.float64) - n // 2
+        X, Y = pj[:, None, None] + d[None, None, :], pi[:, None, None] + d[None, :, None]
+        sigma = float(rng.uniform(0.5, 30.0))
+        ref = _axis_ratio(vals, X, Y, uv, sigma)
+        np.testing.assert_allclose(_axis_ratio_mm(vals, X[:, 0, :], Y[:, :, 0], uv, sigma), ref, rtol=1e-12,
+                                   equal_nan=True)
+    assert n_rejected > 100  # the rejections were exercised
+
+
+def test_separable_fit_is_the_weighted_form():
+    """The PSF fit of windows with every pixel used (the Gram matrix from the two axes' 2 x 2 Grams and the
+    products with the data as (fv, dfv) V (fu, dfu)^T) gives what the weighted products give: the same
+    windows fitted in a batch with one star that has a pixel left out (which makes the whole batch take
+    the weighted form; each star's steps are its own)."""
+    from skyview.centroid import _psf_fit_sep
+    rng = np.random.default_rng(12)
+    for trial in range(100):
+        n_st, h = int(rng.integers(1, 40)), int(rng.choice([2, 3, 4]))
+        n = 2 * h + 1
+        vals = _random_windows(rng, n_st + 1, n, noise=float(rng.uniform(0.5, 10.0)))
+        pi, pj = rng.integers(10, 500, n_st + 1), rng.integers(10, 500, n_st + 1)
+        d = np.arange(-h, h + 1, dtype=np.float64)
+        X, Y = pj[:, None, None] + d[None, None, :], pi[:, None, None] + d[None, :, None]
+        uv0 = np.stack([pj, pi], axis=1) + rng.uniform(-0.7, 0.7, (n_st + 1, 2))
+        use = np.ones(vals.shape, dtype=bool)
+        use[-1, h, h] = False  # the extra star: its peak left out, as a saturated one
+        s = float(rng.uniform(0.7, 2.0))
+        uv_w, a_w = _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, 6)
+        k = slice(0, n_st)
+        uv_s, a_s = _psf_fit_sep(vals[k], use[k], X[k], Y[k], uv0[k], s, h, pi[k], pj[k], 6)
+        np.testing.assert_allclose(uv_s, uv_w[k], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a_s, a_w[k], rtol=1e-9)

@@ -408,6 +408,52 @@ def test_pair_join_gives_the_stored_candidates(improved, stored_sides, region, c
         improved.moment_sigma_coef = saved
 
 
+def test_pair_join_prunes_and_joins_in_the_same_order(improved, region, cam, monkeypatch):
+    """join_pairs first drops the pairs with a star that ends no pair of its other side, then joins the
+    few left all at once (up to JOIN_DENSE): the same candidates, in the same order, as joining every
+    pair in blocks by their star (`by_star`)."""
+    import skyview.identify.triangle_lookup as lookup
+
+    ends, n = lookup._ends, 0
+    for f in frames(region, cam, 3, seed=29, n_min=6):
+        out = []
+        for dense, prune in ((True, True), (False, True), (False, False)):
+            monkeypatch.setattr(lookup, "JOIN_DENSE", lookup.JOIN_DENSE if dense else -1)  # -1: always by_star
+            monkeypatch.setattr(lookup, "_ends", ends if prune else lambda *args: np.ones((3, args[4]), dtype=bool))
+            t = improved.triangle_bounds(f.obs.vectors[:6], 10 * SIGMA, lookup=False)  # many candidates
+            out.append([improved.join_pairs(t, k).tolist() for k in range(len(t["area"]))])
+        assert out[0] == out[1] == out[2]
+        n += sum(map(len, out[0]))
+    assert n >= 300  # (3 frames of 20 triangles)
+    pi, pj = improved.pair_i, improved.pair_j
+    on = ends(pi, pj, [0, 5, 7], [4, 7, 9], len(region.xyz), 2)  # side rp left out: every star may be r or p
+    assert on[2].all() and set(np.flatnonzero(on[0])) == set(pi[:4]) | set(pj[:4])
+    assert set(np.flatnonzero(on[1])) == set(pi[5:7]) | set(pj[5:7])
+
+
+def test_join_records_what_consistent_keeps_of_one_triangle(improved, region, cam):
+    """The pair join records which of its rows `consistent` keeps as a chain of that one triangle (the
+    chain then takes them from there): the same rows as `consistent`, also where some fail (side pq
+    looked up half a bound off its measured angle)."""
+    n_rows = n_out = 0
+    sigma = 3 * SIGMA
+    for f in frames(region, cam, 3, seed=31, n_min=6):
+        V = f.obs.vectors[:6]
+        for shift in (0.0, 0.5):
+            t = improved.triangle_bounds(V, sigma, lookup=False)
+            t["sides"][:, 0] += shift * improved.beta * np.sqrt(2.0) * sigma
+            for k in range(len(t["area"])):
+                H = improved.join_pairs(t, k)
+                kept = t.get("consistent_rows", {}).get(k)
+                if kept is None:  # many rows: not recorded (the chain runs `consistent`)
+                    continue
+                tri = [int(t["ti"][k]), int(t["tj"][k]), int(t["tk"][k])]
+                want = improved.consistent(V, tri, [tri], H, sigma, t)
+                assert len(kept) == len(H) and np.array_equal(H[np.array(kept, dtype=bool)], want)
+                n_rows, n_out = n_rows + len(H), n_out + len(H) - len(want)
+    assert n_rows >= 60 and n_out > 0
+
+
 def test_measured_as_visited_gives_the_figures_of_measuring_all(improved, region, cam):
     """The largest-area order measures only the triangles it visits (with database="pairs", one at a time
     in plain floats, each polar moment with its candidates'): the same figures, to the last bit, as

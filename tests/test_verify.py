@@ -294,6 +294,21 @@ def test_predicted_sigma_closed_form_is_the_largest_eigenvalue():
     assert predicted_sigma(np.zeros((0, 3)), np.eye(3)).shape == (0,)
 
 
+def test_radii_of_a_subset_from_every_rows_unit_vectors():
+    """verify normalises every observed vector once and takes the rows of a subset: the radii are those
+    of the subset's own vectors, to the bit."""
+    from skyview.identify.verify import _unit_rows, star_radii
+    rng = np.random.default_rng(10)
+    for k in range(300):
+        b = rng.normal(size=(int(rng.integers(2, 60)), 3))
+        b /= np.linalg.norm(b, axis=1, keepdims=True) * (1.0 if k % 2 else rng.uniform(0.5, 2.0))
+        A = rng.normal(size=(3, 3))
+        P = A @ A.T * 10.0 ** rng.uniform(-12, -7)
+        idx = np.sort(rng.choice(len(b), int(rng.integers(0, len(b) + 1)), replace=False))
+        n, s2 = _unit_rows(b)
+        assert np.array_equal(star_radii(None, P, 1e-4, 4e-4, (n[idx], s2[idx])), star_radii(b[idx], P, 1e-4, 4e-4))
+
+
 # ------------------------------------------------------------------ the fast paths give the same answers
 
 def _verification_record(v):
@@ -336,12 +351,57 @@ def test_fast_paths_agree_with_the_general_ones(cat, cam, monkeypatch):
     assert run() == fast
     monkeypatch.setattr(V, "PREFILTER_PAIRS", 0)  # every frame's pairs through the dot-product prefilter
     assert run() == fast
+    monkeypatch.setattr(V, "_apart", lambda x, radius_rad: False)  # every ambiguity and crowd counted
+    assert run() == fast
     monkeypatch.setattr(V, "BRUTE_PAIRS", 0)  # every distance from a k-d tree
     monkeypatch.setattr(V, "ONE_TO_ONE_PY", -1)  # the numpy pairing
     monkeypatch.setattr(V, "_NEAREST", {})
     monkeypatch.setattr(V, "_has_neighbour", lambda catalog, rows, chords: np.asarray(
         catalog.tree.query_ball_point(catalog.xyz[rows], chords, return_length=True)) >= 2)
     assert run() == fast
+
+
+def test_p_false_decides_and_sums_as_numpy_did():
+    """p_false_calibrated (on Python floats) takes the binomial exactly when np.all(ps == ps[0]) holds
+    (a NaN included) and the Poisson-binomial tail otherwise; the misses' probabilities 1 - p are the
+    numbers numpy's 1.0 - ps gives."""
+    from scipy.special import bdtrc
+
+    from skyview.identify.verify import p_false_calibrated, poisson_binomial_sf
+
+    rng = np.random.default_rng(8)
+    for k in range(300):
+        n = int(rng.integers(1, 45))
+        ps = rng.uniform(0, 10.0 ** rng.uniform(-5, 0), n)
+        if k % 3 == 0:
+            ps[:] = ps[0]
+        if k % 50 == 7:
+            ps[int(rng.integers(0, n))] = np.nan
+        assert np.array_equal([1.0 - p for p in ps.tolist()], 1.0 - ps, equal_nan=True)
+        for n_agree in {1, 2, n // 2 + 1, n - 1, n} - {0}:
+            want = (float(bdtrc(n_agree - 1, n, ps[0])) if np.all(ps == ps[0])
+                    else poisson_binomial_sf(n_agree, ps))
+            got = p_false_calibrated(n_agree, n, ps, 3)
+            assert got == min(1.0, 3 * want) or (np.isnan(got) and np.isnan(want))
+            assert p_false_calibrated(n_agree, n, ps.tolist(), 3) == got or np.isnan(got)
+
+
+def test_verify_step_shows_the_verification(cat, cam):
+    """The 'verify' step's figures are the verification record's, its rows the matches' (or the rejected
+    hypothesis'), in observed order."""
+    from skyview.identify.verify import VERIFY_NUMBERS, verification_step
+
+    f = frame_with(cat, cam, 3, seed=3)
+    right, shuffled = _hypotheses(f, np.random.default_rng(2))
+    for h in (right, shuffled):
+        ver = verify(f.obs.vectors, h, cat, cam, SIGMA)
+        step = verification_step(ver, h, numbers={"extra": 2.0})
+        vd = ver.to_dict()
+        assert step.numbers == {**{k: vd[k] for k in VERIFY_NUMBERS}, "passed": float(ver.passed), "extra": 2.0}
+        assert [type(step.numbers[k]) for k in VERIFY_NUMBERS] == [type(vd[k]) for k in VERIFY_NUMBERS]
+        shown = ver.matches or h
+        assert step.observed == sorted(shown) and step.catalog == [shown[o] for o in sorted(shown)]
+        assert step.to_dict()["catalog"] == step.catalog
 
 
 def test_has_neighbour_is_the_kd_tree_count(cat):
@@ -378,6 +438,20 @@ def test_svd_attitude_one_sigma_is_the_per_pair_path_to_the_bit():
         assert one.loss == pytest.approx(0.5 * np.sum(resid * resid) / s ** 2, rel=1e-12)
         assert abs(np.linalg.det(one.R) - 1.0) < 1e-12
         assert attitude_error_arcsec(one.R, q_method_attitude(b, r, s).R)["total"] < 1e-6
+
+
+def test_svd3_is_numpys_svd_to_the_bit():
+    """The LAPACK routine called directly gives np.linalg.svd's U and V^T, rank-deficient matrices too."""
+    from skyview.attitude import _svd3
+
+    rng = np.random.default_rng(6)
+    for k in range(200):
+        B = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-3, 12)
+        if k % 5 == 0:
+            B[2] = B[0] * 2.0
+        U, _, Vt = np.linalg.svd(B)
+        got = _svd3(B)
+        assert np.array_equal(got[0], U) and np.array_equal(got[1], Vt)
 
 
 def test_svd_attitude_bad_input():

@@ -370,7 +370,9 @@ class Identifier(ABC):
                      n_hypotheses=search.n_hypotheses, n_patterns=self.n_patterns, statistic=self.statistic,
                      threshold=self.threshold, radius_rad=search.radius)
         numbers, record = hyp.judge(ver) if hyp.judge is not None else ({}, {})
-        vd = ver.to_dict() | record
+        vd = ver.to_dict()
+        if record:
+            vd |= record
         search.steps.append(verification_step(ver, hyp.matches, numbers={**hyp.numbers, **numbers},
                                               groups=list(hyp.groups), layers=tuple(hyp.layers)))
         search.result.verification = vd

@@ -66,10 +66,10 @@ def _stack3(x, y, z) -> np.ndarray:
     return out
 
 
-def arc(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Angle between unit vectors (last axis), accurate for small angles."""
+def arc(u: np.ndarray, v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Angle between unit vectors (last axis), accurate for small angles (written to `out` if given)."""
     d = np.asarray(u, dtype=np.float64) - np.asarray(v, dtype=np.float64)
-    return 2.0 * np.arcsin(np.minimum(np.sqrt(np.einsum("...i,...i->...", d, d)) / 2.0, 1.0))
+    return np.multiply(2.0, np.arcsin(np.minimum(np.sqrt(np.einsum("...i,...i->...", d, d)) / 2.0, 1.0)), out=out)
 
 
 def sides(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -408,6 +408,13 @@ def area_few(A, B, C) -> list[float]:
     """area(A, B, C) of a few triangles (sequences of 3-vectors) as a list of floats: the same numbers to
     the last bit (the same operations: the chords summed as np.einsum sums them, arcsin, tan and arctan
     from numpy, one call each for every triangle), without the ~20 us of numpy calls on tiny arrays."""
+    return lhuilier_few(sides_few(A, B, C))
+
+
+def sides_few(A, B, C) -> list[tuple[float, float, float]]:
+    """sides(A, B, C) of a few triangles (sequences of 3-vectors) as (a, b, c) tuples of floats: the same
+    numbers to the last bit (each chord summed in order, as np.einsum and np.add.reduce sum three terms;
+    one numpy arcsin call for all of them). c, the angle of C and A, is also verify.angular_distance(C, A)."""
     half = []
     for P in zip(A, B, C):
         for u, v in ((0, 1), (1, 2), (2, 0)):  # the sides a, b, c of `sides`
@@ -415,9 +422,14 @@ def area_few(A, B, C) -> list[float]:
             d = (x[0] - y[0], x[1] - y[1], x[2] - y[2])
             half.append(min(math.sqrt(dot3(d, d)) / 2.0, 1.0))
     side = (2.0 * np.arcsin(np.array(half))).tolist()
+    return [(side[k], side[k + 1], side[k + 2]) for k in range(0, len(side), 3)]
+
+
+def lhuilier_few(sides) -> list[float]:
+    """lhuilier(a, b, c) of a few triangles' (a, b, c) as a list of floats: the same numbers to the last bit
+    (tan and arctan from numpy, one call each for every triangle)."""
     arg = []
-    for k in range(0, len(side), 3):
-        a, b, c = side[k:k + 3]
+    for a, b, c in sides:
         s = 0.5 * (a + b + c)
         arg += (0.5 * s, 0.5 * (s - a), 0.5 * (s - b), 0.5 * (s - c))
     tan = np.tan(np.array(arg)).tolist()
@@ -446,27 +458,28 @@ def _few_plan(depth: int):
     return n_pts, blocks, edge_ends, piece_edges, pieces
 
 
-def polar_moment_few(A: np.ndarray, B: np.ndarray, C: np.ndarray, depth: int = MOMENT_DEPTH) -> np.ndarray:
-    """polar_moment(A, B, C, depth) of (n, 3) arrays, the same numbers to the last bit (the same operations
-    on the same values, the same final np.einsum), in half of the numpy calls: each level's points written
-    in place, one gather per group of points, sums of two or three terms as one reduction over the first
-    axis (which adds in order), the centroid normalised with the pieces' vertex sums, the arcs of the sides
-    and of the pieces' centroids in one pass, the four L'Huilier tangents in one call. For a few
-    triangles, where the calls are the cost."""
+def polar_moment_few(A, B, C, depth: int = MOMENT_DEPTH) -> np.ndarray:
+    """polar_moment(A, B, C, depth) of (n, 3) arrays (or lists of n 3-vectors), the same numbers to the last
+    bit (the same operations on the same values, the same final np.einsum), in half of the numpy calls: each
+    level's points written in place, one gather per group of points, sums of two or three terms as one
+    reduction over the first axis (which adds in order), the centroid normalised with the pieces' vertex
+    sums, the arcs of the sides and of the pieces' centroids in one pass, the four L'Huilier tangents in
+    one call. For a few triangles, where the calls are the cost."""
     n_pts, blocks, edge_ends, piece_edges, pieces = _few_plan(int(depth))
     n_edges, n_pieces = edge_ends.shape[1], pieces.shape[1] - 1
     out = np.empty(len(A))
     for s in range(0, len(A), _CHUNK):
         e = min(s + _CHUNK, len(A))
         P = np.empty((n_pts, e - s, 3))
-        P[0], P[1], P[2] = A[s:e], B[s:e], C[s:e]
+        P[:3] = (A[s:e], B[s:e], C[s:e])  # arrays or lists of 3-vectors: one conversion
         for lo, hi, ends in blocks:
             v = np.add.reduce(P[ends], axis=0)
             np.divide(v, np.sqrt(np.add.reduce(v * v, axis=-1, keepdims=True)), out=P[lo:hi])  # normalize
         Q = np.add.reduce(P[pieces], axis=0)  # the pieces' vertex sums, then the whole triangle's
         Q /= np.sqrt(np.add.reduce(Q * Q, axis=-1, keepdims=True))  # centroids (normalize)
         d = np.empty((n_edges + n_pieces, e - s, 3))  # the sides' ends, then each piece's centroid from G
-        np.subtract(P[edge_ends[0]], P[edge_ends[1]], out=d[:n_edges])
+        ends = P[edge_ends]
+        np.subtract(ends[0], ends[1], out=d[:n_edges])
         np.subtract(Q[:-1], Q[-1:], out=d[n_edges:])
         arcs = 2.0 * np.arcsin(np.minimum(np.sqrt(np.einsum("...i,...i->...", d, d)) / 2.0, 1.0))  # arc
         dA = lhuilier_zero_first(arcs[piece_edges])

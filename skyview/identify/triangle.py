@@ -97,7 +97,7 @@ from skyview.errors import BadInput
 from skyview.identify import database as database_module
 from skyview.identify import spherical as sph
 from skyview.identify.angle import load_pair_database
-from skyview.identify.base import Search, Step
+from skyview.identify.base import LazyStep, Search, Step
 from skyview.identify.layers import Hypotheses
 from skyview.identify.pivot import (MAX_EQUIVALENT, Chain, PivotMethod, PivotParams, next_by_priority, take_pattern,
                                    pair_indices, uses_any)
@@ -338,18 +338,19 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         if k < 0:
             return Chain("ambiguous", "no triangle with at most max_candidates candidates to start from", [],
                          np.zeros((0, 0), dtype=np.int64))
-        H, groups = self.oriented_candidates(t, k, sigma)
+        H, groups_of = self.oriented_candidates(t, k, sigma)
+        first = k
         used = [int(ti[k]), int(tj[k]), int(tk[k])]
         triangles = [used.copy()]
         n_sets = _n_sets(H)
         candidates.append(int(counts[k]))
         hyps.append(n_sets)
-        steps.append(Step("pick", f"picked {self._label(t, k)}: {counts[k]} candidates"
-                                  + (f", {len(H)} in a vertex order that fits the sides and handedness"
-                                     if self.vertex_order == "sides" else ""),
-                          observed=used.copy(), catalog=_distinct(H), groups=groups,
-                          numbers=self._numbers(t, k) | {"hypotheses": len(H), "sets": n_sets},
-                          layers=(Hypotheses.sample(used, H),)))
+        steps.append(LazyStep("pick", f"picked {self._label(t, k)}: {counts[k]} candidates"
+                                      + (f", {len(H)} in a vertex order that fits the sides and handedness"
+                                         if self.vertex_order == "sides" else ""),
+                              observed=used.copy(), catalog_of=partial(_distinct, H), groups_of=groups_of,
+                              numbers=self._numbers(t, k) | {"hypotheses": len(H), "sets": n_sets},
+                              layers=(Hypotheses.sample(used, H),)))
         if len(H) == 0:
             return Chain("empty", f"no catalog triangle matches the first triangle {used[0]}-{used[1]}-{used[2]}",
                           used, H, suspects=used[::-1], culprit=used.copy(), candidates=candidates, hypotheses=hyps)
@@ -385,7 +386,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                 self._skip(t, k, steps)
                 continue
             obs3 = [int(ti[k]), int(tj[k]), int(tk[k])]
-            O, groups = self.oriented_candidates(t, k, sigma)
+            O, groups_of = self.oriented_candidates(t, k, sigma)
             before, sets_before = len(H), n_sets
             shared = [s for s in obs3 if s in used]
             H, used, new = join(H, used, obs3, O)
@@ -396,16 +397,16 @@ class TriangleMethod(TriangleLookup, PivotMethod):
             n_sets = _n_sets(H)
             candidates.append(int(counts[k]))
             hyps.append(n_sets)
-            steps.append(Step("pivot", f"pivoted to {self._label(t, k)} sharing stars "
-                                       f"{'-'.join(map(str, shared))}: {counts[k]} candidates, "
-                                       f"{sets_before} -> {n_sets} candidate star sets",
-                              observed=obs3, catalog=_distinct(H), groups=groups,
-                              numbers=self._numbers(t, k) | {"oriented": len(O), "hypotheses_before": before,
-                                                             "hypotheses_after": len(H), "sets_before": sets_before,
-                                                             "sets_after": n_sets, "pivot": pivots,
-                                                             "shared": len(shared),
-                                                             "new_star": -1 if new is None else new},
-                              layers=(Hypotheses.sample(used, H, shared=shared),)))
+            steps.append(LazyStep("pivot", f"pivoted to {self._label(t, k)} sharing stars "
+                                           f"{'-'.join(map(str, shared))}: {counts[k]} candidates, "
+                                           f"{sets_before} -> {n_sets} candidate star sets",
+                                  observed=obs3, catalog_of=partial(_distinct, H), groups_of=groups_of,
+                                  numbers=self._numbers(t, k) | {"oriented": len(O), "hypotheses_before": before,
+                                                                 "hypotheses_after": len(H), "sets_before": sets_before,
+                                                                 "sets_after": n_sets, "pivot": pivots,
+                                                                 "shared": len(shared),
+                                                                 "new_star": -1 if new is None else new},
+                                  layers=(Hypotheses.sample(used, H, shared=shared),)))
             if len(H) == 0:
                 if new is not None:
                     first_suspect = new
@@ -417,7 +418,12 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                               hypotheses=hyps)
             prev = tuple(obs3)
         # one set of catalog stars (or a few that differ by unresolved close pairs): its vertex order
-        Hc = H if H is checked else self.consistent(V, used, triangles, H, sigma, t)
+        if H is checked:
+            Hc = H
+        elif len(triangles) == 1 and H is t.get("oriented", {}).get(first) and first in t.get("consistent_rows", {}):
+            Hc = H[np.array(t["consistent_rows"][first], dtype=bool)]  # what `consistent` returns, from the join
+        else:
+            Hc = self.consistent(V, used, triangles, H, sigma, t)
         if len(Hc) == 0:  # the paper would report this set; it fits in no vertex order, so it is wrong
             steps.append(Step("stop", "the one star set left fits the observed stars in no vertex order (sides or "
                                       "handedness)", observed=used.copy(), catalog=_distinct(H),

@@ -5,14 +5,17 @@ Every observed triangle of the pattern stars: its sides, area (L'Huilier), polar
 and the triple product's sigma, measured as the search needs them (`triangle_bounds`, `_measure`);
 its candidates from the stored triangle database (the area and polar-moment k-vector ranges, counted
 exactly by the block counter `_count`, listed by `_scan` with the camera's cap rule) or, with
-database="pairs", joined from the angle database's pairs (`join_pairs`); and the vertex orders in which
-a candidate fits the observed triangle (`orient`).
+database="pairs", joined from the angle database's pairs (`join_pairs`; the few joined triangles tested
+in plain floats, `_close_few`); and the vertex orders in which a candidate fits the observed triangle
+(`orient`).
 """
 
 from __future__ import annotations
 
 import itertools
-from functools import lru_cache
+import math
+from collections.abc import Callable
+from functools import lru_cache, partial
 
 import numpy as np
 
@@ -27,6 +30,7 @@ MEASURE_BATCH = 4  # observed triangles measured at once when the search reaches
 # with area_sigma="stars" measures one at a time in plain floats, ~15 us: `_measure_one`)
 SCAN_LIMIT = 65536  # a triangle looked up alone is counted by listing its candidates up to this range
 SQ2 = float(np.sqrt(2.0))
+JOIN_DENSE = 16384  # up to this many (pq, qr) pairs of pairs, the join compares all of them at once
 SMALL = 64  # up to this many catalog rows, distinct stars / sets are taken in plain Python (numpy's calls cost more)
 _PERMS = np.array([[0, 1, 2], [1, 2, 0], [2, 0, 1], [0, 2, 1], [2, 1, 0], [1, 0, 2]])
 _PARITY = np.array([1, 1, 1, -1, -1, -1])
@@ -49,11 +53,12 @@ class TriangleLookup:
         (`count_of`): the largest-area order needs only those.
         """
         ti, tj, tk = _combinations(len(V))
-        ii, jj, side_of = _side_pairs(len(V))
+        pairs, side_of = _side_pairs(len(V))
         # the sides a = AB, b = BC, c = CA of every triangle (as sph.sides) are angles between two stars:
         # each pair's once (the arc of C, A is that of A, C: the difference only changes sign)
-        arcs = np.zeros(len(ii) + 1)
-        arcs[:-1] = sph.arc(V[ii], V[jj])
+        ends = V[pairs]  # both stars of every pair, in one gather
+        arcs = np.zeros(pairs.shape[1] + 1)
+        sph.arc(ends[0], ends[1], out=arcs[:-1])
         S4 = arcs[side_of]  # (4, n): 0, a, b, c
         S = S4[1:]
         area = sph.lhuilier_zero_first(S4)  # = sph.lhuilier(*S)
@@ -121,12 +126,17 @@ class TriangleLookup:
         t["area_bound"][k] = self.beta * sig[0][0]
         t["triple_sigma"][k] = sig[1][0]
         t["triple"][k] = sph.dot3(A, sph.cross3(B, C))  # = sph.triple
-        t["moment_pending"] = np.array([k])
+        t["moment_pending"] = pend = np.array([k])
+        t["moment_pending_corners"] = (pend, ([A], [B], [C]))  # for `_moments`, as lists
         return True
 
     def _set_moment(self, t: dict, idx: np.ndarray, moment: np.ndarray) -> None:
         t["moment"][idx] = moment
-        t["moment_bound"][idx] = self.beta * self.moment_sigma(moment, t["sigma"])
+        if len(moment) <= SMALL:  # `moment_sigma` in plain floats: the same operations, the same numbers
+            (c0, c1), sigma, beta = self.moment_sigma_coef.tolist(), float(t["sigma"]), self.beta
+            t["moment_bound"][idx] = [beta * (sigma * (c0 + c1 * m)) for m in moment.tolist()]
+        else:
+            t["moment_bound"][idx] = self.beta * self.moment_sigma(moment, t["sigma"])
 
     def _ensure(self, t: dict, k: int) -> None:
         """Observed triangle k measured (`_measure`), with the next unmeasured ones in the search order
@@ -213,7 +223,8 @@ class TriangleLookup:
 
         The catalog pairs whose angle matches side pq within beta sigma_p (sigma_p = sqrt(2) sigma, the
         tolerance `orient` gives each side) are joined on the shared star q with the pairs matching
-        side qr, in both orientations; a third side rp within the same tolerance closes the triangle
+        side qr, in both orientations (first pruned to the pairs whose stars also end a pair of their
+        other side: most of them do not); a third side rp within the same tolerance closes the triangle
         (its angle computed from the two stars, as the database computes its pairs'). Then, as the
         triangle database's candidates: the handedness where the observed sign is certain, the area
         within its bound and the polar moment within its bound. Returns (h, 3) catalog rows in the
@@ -225,24 +236,47 @@ class TriangleLookup:
         tol = self.beta * SQ2 * sig
         sides = t["sides"][k]
         lo, hi = sides - tol, sides + tol
-        st, sp = self.kv_pairs.ranges(lo[:2], hi[:2])
+        # the pairs of each side: kv_pairs.ranges (its two binary searches; lo <= hi, as tol > 0)
+        values = self.kv_pairs.sorted_values
+        st, sp = values.searchsorted(lo, "left").tolist(), values.searchsorted(hi, "right").tolist()
         pi, pj, xyz = self.pair_i, self.pair_j, self.catalog.xyz
         a1, b1 = pi[st[0]:sp[0]], pj[st[0]:sp[0]]
         a2, b2 = pi[st[1]:sp[1]], pj[st[1]:sp[1]]
+        # each star of a candidate ends a pair of both its sides (p: pq and rp, q: pq and qr, r: qr and rp):
+        # a pair with a star that does not is dropped before the join (a few dozen of ~1,000 are left). Side
+        # rp's pairs are the database's, whose stored angles are to the bit those computed below; but near
+        # the database's largest angle (where the catalog's pair search might round a pair out) rp is left
+        # to the test below alone. Then the same triangles, in the same order, as joining every pair.
+        rp = hi[2] < (1.0 - 1e-9) * self.pair_max_sep_rad
+        on1, on2, on3 = _ends(pi, pj, st, sp, len(xyz), 3 if rp else 2)
+        p_ok, q_ok, r_ok = on1 & on3, on1 & on2, on2 & on3
         cp, cq = np.concatenate([a1, b1]), np.concatenate([b1, a1])  # (catalog p, catalog q), both orientations
+        keep = p_ok[cp] & q_ok[cq]
+        cp, cq = cp[keep], cq[keep]
         q2, r2 = np.concatenate([a2, b2]), np.concatenate([b2, a2])
-        r2s, start, size = by_star(q2, r2, len(xyz))  # side qr's pairs in blocks by their star on q
-        cnt = size[cq]
-        rows = np.repeat(np.arange(len(cp)), cnt)
-        c = r2s[np.repeat(start[cq] - np.cumsum(cnt) + cnt, cnt) + np.arange(int(cnt.sum()))]
-        a, b = cp[rows], cq[rows]
+        keep = q_ok[q2] & r_ok[r2]
+        q2, r2 = q2[keep], r2[keep]
+        if len(cp) * len(q2) <= JOIN_DENSE:
+            # every (pq, qr) pair with the same star on q: row-major, so in pq's order and then qr's (by_star's)
+            rows, cols = np.nonzero(cq[:, None] == q2[None, :])
+            a, b, c = cp[rows], cq[rows], r2[cols]
+        else:
+            r2s, start, size = by_star(q2, r2, len(xyz))  # side qr's pairs in blocks by their star on q
+            cnt = size[cq]
+            rows = np.repeat(np.arange(len(cp)), cnt)
+            c = r2s[np.repeat(start[cq] - np.cumsum(cnt) + cnt, cnt) + np.arange(int(cnt.sum()))]
+            a, b = cp[rows], cq[rows]
+        t.setdefault("side_counts", {})[k] = (sp[0] - st[0], sp[1] - st[1])
+        if len(a) <= SMALL:  # the usual few: the same tests in plain floats, the same numbers
+            return self._close_few(t, k, a.tolist(), b.tolist(), c.tolist(), float(lo[2]), float(hi[2]))
         ok = c != a
         a, b, c = a[ok], b[ok], c[ok]
-        # side rp: a cheap test on the dot product, a little wider than the bounds, then the angle exactly
-        # as the database computes its pairs' (the same triangles as computing every angle)
-        hi_rp = min(float(hi[2]), self.pair_max_sep_rad)
-        near = np.einsum("ij,ij->i", xyz[c], xyz[a]) >= np.cos(min(hi_rp + 1e-6, np.pi))
-        a, b, c = a[near], b[near], c[near]
+        # side rp: the angle exactly as the database computes its pairs' (for many, first a cheap test on
+        # the dot product, a little wider than the bounds: the same triangles as computing every angle)
+        if len(a) > SMALL:
+            hi_rp = min(float(hi[2]), self.pair_max_sep_rad)
+            near = np.einsum("ij,ij->i", xyz[c], xyz[a]) >= np.cos(min(hi_rp + 1e-6, np.pi))
+            a, b, c = a[near], b[near], c[near]
         d = angular_distance(xyz[c], xyz[a])
         ok = (d >= lo[2]) & (d <= hi[2]) & (d <= self.pair_max_sep_rad)
         a, b, c = a[ok], b[ok], c[ok]
@@ -265,43 +299,100 @@ class TriangleLookup:
             mo, dm = float(t["moment"][k]), float(t["moment_bound"][k])
             ok = (moment >= mo - dm) & (moment <= mo + dm)
             a, b, c = a[ok], b[ok], c[ok]
-        t.setdefault("side_counts", {})[k] = (int(sp[0] - st[0]), int(sp[1] - st[1]))
         return np.stack([a, b, c], axis=1)
 
-    def _moments(self, t: dict, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray | None:
-        """The polar moments of the catalog triangles (A, B, C) (None when there are none), and those of
-        the observed triangles `_measure` / `_measure_one` left pending, in one call (np.einsum sums a
-        single column another way, to the last bit, so an observed triangle is always computed in a call of
-        two or more triangles, as a batch of `_measure` computes it; but the frame's only triangle, which
-        was always computed alone. A lone candidate's moment may differ from its own call's in the last
-        bit, far inside the moment bound it is tested against)."""
+    def _close_few(self, t: dict, k: int, a: list[int], b: list[int], c: list[int], lo: float, hi: float
+                   ) -> np.ndarray:
+        """`join_pairs`' tests of a few joined triangles (catalog stars a, b, c on p, q, r) in plain floats,
+        the same numbers as its arrays: r is not p; side rp within [lo, hi] and the database's largest angle
+        (the third of `sph.sides_few`, = angular_distance(C, A) as the database computes its pairs'); the
+        handedness where the observed sign is certain; the area within its bound (`sph.lhuilier_few` of the
+        same sides, = sph.area); the polar moment within its bound (`_moments`). Returns (h, 3) rows."""
+        keep = [i for i in range(len(a)) if c[i] != a[i]]
+        a, b, c = [a[i] for i in keep], [b[i] for i in keep], [c[i] for i in keep]
+        n = len(a)
+        xyz = self.catalog.xyz
+        # side rp first by its squared chord, which the angle grows with: outside the bounds' own squared
+        # chords, widened far beyond any rounding, no angle can pass (most of the joined triangles)
+        c_lo = (2.0 * math.sin(lo / 2.0)) ** 2 * (1.0 - 1e-9) if lo > 0.0 else 0.0
+        c_hi = (2.0 * math.sin(hi / 2.0)) ** 2 * (1.0 + 1e-9) if hi < math.pi else math.inf
+        ABC = xyz[a + b + c].tolist()
+        near = []
+        for i in range(n):
+            x, y = ABC[2 * n + i], ABC[i]
+            d0, d1, d2 = x[0] - y[0], x[1] - y[1], x[2] - y[2]
+            if c_lo <= d0 * d0 + d1 * d1 + d2 * d2 <= c_hi:
+                near.append(i)
+        A, B, C = ([ABC[o + i] for i in near] for o in (0, n, 2 * n))
+        a, b, c = [a[i] for i in near], [b[i] for i in near], [c[i] for i in near]
+        # the observed triangle's sides first, in the same call (for `consistent_rows`)
+        P, Q, R = t["V"][[int(t["ti"][k]), int(t["tj"][k]), int(t["tk"][k])]].tolist()
+        obs, *sides = sph.sides_few([P] + A, [Q] + B, [R] + C)
+        top = self.pair_max_sep_rad
+        tr, trs = float(t["triple"][k]), float(t["triple_sigma"][k])
+        hand = sph.sign(tr) if abs(tr) > self.beta * trs else None
+        keep = [i for i in range(len(a)) if lo <= sides[i][2] <= hi and sides[i][2] <= top
+                and (hand is None or sph.sign(sph.dot3(A[i], sph.cross3(B[i], C[i]))) == hand)]
+        ar, da = float(t["area"][k]), float(t["area_bound"][k])
+        area = sph.lhuilier_few([sides[i] for i in keep])
+        keep = [i for i, v in zip(keep, area) if ar - da <= v <= ar + da]
+        # also the observed triangles' left pending; lists of vertices make one array in one call
+        moment = self._moments(t, [A[i] for i in keep], [B[i] for i in keep], [C[i] for i in keep])
+        if keep:
+            mo, dm = float(t["moment"][k]), float(t["moment_bound"][k])
+            keep = [i for i, v in zip(keep, moment.tolist()) if mo - dm <= v <= mo + dm]
+        # which rows `TriangleMethod.consistent` keeps as a chain of this one triangle: its handedness test is
+        # the one above, and each side within tol of the observed angle (the same angles: it sums the same
+        # chords, or their negatives, and takes numpy's arcsin)
+        tol = self.beta * SQ2 * float(t["sigma"])
+        t.setdefault("consistent_rows", {})[k] = [all(abs(sides[i][j] - obs[j]) <= tol for j in range(3))
+                                                  for i in keep]
+        return np.array([(a[i], b[i], c[i]) for i in keep], dtype=np.int64).reshape(-1, 3)
+
+    def _moments(self, t: dict, A, B, C) -> np.ndarray | None:
+        """The polar moments of the catalog triangles (A, B, C: (h, 3) arrays, or lists of h 3-vectors)
+        (None when there are none), and those of the observed triangles `_measure` / `_measure_one` left
+        pending, in one call (np.einsum sums a single column another way, to the last bit, so an observed
+        triangle is always computed in a call of two or more triangles, as a batch of `_measure` computes
+        it; but the frame's only triangle, which was always computed alone. A lone candidate's moment may
+        differ from its own call's in the last bit, far inside the moment bound it is tested against)."""
         pend = t.pop("moment_pending", None)
+        corners = t.pop("moment_pending_corners", None)
         if pend is None or len(pend) == 0:
             return sph.polar_moment_few(A, B, C, self.depth) if len(A) else None
-        V = t["V"]
-        P, Q, R = V[t["ti"][pend]], V[t["tj"][pend]], V[t["tk"][pend]]
+        if isinstance(A, list) and corners is not None and corners[0] is pend:
+            P, Q, R = corners[1]  # `_measure_one`'s lists of the observed vertices
+        else:
+            V = t["V"]
+            P, Q, R = V[t["ti"][pend]], V[t["tj"][pend]], V[t["tk"][pend]]
+            if isinstance(A, list):
+                P, Q, R = P.tolist(), Q.tolist(), R.tolist()
         if len(t["area"]) == 1:  # the frame's one triangle: computed alone, as it always was
             self._set_moment(t, pend, sph.polar_moment_few(P, Q, R, self.depth))
             return sph.polar_moment_few(A, B, C, self.depth) if len(A) else None
         # the observed first, then the candidates, in one call of two or more triangles: a column's sum
         # is then the same whatever the others (a lone observed triangle is doubled to make two)
         n = len(pend)
-        if len(A) or n == 1:
+        if isinstance(A, list):
+            if A or n == 1:
+                P, Q, R = (X + (Y if A else X) for X, Y in ((P, A), (Q, B), (R, C)))
+        elif len(A) or n == 1:
             P, Q, R = (np.concatenate([X, Y if len(A) else X]) for X, Y in ((P, A), (Q, B), (R, C)))
         both = sph.polar_moment_few(P, Q, R, self.depth)
         self._set_moment(t, pend, both[:n])
         return both[n:] if len(A) else None
 
-    def oriented_candidates(self, t: dict, k: int, sigma: float) -> tuple[np.ndarray, list[tuple[int, ...]]]:
-        """The oriented candidates of observed triangle k (rows over (ti, tj, tk)[k]) and the catalog
-        triangles a step draws for them (capped)."""
+    def oriented_candidates(self, t: dict, k: int, sigma: float
+                            ) -> tuple[np.ndarray, Callable[[], list[tuple[int, ...]]]]:
+        """The oriented candidates of observed triangle k (rows over (ti, tj, tk)[k]) and a function giving
+        the catalog triangles a step draws for them (capped; `LazyStep` calls it if the step is read)."""
         if self.database == "pairs":
             self.count_of(t, k)
             H = t["oriented"][k]
-            return H, _distinct_sets(H[:64 * CAP])
+            return H, partial(_distinct_sets, H[:64 * CAP])
         rows = self.candidates(t, k)
         H, src = self.orient(t, k, rows, sigma)
-        return H, _groups(self.tri, rows, src)
+        return H, partial(_groups, self.tri, rows, src)
 
     def candidates(self, t: dict, m: int) -> np.ndarray:
         """Rows (into self.tri, area order) of the catalog triangles matching observed triangle m:
@@ -373,6 +464,19 @@ def _combinations(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return out
 
 
+def _ends(pi: np.ndarray, pj: np.ndarray, st: list[int], sp: list[int], n: int, sides: int) -> np.ndarray:
+    """Which of n catalog stars end one of the pairs (pi, pj)[st[s]:sp[s]] of each of the first `sides`
+    sides s, as (3, n) booleans (a side left out: every star)."""
+    on = np.zeros((3, n), dtype=bool)
+    for s in range(sides):
+        row = on[s]  # (a 1-D scatter is faster than on[s, index])
+        row[pi[st[s]:sp[s]]] = True
+        row[pj[st[s]:sp[s]]] = True
+    if sides < 3:
+        on[sides:] = True
+    return on
+
+
 def _hand_and_area(xyz: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, tr: float | None, area: float,
                    bound: float) -> list[int]:
     """`join_pairs`' last two tests of a few catalog triangles (a, b, c), in plain floats: the sign of
@@ -389,15 +493,15 @@ def _hand_and_area(xyz: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
 
 
 @lru_cache(maxsize=64)
-def _side_pairs(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pairs (ii, jj) of n stars (np.triu_indices(n, 1)) and, for every triangle of `_combinations(n)`,
-    a (4, n_triangles) index into their angles with one more, zero entry appended: that zero, then the
-    pairs of the sides ij, jk and ik (read-only, cached)."""
+def _side_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of n stars ((2, n_pairs): np.triu_indices(n, 1)) and, for every triangle of
+    `_combinations(n)`, a (4, n_triangles) index into their angles with one more, zero entry appended:
+    that zero, then the pairs of the sides ij, jk and ik (read-only, cached)."""
     ii, jj = np.triu_indices(n, 1)
     pair = np.full((n, n), -1, dtype=np.intp)
     pair[ii, jj] = np.arange(len(ii))
     ti, tj, tk = _combinations(n)
-    out = (ii, jj, np.stack([np.full(len(ti), len(ii)), pair[ti, tj], pair[tj, tk], pair[ti, tk]]))
+    out = (np.stack([ii, jj]), np.stack([np.full(len(ti), len(ii)), pair[ti, tj], pair[tj, tk], pair[ti, tk]]))
     for a in out:
         a.flags.writeable = False
     return out

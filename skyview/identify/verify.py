@@ -69,6 +69,10 @@ measured (all of a small frame's, or those a dot-product prefilter keeps on a la
 Python lists (`_Frame.agreeing`); whether a matched catalog star has a neighbour within the blend
 radius comes from each star's nearest-neighbour chord, looked up once per catalog (`_has_neighbour`);
 the estimate from every match is remembered for the solver's attitude stage (`attitude.remember_svd`).
+The hypothesis stars' ambiguity and the crowding count are only counted when two pool stars (two
+observed stars) lie close enough for one radius to hold both (`_apart`: one product of the rows; the
+triangle inequality says nothing else can be ambiguous or crowded); the Poisson-binomial tail runs on
+the Python floats of p_tested (the same IEEE operations as numpy's).
 Each of these gives the general path's (and the k-d tree's) numbers to the last bit
 (tests/test_verify.py and tests/test_catalog.py compare them).
 
@@ -125,11 +129,18 @@ def local_density(catalog: GuideCatalog, directions_icrs: np.ndarray, leave_out:
     d = d[None] if d.ndim == 1 else d  # = np.atleast_2d
     if len(d) == 0:
         return np.zeros(0)
-    n = catalog.ball_counts(d, float(chord(radius_rad)), among).astype(np.float64)
+    ch, area = _chord_area(float(radius_rad))
+    n = catalog.ball_counts(d, ch, among).astype(np.float64)
     if leave_out is not None:
         n = np.maximum(n - leave_out, 0.0)
     n[n < min_count] = 0.0
-    return n / (2.0 * np.pi * (1.0 - np.cos(radius_rad)))
+    return n / area
+
+
+@lru_cache(maxsize=64)
+def _chord_area(radius_rad: float) -> tuple[float, float]:
+    """The chord of an angle and the solid angle of the cap it spans (numpy's numbers, made once)."""
+    return float(chord(radius_rad)), float(2.0 * np.pi * (1.0 - np.cos(radius_rad)))
 
 
 def match_radius(sigma_rad: float, k: float = RADIUS_SIGMAS) -> float:
@@ -163,27 +174,31 @@ def poisson_binomial_sf(k: int, ps) -> float:
     near n, the same over the misses (P[X >= k] = P[n - X <= n - k]). Small states run in Python
     floats (a frame's tens of stars: no numpy call per star), larger ones in numpy.
     """
-    ps = np.asarray(ps, dtype=np.float64).ravel()
+    return _sf(k, np.asarray(ps, dtype=np.float64).ravel().tolist())
+
+
+def _sf(k: int, ps: list[float]) -> float:
+    """poisson_binomial_sf of Python floats (1.0 - p is the number numpy's 1.0 - ps gives)."""
     n = len(ps)
     if k <= 0:
         return 1.0
     if k > n:
         return 0.0
-    qs = 1.0 - ps
+    qs = [1.0 - p for p in ps]
     if n - k + 1 < k:  # P[X >= k] = P[misses <= n - k]: the states 0 .. n - k of the misses, summed
         return float(min(1.0, sum(_states(n - k + 1, qs, ps))))
     return float(min(1.0, _states(k, ps, qs, absorb=True)[k]))
 
 
-def _states(k: int, ps: np.ndarray, qs: np.ndarray, absorb: bool = False):
+def _states(k: int, ps: list[float], qs: list[float], absorb: bool = False):
     """The distribution of a sum of Bernoulli(p_i) (q_i = 1 - p_i given, not recomputed: no
     cancellation when p_i is near 1) over the counts 0 .. k-1, plus with absorb=True a last state
     "k or more" that the mass moving past k-1 joins."""
     if k == 1 and not absorb:  # one state: the product of the q_i, in order (the loop below, unrolled)
-        return [math.prod(qs.tolist())]
+        return [math.prod(qs)]
     if k <= 32:
         dist = [1.0] + [0.0] * (k - 1 + absorb)
-        for p, q in zip(ps.tolist(), qs.tolist()):
+        for p, q in zip(ps, qs):
             if absorb:
                 dist[k] += dist[k - 1] * p
             for j in range(k - 1, 0, -1):
@@ -208,11 +223,17 @@ def p_false_calibrated(n_agree: int, n_tested: int, p, n_hypotheses: int = 1) ->
     """
     if n_tested <= 0 or n_agree <= 0:
         return 1.0
-    ps = _per_item(p, n_tested)
-    if np.all(ps == ps[0]):
-        tail = float(bdtrc(n_agree - 1, n_tested, ps[0]))  # P[X >= n_agree]
+    return _p_false_floats(n_agree, _per_item(p, n_tested).tolist(), n_hypotheses)
+
+
+def _p_false_floats(n_agree: int, ps: list[float], n_hypotheses: int) -> float:
+    """p_false_calibrated of one probability per tested star as Python floats (verify's p_tested; at
+    least one star tested, one agreeing): the comparisons and numbers numpy's arrays give."""
+    p0 = ps[0]
+    if p0 == p0 and ps.count(p0) == len(ps):  # = np.all(ps == ps[0]) (count: `is` or ==; NaN: never)
+        tail = float(bdtrc(n_agree - 1, len(ps), p0))  # P[X >= n_agree]
     else:
-        tail = poisson_binomial_sf(n_agree, ps)
+        tail = _sf(n_agree, ps)
     return float(min(1.0, max(1, n_hypotheses) * tail))
 
 
@@ -222,15 +243,21 @@ def p_false_tetra3(n_matched: int, n_observed: int, n_nearby: int, radius_fracti
     return float(bdtr(n_observed - (n_matched - 2), n_observed, 1.0 - p1))  # P[X <= k]
 
 
-def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray, unit: tuple | None = None) -> np.ndarray:
     """Largest standard deviation of the predicted position R r_i caused by the attitude error.
 
     A small attitude error dphi (camera frame, covariance P) moves a direction b by dphi x b, whose
     covariance is [b]x P [b]x^T; this returns the square root of its largest eigenvalue per star.
+    unit: `_unit_rows(vectors)` where the caller has it (a row's numbers do not depend on the others).
     """
-    b = np.asarray(vectors, dtype=np.float64)
-    b = b[None] if b.ndim == 1 else b  # = np.atleast_2d
-    if len(b) == 0:
+    if unit is None:
+        b = np.asarray(vectors, dtype=np.float64)
+        b = b[None] if b.ndim == 1 else b  # = np.atleast_2d
+        if len(b) == 0:
+            return np.zeros(0)
+        unit = _unit_rows(b)
+    n, s2 = unit
+    if len(n) == 0:
         return np.zeros(0)
     # In closed form (no batched eigensolver): [b]x P [b]x^T is |b|^2 times P restricted to the plane
     # normal to the unit vector n = b / |b| (turned by 90 degrees in it; its third eigenvalue, along n,
@@ -244,17 +271,22 @@ def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     (a, q, c), (_, d, e), (_, _, f) = rows  # symmetric: six numbers, as Python floats
     a01, a02, a12 = c * e - q * f, q * e - c * d, q * c - a * e
     adj = np.array([[d * f - e * e, a01, a02], [a01, a * f - c * c, a12], [a02, a12, a * d - q * q]])
-    s2 = _einsum("ij,ij->i", b, b)
-    n = b / np.sqrt(np.where(s2 > 0, s2, 1.0))[:, None]
     t = (a + d + f) - _einsum("ij,ij->i", n @ P, n)
     det = _einsum("ij,ij->i", n @ adj, n)
     lam = 0.5 * t + np.sqrt(np.maximum(0.25 * t * t - det, 0.0))
     return np.sqrt(np.maximum(lam * s2, 0.0))
 
 
-def star_radii(vectors: np.ndarray, covariance: np.ndarray, sigma_rad: float, radius_rad: float) -> np.ndarray:
+def _unit_rows(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(b / |b|, |b|^2) of (n, 3) rows, as predicted_sigma uses them (a zero row stays zero)."""
+    s2 = _einsum("ij,ij->i", b, b)
+    return b / np.sqrt(np.where(s2 > 0, s2, 1.0))[:, None], s2
+
+
+def star_radii(vectors: np.ndarray, covariance: np.ndarray, sigma_rad: float, radius_rad: float,
+               unit: tuple | None = None) -> np.ndarray:
     """Per-star match radius r_i = r sqrt(1 + s_i^2 / sigma^2), s_i = predicted_sigma, capped."""
-    s = predicted_sigma(vectors, covariance)
+    s = predicted_sigma(vectors, covariance, unit)
     return np.minimum(radius_rad * np.sqrt(1.0 + (s / sigma_rad) ** 2), max(MAX_RADIUS_RAD, radius_rad))
 
 
@@ -403,6 +435,24 @@ def _count_within(query: np.ndarray, ref: np.ndarray, chords: np.ndarray) -> np.
     return np.asarray(cKDTree(ref).query_ball_point(query, chords, return_length=True))
 
 
+APART_MARGIN = 1e-12  # on a squared chord: a thousand times the rounding of |a|^2 + |b|^2 - 2 a.b
+
+
+def _apart(x: np.ndarray, radius_rad: float) -> bool:
+    """Whether no two rows of x (directions) lie within twice the chord of radius_rad of each other,
+    so that no ball of that radius, wherever it is, holds two of them (the triangle inequality, with
+    APART_MARGIN to spare). From the products of the rows: |a - b|^2 = |a|^2 + |b|^2 - 2 a.b is at
+    least 2 min |x_i|^2 - 2 max a.b (a, b two rows)."""
+    n = len(x)
+    if n < 2:
+        return True
+    g = x @ x.T
+    s_min = float(g.diagonal().min())
+    g.flat[::n + 1] = -np.inf  # a row with itself
+    c = 2.0 * math.sin(0.5 * min(radius_rad, math.pi))
+    return 2.0 * s_min - 2.0 * float(g.max()) > 4.0 * c * c + APART_MARGIN
+
+
 def _one_to_one(d0: np.ndarray, j0: np.ndarray, cq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """From each query's nearest ref (chord d0, row j0) and its chord radius cq: the pairs within the
     radius, each ref kept by its nearest query; (query index, ref index, angle), nearest first."""
@@ -502,7 +552,7 @@ class _Near:
 
     def __init__(self, catalog: GuideCatalog, wide_rad: float = 0.0):
         self.catalog = catalog
-        self.center = None
+        self.center = self.unit = None  # the direction fetched around (and it normalised)
         self.radius = -1.0
         self.wide_rad = wide_rad
         self.idx = np.zeros(0, dtype=np.int64)
@@ -517,13 +567,12 @@ class _Near:
             if moved + radius <= self.radius:
                 return self.idx
         self.center, self.radius = np.array(b, dtype=np.float64), radius + NEAR_SLACK_RAD
+        self.unit = self.center / math.sqrt(float(self.center @ self.center))
         self.wide_rad = max(self.wide_rad, self.radius)
-        # the stars of the sky index's cells around b (ascending, as catalog.within gives them), less
-        # those a dot product puts beyond each radius (a 1e-9 margin on the cosine: a superset)
-        cand = np.sort(self.catalog.sky.cap(self.center, self.wide_rad))
-        cos_b = self.catalog.xyz[cand] @ (self.center / math.sqrt(float(self.center @ self.center)))
-        self.wide = cand[cos_b >= math.cos(min(self.wide_rad, math.pi)) - 1e-9]
-        self.idx = cand[cos_b >= math.cos(min(self.radius, math.pi)) - 1e-9]
+        # the stars the sky index puts within each radius (ascending, as catalog.within gives them; a
+        # 1e-9 margin on the cosine: a superset)
+        self.wide, cos_b = self.catalog.sky.cap_cosines(self.center, self.wide_rad)
+        self.idx = self.wide[cos_b >= math.cos(min(self.radius, math.pi)) - 1e-9]
         self.xyz = self.catalog.xyz[self.idx]
         return self.idx
 
@@ -533,8 +582,7 @@ class _Near:
             return False
         if len(directions) == 0:
             return True
-        c = self.center / math.sqrt(float(self.center @ self.center))
-        cos_far = float((directions @ c).min())
+        cos_far = float((directions @ self.unit).min())
         return math.acos(max(-1.0, min(1.0, cos_far))) + radius_rad + 1e-7 <= self.wide_rad
 
 
@@ -554,10 +602,13 @@ class _Frame:
         if len(rows):
             if camera.distorted:
                 uv, front = camera.project(v)  # NaN pixels behind the camera compare False below
+                every = False
             else:  # = camera.project without its per-call overhead: the same numbers
                 z = v[:, 2]
                 front = z > 1e-12
-                z = np.where(front, z, 1.0)
+                every = bool(front.all())  # (the usual case: every star in front, nothing to replace)
+                if not every:
+                    z = np.where(front, z, 1.0)
                 # x = fx (v_x / z) + cx and y likewise, both columns at once (the same operations)
                 fxy, cxy = _focal_centre(camera)
                 uv = (v[:, :2] / z[:, None]) * fxy + cxy
@@ -567,9 +618,13 @@ class _Frame:
                 ok = (uv >= -0.5 + margin) & (uv <= hi)
                 return ok[:, 0] & ok[:, 1]
 
-            pool = front & inside(-grow * f)
+            pool = inside(-grow * f) if every else front & inside(-grow * f)
             # (n_frame only where it is asked for: a refit needs the pool alone)
-            self.n_frame = int(np.count_nonzero(front & inside(-max(float(r), 0.0) * f))) if count else -1
+            if count:
+                seen = inside(-max(float(r), 0.0) * f)
+                self.n_frame = int(np.count_nonzero(seen if every else front & seen))
+            else:
+                self.n_frame = -1
         else:
             pool = np.zeros(0, dtype=bool)
             self.n_frame = 0
@@ -595,7 +650,8 @@ class _Frame:
         g = q @ self.v.T
         reach = 0.5 * ((qq + 1.0) - cq * cq)
         ks, js = (g >= (reach - 0.5 * PREFILTER_MARGIN)[:, None]).nonzero()
-        if not chords and np.all(g[ks, js] >= (reach + 0.5 * PREFILTER_MARGIN)[ks]):
+        # every kept pair is surely within when as many pairs clear the upper limit (a subset of them)
+        if not chords and np.count_nonzero(g >= (reach + 0.5 * PREFILTER_MARGIN)[:, None]) == len(ks):
             return ks, js, None
         diff = q[ks] - self.v[js]
         d = np.sqrt(_einsum("ij,ij->i", diff, diff))
@@ -721,9 +777,12 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
 
     rest = np.ones(n_obs, dtype=bool)
     rest[h_obs] = False
-    others = np.flatnonzero(rest)  # = np.setdiff1d(np.arange(n_obs), h_obs)
+    others = rest.nonzero()[0]  # = np.setdiff1d(np.arange(n_obs), h_obs) (= np.flatnonzero of a 1-d mask)
     out.n_tested = int(len(others))
-    radii = star_radii(vectors[others], est.covariance, sigma_rad, r)
+    # every star's unit vector and squared length, for the radii of each estimate (row by row: a subset's
+    # rows are the same numbers)
+    unit_all = _unit_rows(vectors)
+    radii = star_radii(None, est.covariance, sigma_rad, r, (unit_all[0][others], unit_all[1][others]))
     out.radius_max_rad = float(radii.max()) if len(radii) else r
     # the catalog stars around the frame, fetched once for every round below, as far as the local
     # density of the observed stars reaches (an observed star lies acos(z) from the boresight)
@@ -743,10 +802,10 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     tested = q @ R
     dens = np.maximum(out.n_frame / solid_angle, local_density(
         catalog, tested, leave_out=landed, among=near.wide if near.covers(tested, LOCAL_RADIUS_RAD) else None))
-    ps = np.minimum(1.0, dens * np.pi * radii ** 2)
-    out.p_tested = ps.tolist()
+    out.p_tested = np.minimum(1.0, dens * np.pi * radii ** 2).tolist()
     if statistic == CALIBRATED:
-        out.p_false = p_false_calibrated(out.n_agree, out.n_tested, ps, n_hypotheses)
+        out.p_false = (_p_false_floats(out.n_agree, out.p_tested, n_hypotheses) if out.n_tested > 0 and out.n_agree > 0
+                       else 1.0)  # = p_false_calibrated(n_agree, n_tested, p_tested, n_hypotheses)
     else:
         fov_rad = np.radians(camera.fov_deg)
         out.p_false = p_false_tetra3(len(hypothesis) + out.n_agree, n_obs, out.n_frame, r / fov_rad)
@@ -773,13 +832,15 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         if done is not None and done[0] == current:
             break
         est = _estimate(vectors, current, catalog, sigma_rad)
-        radii_all = star_radii(vectors, est.covariance, sigma_rad, r)  # every star's radius for this estimate
+        radii_all = star_radii(vectors, est.covariance, sigma_rad, r, unit_all)  # every star's, for this estimate
         radii = radii_all[others]
         frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r, near, count=False)
         agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii, q)
         done = (current, est)
         current = {**hyp, **agree_i}
-    h_amb = frame.ambiguous(b_h, radii_all[h_obs])
+    h_rad = radii_all[h_obs]
+    # (no two pool stars close enough for one radius to hold both: nobody is ambiguous, nothing to count)
+    h_amb = np.zeros(len(h_obs), dtype=bool) if _apart(frame.v, float(h_rad.max())) else frame.ambiguous(b_h, h_rad)
     final = {o: c for o, c, a in zip(h_obs.tolist(), h_cat.tolist(), h_amb.tolist()) if not a}  # Python ints
     final.update(agree_i)
     ambiguous = set(h_obs[h_amb].tolist()) | amb_i
@@ -790,14 +851,16 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         f_keys = sorted(final)
         f_obs = np.array(f_keys, dtype=np.int64)
         f_cat = np.array([final[o] for o in f_keys], dtype=np.int64)
-        rad = radii_all[f_obs] if same else star_radii(vectors[f_obs], est.covariance, sigma_rad, r)
+        rad = radii_all[f_obs] if same else star_radii(None, est.covariance, sigma_rad, r,
+                                                       (unit_all[0][f_obs], unit_all[1][f_obs]))
         pred = catalog.xyz[f_cat] @ est.R.T
         # every reported star must fit the final attitude (a hypothesis star that only just fitted
         # its own attitude may not) ...
         misfit = angular_distance(vectors[f_obs], pred) > rad
         # ... and a catalog star with two observed stars within the radius (a false star or a hot
         # pixel next to a star) may belong to either, so neither is reported
-        crowd = _count_within(pred, vectors, chord(rad)) >= 2
+        crowd = (np.zeros(len(f_obs), dtype=bool) if _apart(vectors, float(rad.max()))
+                 else _count_within(pred, vectors, chord(rad)) >= 2)
         # ... and a catalog star with another catalog star closer than the sensor resolves may be
         # half of a blend whose centroid sits between the two: its identity is either
         blend = np.maximum(rad, BLEND_RADIUS_PX * camera.pixel_scale_rad)
@@ -814,16 +877,15 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     out.reason = f"{out.n_agree} of {out.n_tested} other stars agree, P(false) = {out.p_false:.2e}"
     out.R = est.R
     out.covariance = est.covariance
-    out.matches = dict(sorted(final.items()))  # Python ints: from tolist() and int()
+    out.matches = {o: final[o] for o in sorted(final)}  # Python ints: from tolist() and int()
     return out
 
 
 def _estimate(vectors, matches, catalog, sigma_rad):
     """svd_attitude from the matches (observed index -> catalog row), in observed order; remembered
     (`attitude.remember_svd`) for the solver's attitude stage, which asks for the same estimate."""
-    idx = np.array(sorted(matches), dtype=np.int64)
-    rows = np.array([matches[i] for i in idx.tolist()], dtype=np.int64)
-    b, r = vectors[idx], catalog.xyz[rows]
+    keys = sorted(matches)
+    b, r = vectors[np.array(keys, dtype=np.int64)], catalog.xyz[np.array([matches[i] for i in keys], dtype=np.int64)]
     est = svd_attitude(b, r, sigma_rad)
     remember_svd(b, r, sigma_rad, est)
     return est
@@ -836,12 +898,15 @@ VERIFY_NUMBERS = ("n_agree", "n_tested", "p_false", "threshold_effective", "radi
 def verification_step(ver: Verification, hypothesis: dict[int, int], *, cap: int = 200,
                       numbers: dict | None = None, **fields):
     """The 'verify' step every method records: the matches (or the rejected hypothesis), the figures
-    of the verification, plus the method's own `numbers` and Step fields (groups, layers)."""
-    from skyview.identify.base import Step
+    of the verification (VERIFY_NUMBERS, as `Verification.to_dict` gives them), plus the method's own
+    `numbers` and Step fields (groups, layers). The catalog rows are listed when first read (from a
+    copy of the matches taken now: `LazyStep`)."""
+    from skyview.identify.base import LazyStep
 
-    shown = ver.matches or hypothesis
-    vd = ver.to_dict()
-    nums = {k: vd[k] for k in VERIFY_NUMBERS} | {"passed": float(ver.passed)} | (numbers or {})
-    return Step("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason,
-                observed=sorted(shown), catalog=[int(r) for _, r in sorted(shown.items())][:cap],
-                numbers=nums, **fields)
+    shown = dict(ver.matches or hypothesis)
+    nums = {"n_agree": int(ver.n_agree), "n_tested": int(ver.n_tested), "p_false": float(ver.p_false),
+            "threshold_effective": float(ver.threshold_effective),
+            "radius_arcsec": float(ver.radius_rad * RAD_TO_ARCSEC), "n_hypotheses": int(ver.n_hypotheses),
+            "p_single": float(ver.p_single), "passed": float(ver.passed)} | (numbers or {})
+    return LazyStep("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason, observed=sorted(shown),
+                    catalog_of=lambda: [int(r) for _, r in sorted(shown.items())][:cap], numbers=nums, **fields)
