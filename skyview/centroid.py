@@ -76,6 +76,9 @@ Fast forms (issue 11) and what each keeps; tests/test_centroid.py checks them ag
   by zero and no error-state switch: _gauss3's numbers. `_axis_ratio_mm`: every second moment from one
   chain of batched products (Dy w Dx^T): _axis_ratio's ratio to ~1e-15 relative.
 - iwcog's weighted sums by batched matrix products instead of einsum: ~1e-13 px.
+- small trims with the same numbers: cv2's 16-bit labels on a compacted image of fewer than 65,535
+  pixels; no on-image mask when every window lies inside the image; the deblender's pixels beside a
+  hot one found by looking the hot pixels' neighbours up in the sorted pixel list.
 """
 
 from __future__ import annotations
@@ -316,12 +319,23 @@ def _median_sorted(s: np.ndarray) -> np.ndarray:
     return (s[..., n // 2 - 1] + s[..., n // 2]) / s.dtype.type(2)
 
 
+def _few_values(s: np.ndarray, k: int) -> bool:
+    """np.unique(s).size < k for a small finite sample, from one sort and its steps (np.unique's wrappers
+    cost several times more; this picks a median's method, whose value is the same either way)."""
+    s = np.sort(s)
+    return int(np.count_nonzero(s[1:] != s[:-1])) + 1 < k
+
+
 def _median_part(x: np.ndarray):
     """np.median of a 1-D array (the same value, in its dtype) from one partition at the middle (numpy's
     SIMD selection, several times faster than a sort or np.median's two-element partition): for an even
     count the element below the middle is the largest of the left part."""
     n = x.size
     k = n // 2
+    if n > 4096 and _few_values(x[::64], 32):
+        # few distinct values (a noise of ~1 step of an integer image): numpy's selection slows ten-fold
+        # on so many ties, its SIMD sort does not (the same median)
+        return _median_sorted(np.sort(x))
     p = np.partition(x, k)
     if n % 2:
         return p[k]
@@ -354,7 +368,9 @@ def _background_stats(f: np.ndarray, block: int = 64):
     gh, gw = max(1, sh // bsy), max(1, sw // bsx)
     by, bx = sh // gh, sw // gw
     cells = sub[: gh * by, : gw * bx].reshape(gh, by, gw, bx).transpose(0, 2, 1, 3).reshape(gh, gw, by * bx)
-    cs = np.sort(cells, axis=2)
+    # (uint8 sorted as uint16: the same order; numpy has SIMD sorts for 16-bit and wider types only,
+    # its 8-bit sort is ~30 times slower)
+    cs = np.sort(cells.astype(np.uint16) if cells.dtype == np.uint8 else cells, axis=2)
     if native:  # the middle value(s) as float32: np.median of the float32 samples
         m = cs.shape[2]
         mid = cs[:, :, m // 2].astype(np.float32)
@@ -382,7 +398,7 @@ def _background_stats(f: np.ndarray, block: int = 64):
     floor = 1.0 if is_int else max(1e-12, 1e-9 * float(np.abs(sub).max()))
     clip = _CLIP_K * max(s0, floor)
     c32 = np.float32(clip)  # |r| <= clip in float32, as the reference compares
-    rc = r[(r >= -c32) & (r <= c32)]
+    rc = r[np.abs(r) <= c32]  # = (r >= -c32) & (r <= c32): |r| is exact in float32, NaN fails both
     if rc.size > 10:
         # the standard deviation from one sum and one sum of products in float64 (np.std's float32
         # pairwise sums agree to ~1e-7 relative); einsum, not a BLAS dot, which spreads 16,000 products
@@ -495,12 +511,13 @@ class _Pixels:
 
 
 def _gather_px(px, H, W, bkg, resid, pi, pj, h):
-    """_gather reading through a _Pixels: (values - background (0 off the image), on-image mask, raw)."""
+    """_gather reading through a _Pixels: (values - background (0 off the image), on-image mask, raw);
+    the mask is None when every window lies inside the image (the usual case: all True)."""
     d = np.arange(-h, h + 1)
     n = len(pi)
     if n and pi.min() >= h and pi.max() < H - h and pj.min() >= h and pj.max() < W - h:
         # every window inside the image (the usual case): no clipping, no masking
-        valid = np.ones((n, 2 * h + 1, 2 * h + 1), dtype=bool)
+        valid = None
         fi = (pi * W + pj)[:, None, None] + (d[:, None] * W + d[None, :])[None]
         raw = px.take(fi, np.float64)
         vals = resid.reshape(-1)[fi].astype(np.float64) if resid is not None else raw - bkg
@@ -544,8 +561,7 @@ def _label_sparse(idx: np.ndarray, W: int) -> tuple[np.ndarray, int]:
     two pixels touch there exactly when they touch in the image. Components are numbered as cv2
     numbers them in the compacted image (which can differ from its numbering of the full mask: only the
     order of stars of equal brightness depends on it)."""
-    r = idx // W
-    c = idx - r * W
+    r, c = np.divmod(idx, W)
     step = np.empty(r.size, dtype=np.int64)
     step[0] = 1
     np.minimum(r[1:] - r[:-1], 2, out=step[1:])  # idx is sorted: rows ascend
@@ -562,7 +578,10 @@ def _label_sparse(idx: np.ndarray, W: int) -> tuple[np.ndarray, int]:
     img = np.zeros((int(cr[-1]) + 2, n_cols), dtype=np.uint8)
     flat = cr * n_cols + col_map[c]  # flat indices in the compacted image: one take, not a 2-D fancy index
     img.reshape(-1)[flat] = 1
-    n, lab = cv2.connectedComponents(img, connectivity=8, ltype=cv2.CV_32S)
+    # 16-bit labels (cv2 is faster writing them) when even one label a pixel cannot overflow them: the same
+    # algorithm, the same numbers
+    ltype = cv2.CV_16U if img.size < 65535 else cv2.CV_32S
+    n, lab = cv2.connectedComponents(img, connectivity=8, ltype=ltype)
     return lab.reshape(-1)[flat].astype(np.int64), int(n)
 
 
@@ -763,7 +782,7 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
             nb_max -= bkg
             centre -= bkg
     hotpix = nb_max < np.maximum(3.0 * sigma, 0.15 * centre)
-    n_hot = int(hotpix.sum())
+    n_hot = int(np.count_nonzero(hotpix))  # (a bool sum casts to int first: several times slower)
     hp = None
     if n_hot:
         hp = idx[hotpix]
@@ -807,7 +826,7 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
 
     small = area < int(min_pixels)
     keep = _flatnonzero(~small)
-    n_small = int(small.sum())
+    n_small = int(np.count_nonzero(small))
     if keep.size == 0:
         return Centroids.empty(n_small_rejected=n_small, **empty)
 
@@ -847,7 +866,9 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     vals, valid, rawv = gather(h0)
     g_ok, g_uv, g_s2 = _gauss3_fast(vals, h0, pi, pj)
     if psf_sigma_px is None:
-        good = g_ok & ~saturated & valid[:, h0 - 1:h0 + 2, h0 - 1:h0 + 2].all(axis=(1, 2)) & (peak_val > 20.0 * sigma)
+        good = g_ok & ~saturated & (peak_val > 20.0 * sigma)
+        if valid is not None:  # (None: every window inside the image)
+            good &= valid[:, h0 - 1:h0 + 2, h0 - 1:h0 + 2].all(axis=(1, 2))
         g = np.sort(g_s2[good])  # _median_sorted of the sorted values = np.median
         s_eff = math.sqrt(float(_median_sorted(g))) if g.size else math.sqrt(1.2 ** 2 + 1.0 / 12.0)
         s_eff = min(max(s_eff, 0.4), 5.0)
@@ -860,7 +881,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
 
     if h != h0:
         vals, valid, rawv = gather(h)
-    edge = ~valid.all(axis=(1, 2))
+    edge = np.zeros(len(pi), dtype=bool) if valid is None else ~valid.all(axis=(1, 2))
     d = np.arange(-h, h + 1, dtype=np.float64)
     X = pj[:, None, None] + d[None, None, :]
     Y = pi[:, None, None] + d[None, :, None]
@@ -885,7 +906,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
             v_iw, x_iw, y_iw, pi_iw, pj_iw = vals[iw], X[iw], Y[iw], pi[iw], pj[iw]  # (each star's cog is its own)
             start[iw] = _iwcog_sep(v_iw, x_iw, y_iw, _cog(v_iw, x_iw, y_iw, pi_iw, pj_iw), s_eff, h, pi_iw, pj_iw,
                                    iterations)
-        use = valid & (rawv < sat)
+        use = rawv < sat if valid is None else valid & (rawv < sat)
         uv, amp = _psf_fit_sep(vals, use, X, Y, start, psf_used, h, pi, pj, iterations)
         failed = _flatnonzero((amp <= 0) & psf_like)
         if failed.size:  # no fit: the iwcog position, as the reference gives
@@ -921,7 +942,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     ratio_limit = max_axis_ratio + 0.5 * np.minimum(np.maximum((20.0 - psnr) / 10.0, 0.0), 1.0)
     elongated = (ratio > ratio_limit) & (psnr >= 10.0)
     extended = area > max(MIN_EXTENDED_PX, EXTENDED_PSF_AREAS * math.pi * (3.0 * s_eff) ** 2)
-    n_extended = int(extended.sum())
+    n_extended = int(np.count_nonzero(extended))
     if n_extended:
         keep_s = ~extended
         uv, brightness, peak_raw, area = uv[keep_s], brightness[keep_s], peak_raw[keep_s], area[keep_s]
@@ -969,10 +990,11 @@ def _iwcog_sep(vals, X, Y, uv0, s_eff, h, pi, pj, iterations):
         np.matmul(vals, g[:, 0, :, None], out=cg[:, 1, :, None])
         cg *= g
         s = cg[:, 0].sum(axis=1)
-        ok = s > 0
-        if ok.all():  # every window has weight (the usual case): the same step without the masks
+        if s.size and s.min() > 0:  # every window has weight (the usual case): the same step without the
+            # masks (a NaN minimum fails the test, as (s > 0).all() fails)
             uv = uv + 2.0 * ((cg * XY).sum(axis=2) / s[:, None] - uv)  # gain 2: converges on a Gaussian's centre
         else:
+            ok = s > 0
             ok_all &= ok
             c = (cg * XY).sum(axis=2) / np.where(ok, s, 1.0)[:, None]
             uv = np.where(ok[:, None], uv + 2.0 * (c - uv), uv)
@@ -1023,8 +1045,7 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
     act = np.arange(n_st)
     prev = None  # each star's last step (px)
     first = True
-    err = np.seterr(divide="ignore", invalid="ignore")
-    try:
+    with np.errstate(divide="ignore", invalid="ignore"):  # (a context: half the cost of two np.seterr calls)
         for _ in range(max(3, iterations)):
             m = act.size
             if m == 0:
@@ -1090,8 +1111,6 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
                 left = step * step / np.maximum(prev[act] - step, 1e-12)
                 prev[act] = step
             act = act[(step > _FIT_TOL) & (left > _FIT_TOL)]
-    finally:
-        np.seterr(**err)
     lim = h if max_shift is None else max_shift
     # a finite positive amplitude and a finite position within lim of the peak (NaN and infinities fail
     # these comparisons: no separate isfinite)
@@ -1111,10 +1130,13 @@ def _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, p
     is_big[big] = True
     nbm = nb_max
     if hot is not None:
-        near_hot = np.sort((hot[:, None] + np.array([-W - 1, -W, -W + 1, -1, 1, W - 1, W, W + 1])).ravel())
-        pos = np.minimum(np.searchsorted(near_hot, idx), near_hot.size - 1)
-        redo = _flatnonzero(near_hot[pos] == idx)
-        if redo.size:
+        # the pixels of idx (sorted) next to a hot one: the few neighbours looked up in idx, not idx in them
+        near_hot = (hot[:, None] + np.array([-W - 1, -W, -W + 1, -1, 1, W - 1, W, W + 1])).ravel()
+        pos = idx.searchsorted(near_hot)
+        np.minimum(pos, idx.size - 1, out=pos)
+        hit = idx[pos] == near_hot
+        if hit.any():
+            redo = np.unique(pos[hit])  # ascending, each once (two hot pixels can share a neighbour)
             nbm = nb_max.copy()
             nbm[redo] = _neighbour_max(px, H, W, bkg, resid, idx[redo])
     # the local maxima of the blobs looked at, in index order: only those pixels are read further

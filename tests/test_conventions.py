@@ -94,6 +94,20 @@ def test_project_unproject_round_trip(k1, k2):
     np.testing.assert_allclose(uv2, uv, atol=1e-6)
 
 
+def test_unproject_undistorted_is_the_pinhole_formula():
+    """The undistorted camera's direct path gives the model's numbers to the last bit: (x, y, 1) / |.|
+    with x = (u - cx) / fx, y = (v - cy) / fy, for one pixel or many, any numeric input."""
+    cam = Camera(width=640, height=480, fx=1800.0, fy=1750.0, cx=300.25, cy=250.75)
+    uv = RNG.uniform(-20.0, 700.0, size=(37, 2))
+    xyz = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))], axis=1)
+    want = xyz / np.linalg.norm(xyz, axis=1, keepdims=True)
+    assert np.array_equal(cam.unproject(uv), want)
+    assert np.array_equal(cam.unproject(uv[3]), want[3:4])  # one pixel: a (1, 3) array
+    assert np.array_equal(cam.unproject(uv.astype(np.float32)), cam.unproject(uv.astype(np.float32).astype(float)))
+    assert np.array_equal(cam.unproject([[12, 34]]), cam.unproject(np.array([[12.0, 34.0]])))
+    assert cam.unproject(np.zeros((0, 2))).shape == (0, 3)
+
+
 def test_behind_the_camera_is_not_visible():
     cam = Camera.from_fov(8.0, 512)
     uv, front = cam.project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))

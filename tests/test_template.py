@@ -198,6 +198,23 @@ def test_a_lazy_step_is_the_step_it_stands_for():
     lazy.catalog = [9]
     assert lazy.catalog == [9] and lazy != plain
     assert LazyStep("x", "y") == Step("x", "y")
+    # the note, the figures and the layers may be made when read, too
+    layer = Hypotheses.single({1: 5, 2: 7})
+    lazier = LazyStep("pivot", note_of=lambda: made.append("n") or "pivoted", observed=[1, 2],
+                      catalog_of=lambda: [5, 7], groups_of=lambda: [(5, 7)],
+                      numbers_of=lambda: made.append("f") or {"hypotheses": 3.0},
+                      layers_of=lambda: made.append("l") or (layer,))
+    made.clear()
+    assert lazier.numbers == {"hypotheses": 3.0} and made == ["f"]
+    full = dataclasses.replace(plain, layers=(layer,))
+    assert lazier == full and made == ["f", "n", "l"] and lazier.layer(Hypotheses) is layer
+    back = pickle.loads(pickle.dumps(lazier))  # (its layer a copy: compared by its contents)
+    assert dataclasses.replace(back, layers=()) == dataclasses.replace(plain, layers=())
+    assert back.layers[0].used == (1, 2) and back.layers[0].rows.tolist() == [[5, 7]]
+    assert lazier.to_dict() == full.to_dict()
+    assert made == ["f", "n", "l"]  # each made once
+    lazier.note = "other"
+    assert lazier.note == "other" and lazier != full
 
 
 # ---------------------------------------------------------------------- the sinks: CLI, bench, drawables

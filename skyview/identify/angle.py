@@ -245,11 +245,12 @@ class AngleMethod(PivotMethod):
         used = [a, b]
         candidates.append(int(counts[k]))
         hyps.append(len(H))
-        steps.append(LazyStep("pick", f"picked angle {a}-{b} ({deg[k]:.3f} deg +- "
-                                      f"{bound * RAD_TO_ARCSEC:.1f}\"): {counts[k]} candidates",
+        # (note, numbers and layer made when the step is read: of values no later step changes)
+        steps.append(LazyStep("pick", note_of=partial(_pick_note, a, b, deg[k], bound, counts[k]),
                               observed=used.copy(), catalog_of=partial(_distinct, H),
-                              groups_of=partial(_groups, ci, cj), numbers=angle_numbers(k) | {"hypotheses": len(H)},
-                              layers=(Hypotheses.sample(used, H),)))
+                              groups_of=partial(_groups, ci, cj),
+                              numbers_of=partial(_merged, angle_numbers, k, {"hypotheses": len(H)}),
+                              layers_of=partial(_layer, tuple(used), H)))
         if len(H) == 0:
             return Chain("empty", f"no catalog pair matches the first angle {a}-{b}", used, H,
                           suspects=[b, a], candidates=candidates, hypotheses=hyps)
@@ -287,13 +288,13 @@ class AngleMethod(PivotMethod):
             pivots += 1
             candidates.append(int(counts[k]))
             hyps.append(len(H))
-            steps.append(LazyStep("pivot", f"pivoted to angle {p}-{q} ({deg[k]:.3f} deg): "
-                                           f"{counts[k]} candidates, {before} -> {len(H)} hypotheses",
+            steps.append(LazyStep("pivot", note_of=partial(_pivot_note, p, q, deg[k], counts[k], before, len(H)),
                                   observed=[p, q], catalog_of=partial(_distinct, H),
                                   groups_of=partial(_groups, ci, cj),
-                                  numbers=angle_numbers(k) | {"hypotheses_before": before, "hypotheses_after": len(H),
-                                                              "pivot": pivots, "new_star": -1 if new is None else new},
-                                  layers=(Hypotheses.sample(used, H),)))
+                                  numbers_of=partial(_merged, angle_numbers, k, {
+                                      "hypotheses_before": before, "hypotheses_after": len(H), "pivot": pivots,
+                                      "new_star": -1 if new is None else new}),
+                                  layers_of=partial(_layer, tuple(used), H)))
             if len(H) == 0:
                 if new is not None:
                     first_suspect = new
@@ -537,6 +538,23 @@ def _close(H: np.ndarray, ip: int, iq: int, xyz: np.ndarray, lo: float, hi: floa
     numbers, in either order): so the test is the angle itself, without grouping the candidates."""
     d = angles(xyz[H[:, ip]], xyz[H[:, iq]])
     return H[(d >= lo) & (d <= hi)]
+
+
+def _pick_note(a: int, b: int, deg: float, bound: float, n: int) -> str:
+    return f"picked angle {a}-{b} ({deg:.3f} deg +- {bound * RAD_TO_ARCSEC:.1f}\"): {n} candidates"
+
+
+def _pivot_note(p: int, q: int, deg: float, n: int, before: int, after: int) -> str:
+    return f"pivoted to angle {p}-{q} ({deg:.3f} deg): {n} candidates, {before} -> {after} hypotheses"
+
+
+def _merged(numbers, k: int, extra: dict) -> dict:
+    """A step's figures: the angle's (numbers(k)) and the step's own."""
+    return numbers(k) | extra
+
+
+def _layer(used: tuple[int, ...], H: np.ndarray) -> tuple:
+    return (Hypotheses.sample(used, H),)
 
 
 def _both_orientations(ci: np.ndarray, cj: np.ndarray) -> np.ndarray:

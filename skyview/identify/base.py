@@ -109,22 +109,26 @@ class Step:
 
 
 class LazyStep(Step):
-    """A `Step` whose `catalog` rows and `groups` are computed when first read (then kept): a method's
-    hot path records a step per pick / pivot and most are never drawn. catalog_of / groups_of: functions
-    of no argument giving the lists (they must read arrays the method no longer changes). It reads,
-    compares, copies and pickles as the `Step` it stands for."""
+    """A `Step` whose `catalog` rows and `groups` (and, where given as functions, its `note`, `numbers`
+    and `layers`) are computed when first read (then kept): a method's hot path records a step per
+    pick / pivot and most are never read. catalog_of / groups_of / note_of / numbers_of / layers_of:
+    functions of no argument giving the field (they must read only values the method no longer
+    changes). It reads, compares, copies and pickles as the `Step` it stands for."""
 
-    def __init__(self, kind: str, note: str, observed: list[int] | None = None, catalog: list[int] | None = None,
+    def __init__(self, kind: str, note: str = "", observed: list[int] | None = None, catalog: list[int] | None = None,
                  groups: list[tuple[int, ...]] | None = None, numbers: dict[str, float] | None = None,
                  layers: tuple[Layer, ...] = (), *, catalog_of: Callable[[], list[int]] | None = None,
-                 groups_of: Callable[[], list[tuple[int, ...]]] | None = None):
-        self.kind, self.note = kind, note
+                 groups_of: Callable[[], list[tuple[int, ...]]] | None = None,
+                 note_of: Callable[[], str] | None = None, numbers_of: Callable[[], dict[str, float]] | None = None,
+                 layers_of: Callable[[], tuple[Layer, ...]] | None = None):
+        self.kind = kind
         self.observed = [] if observed is None else observed
-        self.numbers = {} if numbers is None else numbers
-        self.layers = layers
         d = self.__dict__
         d["_catalog"], d["_catalog_of"] = ([] if catalog is None else catalog), catalog_of
         d["_groups"], d["_groups_of"] = ([] if groups is None else groups), groups_of
+        d["_note"], d["_note_of"] = note, note_of
+        d["_numbers"], d["_numbers_of"] = ({} if numbers is None else numbers), numbers_of
+        d["_layers"], d["_layers_of"] = layers, layers_of
 
     def _lazy(self, name: str):
         d = self.__dict__
@@ -138,6 +142,9 @@ class LazyStep(Step):
 
     catalog = property(lambda self: self._lazy("catalog"), lambda self, v: self._set("catalog", v))
     groups = property(lambda self: self._lazy("groups"), lambda self, v: self._set("groups", v))
+    note = property(lambda self: self._lazy("note"), lambda self, v: self._set("note", v))
+    numbers = property(lambda self: self._lazy("numbers"), lambda self, v: self._set("numbers", v))
+    layers = property(lambda self: self._lazy("layers"), lambda self, v: self._set("layers", v))
 
     def __eq__(self, other):
         if not isinstance(other, Step):

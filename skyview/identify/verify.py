@@ -827,16 +827,16 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     # leaves the matches as they were, its estimate, frame and agreements are reused, not recomputed)
     hyp = dict(zip(h_obs.tolist(), h_cat.tolist()))
     current = {**hyp, **agree}
-    done = None  # (matches, their estimate) of the last round
+    done = None  # (matches, their estimate, its observed indices and catalog rows) of the last round
     for _ in range(2):
         if done is not None and done[0] == current:
             break
-        est = _estimate(vectors, current, catalog, sigma_rad)
+        est, e_obs, e_cat = _estimate(vectors, current, catalog, sigma_rad)
         radii_all = star_radii(vectors, est.covariance, sigma_rad, r, unit_all)  # every star's, for this estimate
         radii = radii_all[others]
         frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r, near, count=False)
         agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii, q)
-        done = (current, est)
+        done = (current, est, e_obs, e_cat)
         current = {**hyp, **agree_i}
     h_rad = radii_all[h_obs]
     # (no two pool stars close enough for one radius to hold both: nobody is ambiguous, nothing to count)
@@ -846,11 +846,9 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     ambiguous = set(h_obs[h_amb].tolist()) | amb_i
     if len(final) >= 2:
         same = final == done[0]
-        est = done[1] if same else _estimate(vectors, final, catalog, sigma_rad)
+        # (the same matches: the same sorted indices and rows the estimate was made of)
+        est, f_obs, f_cat = done[1:] if same else _estimate(vectors, final, catalog, sigma_rad)
         done = (dict(final), est)
-        f_keys = sorted(final)
-        f_obs = np.array(f_keys, dtype=np.int64)
-        f_cat = np.array([final[o] for o in f_keys], dtype=np.int64)
         rad = radii_all[f_obs] if same else star_radii(None, est.covariance, sigma_rad, r,
                                                        (unit_all[0][f_obs], unit_all[1][f_obs]))
         pred = catalog.xyz[f_cat] @ est.R.T
@@ -872,7 +870,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     if len(final) < 2:
         out.reason = "fewer than two observed stars have an unambiguous identity"
         return out
-    est = done[1] if final == done[0] else _estimate(vectors, final, catalog, sigma_rad)
+    est = done[1] if final == done[0] else _estimate(vectors, final, catalog, sigma_rad)[0]
     out.passed = True
     out.reason = f"{out.n_agree} of {out.n_tested} other stars agree, P(false) = {out.p_false:.2e}"
     out.R = est.R
@@ -883,12 +881,15 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
 
 def _estimate(vectors, matches, catalog, sigma_rad):
     """svd_attitude from the matches (observed index -> catalog row), in observed order; remembered
-    (`attitude.remember_svd`) for the solver's attitude stage, which asks for the same estimate."""
+    (`attitude.remember_svd`) for the solver's attitude stage, which asks for the same estimate. With
+    the observed indices (ascending) and their catalog rows, as arrays."""
     keys = sorted(matches)
-    b, r = vectors[np.array(keys, dtype=np.int64)], catalog.xyz[np.array([matches[i] for i in keys], dtype=np.int64)]
+    obs = np.array(keys, dtype=np.int64)
+    rows = np.array([matches[i] for i in keys], dtype=np.int64)
+    b, r = vectors[obs], catalog.xyz[rows]
     est = svd_attitude(b, r, sigma_rad)
     remember_svd(b, r, sigma_rad, est)
-    return est
+    return est, obs, rows
 
 
 VERIFY_NUMBERS = ("n_agree", "n_tested", "p_false", "threshold_effective", "radius_arcsec", "n_hypotheses",
