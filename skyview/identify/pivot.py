@@ -72,8 +72,8 @@ class PivotParams(MethodParams):
 
 def next_by_priority(mask: np.ndarray, priority: np.ndarray) -> int:
     """The pattern of highest priority (lowest rank) among `mask`, or -1 when none is left."""
-    idx = np.flatnonzero(mask)
-    return int(idx[np.argmin(priority[idx])]) if len(idx) else -1
+    idx = mask.nonzero()[0]  # the methods, not numpy's Python wrappers (np.flatnonzero, np.argmin): ~3 us
+    return int(idx[priority[idx].argmin()]) if len(idx) else -1
 
 
 def take_pattern(done: np.ndarray, priority: np.ndarray, too_many, skip, among: np.ndarray | None = None) -> int:
@@ -285,12 +285,12 @@ def by_star(cp: np.ndarray, cq: np.ndarray, m: int) -> tuple[np.ndarray, np.ndar
     binary search per hypothesis; the sort is numpy's radix sort on 16-bit keys when they fit). The
     start of an empty block is 0 (its size says there is nothing to read)."""
     key = cp.astype(np.int16) if m <= np.iinfo(np.int16).max else cp
-    order = np.argsort(key, kind="stable")
+    order = key.argsort(kind="stable")
     size = np.bincount(cp, minlength=m)
     # each block starts where the sorted keys change: O(len(cp)), where a cumulative sum over all m
     # catalog stars costs ~12 us (numpy's cumsum is not vectorised) for ~1,000 candidates
     ks = key[order]
-    first = np.flatnonzero(ks[1:] != ks[:-1]) + 1
+    first = (ks[1:] != ks[:-1]).nonzero()[0] + 1
     start = np.zeros(m, dtype=np.int64)
     start[ks[first]] = first  # the first block starts at 0
     return cq[order], start, size

@@ -279,7 +279,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         if self.order == "fewest":
             rank = np.lexsort((-t["area"], t["counts"]))
         else:
-            rank = np.argsort(-t["area"], kind="stable")
+            rank = (-t["area"]).argsort(kind="stable")
         priority = np.empty(len(rank), dtype=np.int64)
         priority[rank] = np.arange(len(rank))
         t["priority"] = priority
@@ -303,21 +303,19 @@ class TriangleMethod(TriangleLookup, PivotMethod):
                             "vertex_order_ok": first.best is not None}}
 
     # ------------------------------------------------------------------ one pivoting chain
+    def _row(self, t: dict, k: int) -> tuple:
+        """Observed triangle k's figures as they are now (numpy scalars: copies), for a step's lazy note and
+        numbers (t's arrays are filled in for other triangles later; a row, once measured, stays)."""
+        sides = t.get("side_counts", {}).get(k, (-1, -1)) if self.database == "pairs" else None
+        return (t["ti"][k], t["tj"][k], t["tk"][k], t["area"][k], t["area_bound"][k], t["moment"][k],
+                t["moment_bound"][k], t["counts"][k], sides,
+                None if sides is not None else (t["e1"][k] - t["s1"][k], t["e2"][k] - t["s2"][k]))
+
     def _numbers(self, t: dict, k: int) -> dict[str, float]:
-        if self.database == "pairs":
-            n_pq, n_qr = t.get("side_counts", {}).get(k, (-1, -1))
-            return {"area_sr": float(t["area"][k]), "area_bound_sr": float(t["area_bound"][k]),
-                    "moment": float(t["moment"][k]), "moment_bound": float(t["moment_bound"][k]),
-                    "pairs_side1": n_pq, "pairs_side2": n_qr, "candidates": int(t["counts"][k])}
-        return {"area_sr": float(t["area"][k]), "area_bound_sr": float(t["area_bound"][k]),
-                "moment": float(t["moment"][k]), "moment_bound": float(t["moment_bound"][k]),
-                "candidates_area": int(t["e1"][k] - t["s1"][k]),
-                "candidates_moment": int(t["e2"][k] - t["s2"][k]), "candidates": int(t["counts"][k])}
+        return _row_numbers(self._row(t, k))
 
     def _label(self, t: dict, k: int) -> str:
-        return (f"triangle {t['ti'][k]}-{t['tj'][k]}-{t['tk'][k]} (area {t['area'][k] * DEG2_PER_SR:.4f} "
-                f"+- {t['area_bound'][k] * DEG2_PER_SR:.4f} deg2, polar moment {t['moment'][k]:.3e} "
-                f"+- {t['moment_bound'][k]:.1e})")
+        return _row_label(self._row(t, k))
 
     def _skip(self, t: dict, k: int, steps: list[Step]) -> None:
         """Record observed triangle k left out: more than max_candidates candidates."""
@@ -345,12 +343,11 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         n_sets = _n_sets(H)
         candidates.append(int(counts[k]))
         hyps.append(n_sets)
-        steps.append(LazyStep("pick", f"picked {self._label(t, k)}: {counts[k]} candidates"
-                                      + (f", {len(H)} in a vertex order that fits the sides and handedness"
-                                         if self.vertex_order == "sides" else ""),
+        row = self._row(t, k)
+        steps.append(LazyStep("pick", note_of=partial(_pick_note, row, len(H) if self.vertex_order == "sides" else None),
                               observed=used.copy(), catalog_of=partial(_distinct, H), groups_of=groups_of,
-                              numbers=self._numbers(t, k) | {"hypotheses": len(H), "sets": n_sets},
-                              layers=(Hypotheses.sample(used, H),)))
+                              numbers_of=partial(_row_numbers, row, {"hypotheses": len(H), "sets": n_sets}),
+                              layers_of=partial(_sample, tuple(used), H, ())))
         if len(H) == 0:
             return Chain("empty", f"no catalog triangle matches the first triangle {used[0]}-{used[1]}-{used[2]}",
                           used, H, suspects=used[::-1], culprit=used.copy(), candidates=candidates, hypotheses=hyps)
@@ -397,16 +394,14 @@ class TriangleMethod(TriangleLookup, PivotMethod):
             n_sets = _n_sets(H)
             candidates.append(int(counts[k]))
             hyps.append(n_sets)
-            steps.append(LazyStep("pivot", f"pivoted to {self._label(t, k)} sharing stars "
-                                           f"{'-'.join(map(str, shared))}: {counts[k]} candidates, "
-                                           f"{sets_before} -> {n_sets} candidate star sets",
+            row, shared = self._row(t, k), tuple(shared)
+            steps.append(LazyStep("pivot", note_of=partial(_pivot_note, row, shared, sets_before, n_sets),
                                   observed=obs3, catalog_of=partial(_distinct, H), groups_of=groups_of,
-                                  numbers=self._numbers(t, k) | {"oriented": len(O), "hypotheses_before": before,
-                                                                 "hypotheses_after": len(H), "sets_before": sets_before,
-                                                                 "sets_after": n_sets, "pivot": pivots,
-                                                                 "shared": len(shared),
-                                                                 "new_star": -1 if new is None else new},
-                                  layers=(Hypotheses.sample(used, H, shared=shared),)))
+                                  numbers_of=partial(_row_numbers, row, {
+                                      "oriented": len(O), "hypotheses_before": before, "hypotheses_after": len(H),
+                                      "sets_before": sets_before, "sets_after": n_sets, "pivot": pivots,
+                                      "shared": len(shared), "new_star": -1 if new is None else new}),
+                                  layers_of=partial(_sample, tuple(used), H, shared)))
             if len(H) == 0:
                 if new is not None:
                     first_suspect = new
@@ -583,7 +578,7 @@ def join(H: np.ndarray, used: list[int], obs3: list[int], O: np.ndarray) -> tupl
     c1, c2 = shared
     c3 = 3 - c1 - c2
     okey = O[:, c1] * M + O[:, c2]
-    o = np.argsort(okey, kind="stable")
+    o = okey.argsort(kind="stable")
     okey_s, third = okey[o], O[o, c3]
     hkey = H[:, pos[c1]] * M + H[:, pos[c2]]
     lo = np.searchsorted(okey_s, hkey, side="left")
@@ -617,6 +612,38 @@ def _has_close_pair(xyz: np.ndarray, tol: float) -> bool:
         return False
     d = angular_distance(xyz[:, None, :], xyz[None, :, :])
     return bool(np.any(d[np.triu_indices(len(xyz), 1)] <= tol))
+
+
+def _row_label(row: tuple) -> str:
+    i, j, k, area, area_bound, moment, moment_bound = row[:7]
+    return (f"triangle {i}-{j}-{k} (area {area * DEG2_PER_SR:.4f} +- {area_bound * DEG2_PER_SR:.4f} deg2, "
+            f"polar moment {moment:.3e} +- {moment_bound:.1e})")
+
+
+def _row_numbers(row: tuple, more: dict | None = None) -> dict[str, float]:
+    """A step's numbers from a `TriangleMethod._row` (then `more`)."""
+    area, area_bound, moment, moment_bound, count, sides, spans = row[3:]
+    out = {"area_sr": float(area), "area_bound_sr": float(area_bound), "moment": float(moment),
+           "moment_bound": float(moment_bound)}
+    if sides is not None:
+        out |= {"pairs_side1": sides[0], "pairs_side2": sides[1], "candidates": int(count)}
+    else:
+        out |= {"candidates_area": int(spans[0]), "candidates_moment": int(spans[1]), "candidates": int(count)}
+    return out if more is None else out | more
+
+
+def _pick_note(row: tuple, oriented: int | None) -> str:
+    return (f"picked {_row_label(row)}: {row[7]} candidates"
+            + (f", {oriented} in a vertex order that fits the sides and handedness" if oriented is not None else ""))
+
+
+def _pivot_note(row: tuple, shared: tuple, sets_before: int, n_sets: int) -> str:
+    return (f"pivoted to {_row_label(row)} sharing stars {'-'.join(map(str, shared))}: {row[7]} candidates, "
+            f"{sets_before} -> {n_sets} candidate star sets")
+
+
+def _sample(used: tuple, H: np.ndarray, shared: tuple) -> tuple:
+    return (Hypotheses.sample(used, H, shared=shared),)
 
 
 def _distinct(H: np.ndarray) -> list[int]:

@@ -146,13 +146,13 @@ class TriangleLookup:
             return
         if self.database == "pairs" and self.area_sigma == "stars" and self._measure_one(t, k):
             return
-        todo = np.flatnonzero(np.isnan(t["area_bound"]))
+        todo = np.isnan(t["area_bound"]).nonzero()[0]
         pr = t.get("priority")
         if pr is not None and len(todo) > MEASURE_BATCH:
             # never one triangle left over: measured alone, its polar moment would differ in the last bit
             # (np.einsum sums one column another way) from the same triangle measured in a batch
             take = MEASURE_BATCH + 1 if len(todo) == MEASURE_BATCH + 1 else MEASURE_BATCH
-            todo = todo[np.argsort(pr[todo], kind="stable")[:take]]
+            todo = todo[pr[todo].argsort(kind="stable")[:take]]
             if k not in todo:
                 todo = np.append(todo[:-1], k)
         elif pr is None:
