@@ -1193,36 +1193,12 @@ def _cog(vals, X, Y, pi, pj):
     return uv
 
 
-_G3_STENCIL = np.array([[1.0, 1.0], [-2.0, 0.0], [1.0, -1.0]])
-
-
-def _gauss3(vals, h, pi, pj):
-    """Three-point Gaussian fit on the 3x3 marginals: (ok, uv, effective sigma^2); u and v as one (N, 2)."""
-    c = vals[:, h - 1: h + 2, h - 1: h + 2]
-    m = np.empty((len(c), 2, 3))
-    c.sum(axis=1, out=m[:, 0])  # along u
-    c.sum(axis=2, out=m[:, 1])  # along v
-    pos = m > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # the log-parabola's curvature lg0 - 2 lg1 + lg2 and slope lg0 - lg2 of both axes: one product
-        cs = np.log(np.where(pos, m, 1.0)) @ _G3_STENCIL  # (N, 2, 2)
-        cxy = cs[:, :, 0]
-        d = cs[:, :, 1] / (2.0 * cxy)
-        inv = 1.0 / cxy
-        s2 = -0.5 * (inv[:, 0] + inv[:, 1])
-    ok = pos.reshape(-1, 6).all(axis=1) & ((cxy < 0) & (np.abs(d) < 1.0)).all(axis=1)
-    uv = np.empty((len(c), 2))
-    uv[:, 0], uv[:, 1] = pj, pi
-    uv += np.where(ok[:, None], d, 0.0)
-    return ok, uv, np.where(ok, s2, np.nan)
-
-
 # -2 x the log-parabola's curvature and minus its slope: t = 2 (2 lg1 - lg0 - lg2), e = lg2 - lg0
 _G3_STENCIL_NEG = np.array([[-2.0, -1.0], [4.0, 0.0], [-2.0, 1.0]])
 
 
 def _gauss3_fast(vals, h, pi, pj):
-    """_gauss3 without an error-state switch (the fast path's form): the curvature and slope come negated
+    """`centroid_reference._gauss3` without an error-state switch: the curvature and slope come negated
     and doubled (t = -2 c, exact), so the offset e / t and sigma^2 = 1/t_u + 1/t_v are the same
     numbers; t is kept >= 1e-300 (no division by zero: a star with t <= 0 fails the test anyway) and
     the test c < 0 and |d| < 1 reads |e| < t."""
@@ -1247,29 +1223,8 @@ def _gauss3_fast(vals, h, pi, pj):
     return ok, uv, np.where(ok, inv[:, 0] + inv[:, 1], np.nan)
 
 
-def _axis_ratio(vals, X, Y, uv, sigma):
-    """sqrt(l1 / l2) of the intensity second moments (pixels above 2 sigma) about the centroid."""
-    w = np.where(vals > 2.0 * sigma, vals, 0.0)
-    # the offsets are separable (dx by column, dy by row): the moments from the window's column and row
-    # sums and one batched product for the cross term (the same sums, in another order)
-    dx = X[:, 0, :] - uv[:, 0, None]  # (N, n)
-    dy = Y[:, :, 0] - uv[:, 1, None]
-    wc = w.sum(axis=1)  # (N, n): each column's sum
-    s = wc.sum(axis=1)
-    ok = s > 0
-    s = np.where(ok, s, 1.0)
-    mxx = (wc * dx * dx).sum(axis=1) / s + 1.0 / 12.0
-    myy = (w.sum(axis=2) * dy * dy).sum(axis=1) / s + 1.0 / 12.0
-    mxy = ((w @ dx[:, :, None])[:, :, 0] * dy).sum(axis=1) / s
-    tr = mxx + myy
-    disc = np.sqrt(np.maximum((mxx - myy) ** 2 / 4.0 + mxy ** 2, 0.0))
-    l1 = tr / 2.0 + disc
-    l2 = np.maximum(tr / 2.0 - disc, 1e-12)
-    return np.where(ok, np.sqrt(l1 / l2), np.nan)
-
-
 def _axis_ratio_mm(vals, x, y, uv, sigma):
-    """_axis_ratio from one chain of batched products (the fast path's form): with Dx = (1, dx, dx^2) by
+    """`centroid_reference._axis_ratio` from one chain of batched products: with Dx = (1, dx, dx^2) by
     column (x: (N, n) column coordinates) and Dy = (1, dy, dy^2) by row, Dy w Dx^T holds every moment
     (sum w, sum w dx^2, sum w dy^2, sum w dx dy); the half-difference of the eigenvalues by np.hypot.
     The same sums in another order: the same ratio to ~1e-15 relative."""

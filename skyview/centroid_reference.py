@@ -17,8 +17,7 @@ import numpy as np
 from scipy.special import erf
 
 from skyview.centroid import (_CLIP_K, _CLIP_STD, _MAD_TO_SIGMA, DEFAULT_ESTIMATOR, ESTIMATORS, EXTENDED_PSF_AREAS,
-                              MIN_EXTENDED_PX, Centroids, _axis_ratio, _cog, _gauss3, _is_adc_max, _psf_models,
-                              _upsample, to_gray)
+                              MIN_EXTENDED_PX, Centroids, _cog, _is_adc_max, _psf_models, _upsample, to_gray)
 from skyview.errors import BadInput
 
 
@@ -284,6 +283,53 @@ def _detect_centroids_reference(image: np.ndarray, *, k_sigma: float = 5.0, wind
         n_small_rejected=n_small, psf_sigma_px=psf_used, estimator=estimator, image_shape=(H, W),
         params=params, n_extended_rejected=n_extended,
     )
+
+
+# the plain forms of the fast path's _gauss3_fast and _axis_ratio_mm (tests/test_centroid.py compares them)
+
+_G3_STENCIL = np.array([[1.0, 1.0], [-2.0, 0.0], [1.0, -1.0]])
+
+
+def _gauss3(vals, h, pi, pj):
+    """Three-point Gaussian fit on the 3x3 marginals: (ok, uv, effective sigma^2); u and v as one (N, 2)."""
+    c = vals[:, h - 1: h + 2, h - 1: h + 2]
+    m = np.empty((len(c), 2, 3))
+    c.sum(axis=1, out=m[:, 0])  # along u
+    c.sum(axis=2, out=m[:, 1])  # along v
+    pos = m > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # the log-parabola's curvature lg0 - 2 lg1 + lg2 and slope lg0 - lg2 of both axes: one product
+        cs = np.log(np.where(pos, m, 1.0)) @ _G3_STENCIL  # (N, 2, 2)
+        cxy = cs[:, :, 0]
+        d = cs[:, :, 1] / (2.0 * cxy)
+        inv = 1.0 / cxy
+        s2 = -0.5 * (inv[:, 0] + inv[:, 1])
+    ok = pos.reshape(-1, 6).all(axis=1) & ((cxy < 0) & (np.abs(d) < 1.0)).all(axis=1)
+    uv = np.empty((len(c), 2))
+    uv[:, 0], uv[:, 1] = pj, pi
+    uv += np.where(ok[:, None], d, 0.0)
+    return ok, uv, np.where(ok, s2, np.nan)
+
+
+def _axis_ratio(vals, X, Y, uv, sigma):
+    """sqrt(l1 / l2) of the intensity second moments (pixels above 2 sigma) about the centroid."""
+    w = np.where(vals > 2.0 * sigma, vals, 0.0)
+    # the offsets are separable (dx by column, dy by row): the moments from the window's column and row
+    # sums and one batched product for the cross term (the same sums, in another order)
+    dx = X[:, 0, :] - uv[:, 0, None]  # (N, n)
+    dy = Y[:, :, 0] - uv[:, 1, None]
+    wc = w.sum(axis=1)  # (N, n): each column's sum
+    s = wc.sum(axis=1)
+    ok = s > 0
+    s = np.where(ok, s, 1.0)
+    mxx = (wc * dx * dx).sum(axis=1) / s + 1.0 / 12.0
+    myy = (w.sum(axis=2) * dy * dy).sum(axis=1) / s + 1.0 / 12.0
+    mxy = ((w @ dx[:, :, None])[:, :, 0] * dy).sum(axis=1) / s
+    tr = mxx + myy
+    disc = np.sqrt(np.maximum((mxx - myy) ** 2 / 4.0 + mxy ** 2, 0.0))
+    l1 = tr / 2.0 + disc
+    l2 = np.maximum(tr / 2.0 - disc, 1e-12)
+    return np.where(ok, np.sqrt(l1 / l2), np.nan)
 
 
 def _gather(f, bkg, resid, pi, pj, h):

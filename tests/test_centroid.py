@@ -547,7 +547,8 @@ def test_fast_gauss3_and_axis_ratio_are_the_plain_forms():
     """_gauss3_fast (negated, doubled curvature; no error-state switch) gives _gauss3's numbers, including
     the windows it rejects (non-positive marginals, flat or rising profiles); _axis_ratio_mm (all moments
     from one chain of products) gives _axis_ratio's ratios to ~1e-15."""
-    from skyview.centroid import _axis_ratio, _axis_ratio_mm, _gauss3, _gauss3_fast
+    from skyview.centroid import _axis_ratio_mm, _gauss3_fast
+    from skyview.centroid_reference import _axis_ratio, _gauss3
     rng = np.random.default_rng(11)
     n_rejected = 0
     for trial in range(300):
