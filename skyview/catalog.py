@@ -187,21 +187,24 @@ class SkyIndex:
         pos = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n - start, n)
         return rows[pos]
 
-    def cap_cosines(self, center: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    def cap_cosines(self, center: np.ndarray, angle: float, with_xyz: bool = False) -> tuple[np.ndarray, ...]:
         """`cap`'s rows, ascending, less those a dot product puts beyond `angle` (the same 1e-9 margin on
-        the cosine: every star within the angle is kept), and each row's cosine to `center` (normalised)."""
+        the cosine: every star within the angle is kept), and each row's cosine to `center` (normalised);
+        with_xyz: and their directions (xyz[rows], read from the run just read: no scattered reads)."""
         c, a, i0, i1 = self._run(center, angle)
         limit = math.cos(min(a, math.pi)) - 1e-9
         if i1 - i0 <= CAP_RUN:  # cap's run, its dot products kept (they are what it compared)
-            cos = self.xyz_z[i0:i1] @ c
+            run = self.xyz_z[i0:i1]
+            cos = run @ c
             keep = (cos >= limit).nonzero()[0]  # (np.flatnonzero of a 1-d mask)
             rows = self.by_z[keep + i0]
             order = np.argsort(rows)
-            return rows[order], cos[keep[order]]
+            keep = keep[order]
+            return (rows[order], cos[keep], run[keep]) if with_xyz else (rows[order], cos[keep])
         rows = np.sort(self.cap(c, a))
         cos = self.xyz[rows] @ c
         keep = cos >= limit
-        return rows[keep], cos[keep]
+        return (rows[keep], cos[keep], self.xyz[rows[keep]]) if with_xyz else (rows[keep], cos[keep])
 
 
 def squared_chords(points: np.ndarray, centers: np.ndarray) -> np.ndarray:
@@ -384,40 +387,46 @@ class GuideCatalog:
         inside = s <= lim[ci]
         return ci[inside], rows[inside], s[inside], np.unique(ci[np.abs(s - lim[ci]) <= BALL_UNSURE])
 
-    def ball_counts(self, centers: np.ndarray, chords, among: np.ndarray | None = None) -> np.ndarray:
+    def ball_counts(self, centers: np.ndarray, chords, among: np.ndarray | None = None,
+                    among_xyz: np.ndarray | None = None) -> np.ndarray:
         """How many stars lie within each center's chord: = tree.query_ball_point(centers, chords,
-        return_length=True). among: rows known to hold every star within the chords (fewer to measure)."""
+        return_length=True). among: rows known to hold every star within the chords (fewer to measure);
+        among_xyz: xyz[among], where the caller has it."""
         c = np.asarray(centers, dtype=np.float64)
         c = c[None] if c.ndim == 1 else c  # = np.atleast_2d
         if len(c) == 0:
             return np.zeros(0, dtype=np.int64)
         if isinstance(chords, float):  # one chord (the local density's): its square, a Python float, for all
-            ch, lim = np.full(len(c), chords), chords * chords
+            ch, lim = chords, chords * chords  # (as an array only where it is needed)
         else:
             ch = np.asarray(chords, dtype=np.float64)
             ch = np.full(len(c), float(ch)) if ch.ndim == 0 else np.array(np.broadcast_to(ch, (len(c),)))
             lim = None
         if among is not None and len(c) * len(among) <= PAIRS_AT_ONCE:
-            return self._counts_among(c, ch, np.asarray(among, dtype=np.int64), lim)
+            return self._counts_among(c, ch, np.asarray(among, dtype=np.int64), lim, among_xyz)
+        if lim is not None:
+            ch = np.full(len(c), ch)
         ci, _, _, unsure = self._pairs_within(c, ch, among)
         n = np.bincount(ci, minlength=len(c))
         if len(unsure):
             n[unsure] = self.tree.query_ball_point(c[unsure], ch[unsure], return_length=True)
         return n
 
-    def _counts_among(self, c: np.ndarray, ch: np.ndarray, among: np.ndarray, lim_all: float | None = None
-                      ) -> np.ndarray:
+    def _counts_among(self, c: np.ndarray, ch: np.ndarray | float, among: np.ndarray, lim_all: float | None = None,
+                      among_xyz: np.ndarray | None = None) -> np.ndarray:
         """ball_counts over the rows `among`, from dot products: |p - c|^2 = 1 + |c|^2 - 2 p.c (p a
         unit vector to ~1e-16) is within ~1e-15 of the squared chord the tree sums, so a pair whose
         dot product lies more than 1e-10 from the limit's is decided by it; the few nearer are measured
         as the tree measures them (`squared_chords`)."""
-        g = c @ self.xyz[among].T
+        g = c @ (self.xyz[among] if among_xyz is None else among_xyz).T
         qq = _einsum("ij,ij->i", c, c)
         # (lim_all: the square of the one chord of every center: the numbers of ch * ch, without the array)
         e = g - 0.5 * ((1.0 + qq) - (ch * ch if lim_all is None else lim_all))[:, None]  # s <= lim where e >= 0
         n = (e > 1e-10).sum(axis=1)
         if e.size == 0 or np.abs(e).min() > 1e-10:  # (the usual case: every pair decided by its product)
             return n
+        if lim_all is not None:  # (ch: the one chord, lim_all its square)
+            ch = np.full(len(c), ch)
         lim = ch * ch
         ks, js = np.nonzero(np.abs(e) <= 1e-10)
         if len(ks):

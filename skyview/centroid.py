@@ -58,6 +58,14 @@ Fast forms (issue 11) and what each keeps; tests/test_centroid.py checks them ag
 - median and MAD of the noise samples from one SIMD partition each (`_median_part`): np.median's
   values bit for bit; the clipped standard deviation from float64 sums (one of products): np.std's
   float32 result to ~1e-7 relative. The noise sigma moves by ~1e-7 relative, the threshold with it.
+- a uint8 frame whose block medians are all equal (the usual flat sky; blocks of 2^k samples): the map is
+  that level exactly and the noise comes from the samples' 256-bin histogram (`_u8_noise`): the same
+  median, MAD and clipped sums as the per-sample path, bit for bit.
+- the above-threshold pixels of the crossing bands found 8 bytes at a time first (`_flatnonzero_sparse`):
+  the same indices.
+- small things on Python numbers (a few dozen items, where numpy's per-call cost dominates): the
+  deblender's candidate maxima (grouped by blob, each group by one stable sort: the same peaks in the
+  same order), the fit's stop test (the same float64 operations), the histogram noise above.
 - 3 x 3 neighbourhoods of the above-threshold pixels on a flat sky read in the frame's dtype as 9
   rows (the ring's maximum from contiguous rows, the background subtracted after it: the same
   numbers; pixels in the first or last column or row get the gather's zero-padded neighbourhood, read
@@ -108,6 +116,19 @@ _CLIP_STD = math.sqrt(1.0 - 2 * _CLIP_K * math.exp(-_CLIP_K ** 2 / 2) / math.sqr
 def _flatnonzero(x: np.ndarray) -> np.ndarray:
     """np.flatnonzero(x) without its Python-level wrappers (a microsecond a call, ~10 calls a frame)."""
     return x.ravel().nonzero()[0]
+
+
+def _flatnonzero_sparse(m: np.ndarray) -> np.ndarray:
+    """np.flatnonzero of a C-contiguous bool array with few True values: on large arrays (128 KiB or
+    more: below, its dozen calls cost more than the scan they save) the 8-byte words holding one found
+    first (a SIMD compare of an eighth as many items), then the bytes of those words alone (the same
+    indices, ascending)."""
+    b = m.reshape(-1)
+    if b.size % 8 or b.size < 1 << 17:
+        return b.nonzero()[0]
+    w = (b.view(np.uint64) != 0).nonzero()[0]
+    p = b.reshape(-1, 8)[w].reshape(-1).nonzero()[0]
+    return (w[p >> 3] << 3) | (p & 7)
 
 
 # ============================================================================ result
@@ -377,41 +398,128 @@ def _background_stats(f: np.ndarray, block: int = 64):
         grid = (cs[:, :, m // 2 - 1].astype(np.float32) + mid) / np.float32(2) if m % 2 == 0 else mid
     else:
         grid = _median_sorted(cs).astype(np.float32)
-    level = float(_median_sorted(np.sort(grid, axis=None)))  # = np.median(grid), without its overhead
+    const = float(grid.min()) == float(grid.max())  # every block median the same (the usual flat sky)
+    # = np.median(grid), without its overhead (of equal values: that value, (c + c) / 2 being c exactly)
+    level = float(grid.flat[0]) if const else float(_median_sorted(np.sort(grid, axis=None)))
     # the samples less the bilinear map of the grid (_upsample's, at the samples used: _upsample_at);
     # on large frames the noise comes from half the samples (16,384 of a 1024 x 1024 frame), in a
     # checkerboard: every other sample of the even sample rows, the others of the odd ones (both
     # phases of the 4-pixel column step, as the reference's sample has them: JPEG's 8 x 8 blocks);
     # an integer sample less the float32 map is float32 (the values of its float32 copy less the map)
     parts = ((0, 2), (1, 2)) if sy > sx else ((0, 1),)
-    r = np.empty(sum(-(-(sh - a) // st) * -(-(sw - a) // st) for a, st in parts), dtype=np.float32)  # their sizes
+    n_r = sum(-(-(sh - a) // st) * -(-(sw - a) // st) for a, st in parts)  # the parts' sizes
+    # a uint8 frame whose block medians are all equal (the usual flat sky) on blocks of 2^k x 2^l samples
+    # (16 x 8 on 1024 x 1024), or on one block: the statistics from the samples' 256-bin histogram
+    # (_u8_noise: the same numbers; its float32 counts are exact below 2^24 samples)
+    dyadic = gh * gw == 1 or (by & (by - 1) == 0 and bx & (bx - 1) == 0)
+    if f.dtype == np.uint8 and dyadic and n_r < 1 << 24 and const:
+        covered = gh * by == sh and gw * bx == sw  # (the blocks hold every sample: 1024 x 1024)
+        is_int, sigma = True, _u8_noise(_u8_hist(sub, parts, n_r, cells if covered else None), level, n_r)
+    else:
+        r = np.empty(n_r, dtype=np.float32)
+        o = 0
+        for a, st in parts:
+            s_part = sub[a::st, a::st]
+            bg = _upsample_at(grid, by, bx, sh, sw, a, st) if gh * gw > 1 else np.float32(level)
+            np.subtract(s_part, bg, out=r[o:o + s_part.size].reshape(s_part.shape))
+            o += s_part.size
+        med = _median_part(r)
+        mad = float(_median_part(np.abs(r - med)))  # |r - med| in float32: the deviations a sort would give
+        s0 = _MAD_TO_SIGMA * mad
+        is_int = f.dtype.kind in "ui" or bool(np.all(np.floor(sub) == sub))
+        floor = 1.0 if is_int else max(1e-12, 1e-9 * float(np.abs(sub).max()))
+        clip = _CLIP_K * max(s0, floor)
+        c32 = np.float32(clip)  # |r| <= clip in float32, as the reference compares
+        rc = r[np.abs(r) <= c32]  # = (r >= -c32) & (r <= c32): |r| is exact in float32, NaN fails both
+        if rc.size > 10:
+            # the standard deviation from one sum and one sum of products in float64 (np.std's float32
+            # pairwise sums agree to ~1e-7 relative); einsum, not a BLAS dot, which spreads 16,000 products
+            # over threads and waits for a busy core
+            r64 = rc.astype(np.float64)
+            mean = float(r64.sum()) / rc.size
+            sigma = math.sqrt(max(float(np.einsum("i,i->", r64, r64)) / rc.size - mean * mean, 0.0)) / _CLIP_STD
+        else:
+            sigma = s0
+    sigma = max(sigma, 0.5 if is_int else floor)
+    tol = max(0.5 * sigma, 4.5 * 1.2533 * sigma / math.sqrt(by * bx), 1.0 if is_int else 0.0)
+    flat = gh * gw == 1 or const or float(np.abs(grid - level).max()) <= tol  # (const: 0 <= tol)
+    return grid, by * sy, bx * sx, level, sigma, flat
+
+
+# The uint8 noise of _background_stats from a histogram. Where every block median equals the level c (a
+# half-integer) and a block spans a power of two b of samples along each axis, the bilinear map
+# (_upsample_at) is c exactly: its weights are then dyadic (multiples of 1 / (2 b), at most 3 in size)
+# and those of a point sum to 1, so every product with c and every partial sum is exact in float32 (c has
+# at most 9 significant bits); each sample's r = x - c is then exact in float32, and the median, the MAD
+# and the clipped sums are functions of the 256 values' counts. (Other block sizes round the weights:
+# the map is c only to ~1e-7, and the general path keeps those numbers.)
+
+
+def _u8_hist(sub: np.ndarray, parts, n: int, cells: np.ndarray | None = None) -> np.ndarray:
+    """The 256-bin histogram (float64 counts) of the uint8 samples sub[a::st, a::st] of each part; from
+    `cells` (every sample of sub in contiguous blocks of an even number of rows and columns: each part's
+    samples are the same positions of every block) when given."""
+    if cells is not None:
+        gh, gw, _ = cells.shape
+        by, bx = sub.shape[0] // gh, sub.shape[1] // gw
+        if len(parts) == 1 or (by % 2 == 0 and bx % 2 == 0):  # (parts: all samples, or the checkerboard)
+            mask = None if len(parts) == 1 else _checkerboard(gh * gw, by, bx)
+            c2 = np.ascontiguousarray(cells.reshape(-1, bx))
+            return cv2.calcHist([c2], [0], mask, [256], [0, 256]).reshape(-1).astype(np.float64)
+    buf = np.empty(n, dtype=np.uint8)
     o = 0
     for a, st in parts:
         s_part = sub[a::st, a::st]
-        bg = _upsample_at(grid, by, bx, sh, sw, a, st) if gh * gw > 1 else np.float32(level)
-        np.subtract(s_part, bg, out=r[o:o + s_part.size].reshape(s_part.shape))
+        buf[o:o + s_part.size].reshape(s_part.shape)[...] = s_part
         o += s_part.size
-    med = _median_part(r)
-    mad = float(_median_part(np.abs(r - med)))  # |r - med| in float32: the deviations a sort would give
-    s0 = _MAD_TO_SIGMA * mad
-    is_int = f.dtype.kind in "ui" or bool(np.all(np.floor(sub) == sub))
-    floor = 1.0 if is_int else max(1e-12, 1e-9 * float(np.abs(sub).max()))
-    clip = _CLIP_K * max(s0, floor)
-    c32 = np.float32(clip)  # |r| <= clip in float32, as the reference compares
-    rc = r[np.abs(r) <= c32]  # = (r >= -c32) & (r <= c32): |r| is exact in float32, NaN fails both
-    if rc.size > 10:
-        # the standard deviation from one sum and one sum of products in float64 (np.std's float32
-        # pairwise sums agree to ~1e-7 relative); einsum, not a BLAS dot, which spreads 16,000 products
-        # over threads and waits for a busy core
-        r64 = rc.astype(np.float64)
-        mean = float(r64.sum()) / rc.size
-        sigma = math.sqrt(max(float(np.einsum("i,i->", r64, r64)) / rc.size - mean * mean, 0.0)) / _CLIP_STD
-    else:
-        sigma = s0
-    sigma = max(sigma, 0.5 if is_int else floor)
-    tol = max(0.5 * sigma, 4.5 * 1.2533 * sigma / math.sqrt(by * bx), 1.0 if is_int else 0.0)
-    flat = gh * gw == 1 or float(np.abs(grid - level).max()) <= tol
-    return grid, by * sy, bx * sx, level, sigma, flat
+    return cv2.calcHist([buf], [0], None, [256], [0, 256]).reshape(-1).astype(np.float64)  # (counts exact in float32)
+
+
+@functools.lru_cache(maxsize=8)
+def _checkerboard(n_blocks: int, by: int, bx: int) -> np.ndarray:
+    """(n_blocks * by, bx) uint8 mask of the samples (i, j) of each by x bx block with i, j both even or
+    both odd: _background_stats's two noise parts."""
+    m = np.zeros((by, bx), dtype=np.uint8)
+    m[0::2, 0::2] = m[1::2, 1::2] = 1
+    return np.tile(m, (n_blocks, 1))
+
+
+def _u8_noise(hist: np.ndarray, level: float, n: int) -> float:
+    """_background_stats's noise sigma before its floor (1.4826 x MAD, refined by the 3.5-sigma clipped
+    standard deviation) of n uint8 samples less the constant map `level`, from their histogram, in Python
+    numbers over the occupied bins (a few dozen: fewer calls than numpy's on 256 bins). Every value is
+    exact in float32 and in float64 alike: r = x - level (half-integers), the median and the MAD (means of
+    two half- or quarter-integers below 512), |r - median|, and count x r, count x r^2 and their sums
+    (integers times half-integers, far below 2^53; the per-sample float64 sums of the general path are
+    exact too, whatever their order): the same median, MAD, mean and sigma."""
+    occupied = hist.nonzero()[0]
+    r = (occupied - level).tolist()  # ascending
+    cnt = hist[occupied].tolist()
+    mid = (n // 2 - 1, n // 2) if n % 2 == 0 else (n // 2,)  # the middle sample(s), sorted
+    med = _middle(r, cnt, mid)
+    dev = sorted(zip([abs(x - med) for x in r], cnt))
+    s0 = _MAD_TO_SIGMA * _middle([d for d, _ in dev], [c for _, c in dev], mid)
+    clip = float(np.float32(_CLIP_K * max(s0, 1.0)))  # (the floor of integer data: 1; compared in float32)
+    inside = [(x, c) for x, c in zip(r, cnt) if abs(x) <= clip]
+    n_in = sum(c for _, c in inside)
+    if n_in <= 10:
+        return s0
+    mean = sum(c * x for x, c in inside) / n_in
+    return math.sqrt(max(sum(c * x * x for x, c in inside) / n_in - mean * mean, 0.0)) / _CLIP_STD
+
+
+def _middle(values: list, counts: list, mid: tuple) -> float:
+    """The median of a sample given as ascending values with counts, from its middle position(s) `mid`:
+    the middle value, or the mean of the middle two (exact here, as in float32)."""
+    out = []
+    seen = 0
+    for v, c in zip(values, counts):
+        seen += c
+        while len(out) < len(mid) and mid[len(out)] < seen:
+            out.append(v)
+        if len(out) == len(mid):
+            break
+    return out[0] if len(out) == 1 else (out[0] + out[1]) / 2
 
 
 def estimate_background(f: np.ndarray, block: int = 64) -> tuple[np.ndarray | float, float, float]:
@@ -510,18 +618,33 @@ class _Pixels:
         return v
 
 
+@functools.lru_cache(maxsize=64)
+def _window_offsets(h: int, W: int) -> np.ndarray:
+    """(2h + 1, 2h + 1) flat-index offsets of a window's pixels from its centre in a width-W image."""
+    d = np.arange(-h, h + 1)
+    return d[:, None] * W + d[None, :]
+
+
+@functools.lru_cache(maxsize=64)
+def _ring_offsets(W: int, centre: bool) -> np.ndarray:
+    """Flat-index offsets of the 3 x 3 neighbourhood, row-major ((9, 1), centre included) or of its 8
+    neighbours ((8,), centre left out) in a width-W image."""
+    o = _NB9_ROWS * W + _NB9_COLS
+    return o[:, None] if centre else o[_RING8]
+
+
 def _gather_px(px, H, W, bkg, resid, pi, pj, h):
     """_gather reading through a _Pixels: (values - background (0 off the image), on-image mask, raw);
     the mask is None when every window lies inside the image (the usual case: all True)."""
-    d = np.arange(-h, h + 1)
     n = len(pi)
     if n and pi.min() >= h and pi.max() < H - h and pj.min() >= h and pj.max() < W - h:
         # every window inside the image (the usual case): no clipping, no masking
         valid = None
-        fi = (pi * W + pj)[:, None, None] + (d[:, None] * W + d[None, :])[None]
+        fi = (pi * W + pj)[:, None, None] + _window_offsets(h, W)
         raw = px.take(fi, np.float64)
         vals = resid.reshape(-1)[fi].astype(np.float64) if resid is not None else raw - bkg
         return vals, valid, raw
+    d = np.arange(-h, h + 1)
     rows = pi[:, None, None] + d[None, :, None]
     cols = pj[:, None, None] + d[None, None, :]
     valid = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)
@@ -561,7 +684,10 @@ def _label_sparse(idx: np.ndarray, W: int) -> tuple[np.ndarray, int]:
     two pixels touch there exactly when they touch in the image. Components are numbered as cv2
     numbers them in the compacted image (which can differ from its numbering of the full mask: only the
     order of stars of equal brightness depends on it)."""
-    r, c = np.divmod(idx, W)
+    if W & (W - 1) == 0:  # a power of two (1024): a shift and a mask, the same numbers as divmod
+        r, c = idx >> (W.bit_length() - 1), idx & (W - 1)
+    else:
+        r, c = np.divmod(idx, W)
     step = np.empty(r.size, dtype=np.int64)
     step[0] = 1
     np.minimum(r[1:] - r[:-1], 2, out=step[1:])  # idx is sorted: rows ascend
@@ -647,14 +773,14 @@ def _above_idx(f: np.ndarray, t32: np.float32, band_max: np.ndarray | None = Non
         return _flatnonzero(_above(f, t32))
     bands = _flatnonzero((_band_max(f) if band_max is None else band_max) > t)
     if bands.size > -(-H // _BAND) // 2:
-        return _flatnonzero(f > t)
+        return _flatnonzero_sparse(f > t)
     if H % _BAND:  # a shorter last band: its rows listed one by one
         rows = (bands[:, None] * _BAND + np.arange(_BAND)).ravel()
         rows = rows[rows < H]
-        q = _flatnonzero(f[rows] > t)
+        q = _flatnonzero_sparse(f[rows] > t)
         return rows[q // W] * W + q % W
     bw = _BAND * W
-    q = _flatnonzero(f.reshape(H // _BAND, bw)[bands] > t)
+    q = _flatnonzero_sparse(f.reshape(H // _BAND, bw)[bands] > t)
     return bands[q // bw] * bw + q % bw
 
 
@@ -741,7 +867,7 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         # zero-padded neighbourhood, and so do pixels in the first or last row (their indices clipped to
         # the image for this read)
         j = idx % W
-        nbi = _NB9_ROWS[:, None] * W + _NB9_COLS[:, None] + idx
+        nbi = _ring_offsets(W, True) + idx
         border_rows = i_lo == 0 or i_hi == H - 1
         if border_rows:
             np.minimum(np.maximum(nbi, 0, out=nbi), H * W - 1, out=nbi)
@@ -790,7 +916,8 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
             ring = nb9[:, hotpix][_RING8].T.astype(np.float64)
         else:
             ring = np.delete(_gather_px(px, H, W, bkg, resid, hp // W, hp % W, 1)[2].reshape(n_hot, 9), 4, axis=1)
-        repaired = _median_sorted(np.sort(ring, axis=1)).astype(np.float32)  # = np.median(ring, axis=1)
+        ring.sort(axis=1)  # (ring is this step's own copy)
+        repaired = _median_sorted(ring).astype(np.float32)  # = np.median(ring, axis=1)
         px.hp, px.hv = hp, repaired
         if resid is not None:
             resid.reshape(-1)[hp] = repaired - bkg.reshape(-1)[hp]
@@ -814,9 +941,10 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
 
     sat = dtype_max if saturation_level is None else float(saturation_level)
     top = float(raw.max())
-    n_top = int(np.count_nonzero(raw == top))
-    if top < sat and top > 0 and ((n_top >= 2 and _is_adc_max(top)) or n_top >= 5):
-        sat = top
+    if top < sat and top > 0:  # (the count only where it can matter)
+        n_top = int(np.count_nonzero(raw == top))
+        if (n_top >= 2 and _is_adc_max(top)) or n_top >= 5:
+            sat = top
     if resid is None:  # raw - level: the highest value is the highest raw value
         blob_max = raw[top_px].astype(np.float64)
     else:
@@ -838,10 +966,11 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         if extra is not None:
             e_comp, e_pi, e_pj, e_val, e_raw = extra
             e_area = area[np.searchsorted(comp, e_comp)]
-            pi, pj = np.r_[pi, e_pi], np.r_[pj, e_pj]
-            comp, area = np.r_[comp, e_comp], np.r_[area, e_area]
-            peak_val, peak_raw = np.r_[peak_val, e_val], np.r_[peak_raw, e_raw]
-            saturated = np.r_[saturated, np.zeros(len(e_comp), dtype=bool)]
+            cat = np.concatenate  # (np.r_'s result, without its index-trick overhead)
+            pi, pj = cat((pi, e_pi)), cat((pj, e_pj))
+            comp, area = cat((comp, e_comp)), cat((area, e_area))
+            peak_val, peak_raw = cat((peak_val, e_val)), cat((peak_raw, e_raw))
+            saturated = cat((saturated, np.zeros(len(e_comp), dtype=bool)))
     blended = np.zeros(len(comp), dtype=bool)
     if len(comp) > len(keep):  # the components split in several: a lookup table by label (np.isin's answer)
         split = np.zeros(int(comp.max()) + 1, dtype=bool)
@@ -865,8 +994,9 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     h0 = int(window) // 2 if window is not None else 3
     vals, valid, rawv = gather(h0)
     g_ok, g_uv, g_s2 = _gauss3_fast(vals, h0, pi, pj)
+    g_unsat = g_ok & ~saturated  # a three-point fit of an unsaturated star
     if psf_sigma_px is None:
-        good = g_ok & ~saturated & (peak_val > 20.0 * sigma)
+        good = g_unsat & (peak_val > 20.0 * sigma)
         if valid is not None:  # (None: every window inside the image)
             good &= valid[:, h0 - 1:h0 + 2, h0 - 1:h0 + 2].all(axis=(1, 2))
         g = np.sort(g_s2[good])  # _median_sorted of the sorted values = np.median
@@ -891,7 +1021,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         uv = uv_cog
     elif estimator == "gauss3":
         uv_iw = _iwcog_sep(vals, X, Y, uv_cog, s_eff, h, pi, pj, iterations)
-        uv = np.where((g_ok & ~saturated)[:, None], g_uv, uv_iw)
+        uv = np.where(g_unsat[:, None], g_uv, uv_iw)
     elif estimator == "iwcog":
         uv = _iwcog_sep(vals, X, Y, uv_cog, s_eff, h, pi, pj, iterations)
     else:
@@ -899,7 +1029,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         # to 30 %) starts from the three-point fit: it converges on the least-squares position the
         # reference reaches from its iwcog start, without the iwcog iterations; the others (saturated,
         # blended, JPEG blocks, noise) start from the iwcog position, as in the reference
-        psf_like = g_ok & ~saturated & (np.abs(g_s2 - s_eff * s_eff) < 0.3 * s_eff * s_eff)
+        psf_like = g_unsat & (np.abs(g_s2 - s_eff * s_eff) < 0.3 * s_eff * s_eff)
         iw = _flatnonzero(~psf_like)
         start = g_uv.copy()
         if iw.size:
@@ -919,20 +1049,20 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
             frac = _psf_models(pj[b, None].astype(np.float64), pi[b, None].astype(np.float64), uv_b,
                                np.ones(len(b)), psf_used)[:, 0, 0]
             amp_b = peak_val[b] / np.maximum(frac, 1e-6)
-            sa, sb = np.meshgrid(np.arange(len(b)), np.arange(len(b)), indexing="ij")
-            sa, sb = sa.ravel(), sb.ravel()
+            sa, sb = np.divmod(np.arange(len(b) * len(b)), len(b))  # every (a, b) pair: meshgrid's "ij", raveled
             near = ((sa != sb) & (comp[b][sa] == comp[b][sb])
                     & (np.abs(pi[b][sa] - pi[b][sb]) <= 2 * h + 1) & (np.abs(pj[b][sa] - pj[b][sb]) <= 2 * h + 1))
             sa, sb = sa[near], sb[near]
             vals = vals.copy()
-            vb = vals[b]
+            v_b, X_b, Y_b, use_b, pi_b, pj_b = vals[b], X[b], Y[b], use[b], pi[b], pj[b]  # (each read once)
+            x_a, y_a = X_b[sa, 0, :], Y_b[sa, :, 0]
             for _round in range(3):
-                vb = vals[b].copy()
+                vb = v_b.copy()
                 if len(sa):
-                    models = _psf_models(X[b][sa, 0, :], Y[b][sa, :, 0], uv_b[sb], amp_b[sb], psf_used)
+                    models = _psf_models(x_a, y_a, uv_b[sb], amp_b[sb], psf_used)
                     np.subtract.at(vb, sa, models)
-                uv_b, amp_b = _psf_fit_sep(vb, use[b], X[b], Y[b], uv_b, psf_used, h, pi[b], pj[b], iterations,
-                                       max_shift=1.5)
+                uv_b, amp_b = _psf_fit_sep(vb, use_b, X_b, Y_b, uv_b, psf_used, h, pi_b, pj_b, iterations,
+                                           max_shift=1.5)
             uv[b] = uv_b
             vals[b] = vb
 
@@ -948,7 +1078,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         uv, brightness, peak_raw, area = uv[keep_s], brightness[keep_s], peak_raw[keep_s], area[keep_s]
         saturated, elongated, edge, blended, ratio = (saturated[keep_s], elongated[keep_s], edge[keep_s],
                                                       blended[keep_s], ratio[keep_s])
-    order = np.argsort(-brightness, kind="stable")
+    order = (-brightness).argsort(kind="stable")
     return Centroids(
         uv=uv[order].astype(np.float64, copy=False), brightness=brightness[order].astype(np.float64, copy=False),
         peak=peak_raw[order].astype(np.float64, copy=False), n_pixels=area[order], saturated=saturated[order],
@@ -973,12 +1103,15 @@ _FIT_TOL = 1e-4  # px: the Gauss-Newton fit of a star stops once its step (or th
 def _iwcog_sep(vals, X, Y, uv0, s_eff, h, pi, pj, iterations):
     """_iwcog with the separable weight exp(-dx^2/2s^2) exp(-dy^2/2s^2), u and v stepped together as
     one (n, 2) array (the same sums in the same order as stepping them apart: the same positions)."""
-    XY = np.stack([X[:, 0, :], Y[:, :, 0]], axis=1).astype(np.float64)  # (n, 2, w): columns, rows
+    XY = np.empty((len(X), 2, X.shape[2]))  # (n, 2, w): columns, rows
+    XY[:, 0], XY[:, 1] = X[:, 0, :], Y[:, :, 0]
     k = -1.0 / (2.0 * s_eff * s_eff)
     uv = np.array(uv0, dtype=np.float64)
-    c0 = np.stack([pj, pi], axis=1)
-    lo, hi = c0 - h, c0 + h
-    ok_all = np.ones(len(uv), dtype=bool)
+    lo = np.empty((len(uv), 2))  # the window: the peak pixel +- h (exact in float64)
+    lo[:, 0], lo[:, 1] = pj, pi
+    hi = lo + h
+    lo -= h
+    ok_all = None  # each star's weights positive at every step (None: all were)
     cg = np.empty_like(XY)
     for _ in range(iterations):
         g = XY - uv[:, :, None]
@@ -995,12 +1128,15 @@ def _iwcog_sep(vals, X, Y, uv0, s_eff, h, pi, pj, iterations):
             uv = uv + 2.0 * ((cg * XY).sum(axis=2) / s[:, None] - uv)  # gain 2: converges on a Gaussian's centre
         else:
             ok = s > 0
-            ok_all &= ok
+            ok_all = ok if ok_all is None else ok_all & ok
             c = (cg * XY).sum(axis=2) / np.where(ok, s, 1.0)[:, None]
             uv = np.where(ok[:, None], uv + 2.0 * (c - uv), uv)
         uv = np.minimum(np.maximum(uv, lo), hi)  # = np.clip, without its per-call overhead
-    bad = ~ok_all | ~np.isfinite(uv).all(axis=1)
-    uv[bad] = uv0[bad]
+    bad = ~np.isfinite(uv).all(axis=1)
+    if ok_all is not None:
+        bad |= ~ok_all
+    if bad.any():
+        uv[bad] = uv0[bad]
     return uv
 
 
@@ -1041,7 +1177,8 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
     uv = np.array(uv0, dtype=np.float64)
     A = None
     k = 1.0 / (s * math.sqrt(2.0))
-    scale = np.array([[0.5], [-1.0 / (s * math.sqrt(2.0 * math.pi))]])  # profiles' and derivatives' factors
+    # the profiles' and the derivatives' factors, by the first axis of T below
+    scale = np.array([0.5, -1.0 / (s * math.sqrt(2.0 * math.pi))])[:, None, None, None]
     act = np.arange(n_st)
     prev = None  # each star's last step (px)
     first = True
@@ -1052,25 +1189,29 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
                 break
             every = m == n_st  # no star has stopped yet: no index copies
             z = ((edges if every else edges[act]) - (uv if every else uv[act])[:, :, None]) * k
-            pe = erf(z)
+            T = np.empty((2, m, 2, n + 1))  # [erf or exp][star][u or v] at the pixel edges (contiguous outputs)
+            erf(z, out=T[0])
             z *= z
             np.negative(z, out=z)
-            ge = np.exp(z, out=z)
-            Q = np.empty((m, 2, 2, n))  # [u or v][profile or its derivative]
-            np.subtract(pe[:, :, 1:], pe[:, :, :-1], out=Q[:, :, 0])
-            np.subtract(ge[:, :, 1:], ge[:, :, :-1], out=Q[:, :, 1])
-            Q *= scale  # 0.5 (exact) and the Gaussian's scale c, after the differences (the same to rounding)
+            np.exp(z, out=T[1])
+            Qk = T[:, :, :, 1:] - T[:, :, :, :-1]  # [profile or its derivative][star][u or v]
+            Qk *= scale  # 0.5 (exact) and the Gaussian's scale c, after the differences (the same to rounding)
+            Q = Qk.transpose(1, 2, 0, 3)  # (m, 2, 2, n): [u or v][profile or its derivative]
             if w is None:
                 # no pixel left out: the model is separable, P = fv fu, dP/du = fv dfu, dP/dv = dfv fu, so
                 # the Gram matrix is made of the two axes' 2 x 2 Grams (_GUV) and the products with the data
                 # are (fv, dfv) V (fu, dfu)^T: the same sums as the (m, 3, n*n) products below, regrouped
+                Q = np.ascontiguousarray(Q)  # (the products of the contiguous layout, as before)
                 G = (Q @ Q.transpose(0, 1, 3, 2)).reshape(m, 8)[:, _GUV]
                 S9 = G[:, :9] * G[:, 9:]
                 B = Q[:, 1] @ ((vals if every else vals[act]) @ Q[:, 0].transpose(0, 2, 1))
                 b = B.reshape(m, 4)[:, :3]  # (m, 3): P, dP/du, dP/dv with the data
             else:
                 # (m, 3, n*n): P = fv fu, dP/du = fv dfu, dP/dv = dfv fu
-                M = (Q[:, 1, _QV, :, None] * Q[:, 0, _QU, None, :]).reshape(m, 3, n * n)
+                M = np.empty((m, 3, n, n))
+                np.multiply(Q[:, 1, 0, None, :, None], Q[:, 0, :, None, :], out=M[:, :2])  # fv fu, fv dfu
+                np.multiply(Q[:, 1, 1, :, None], Q[:, 0, 0, None, :], out=M[:, 2])  # dfv fu
+                M = M.reshape(m, 3, n * n)
                 S9 = ((M * (w if every else w[act])) @ M.transpose(0, 2, 1)).reshape(m, 9)  # weighted Gram
                 b = (M @ (vw if every else vw[act]))[:, :, 0]  # (m, 3) weighted products with the data
             if A is None:
@@ -1100,21 +1241,24 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
                 act = act[step > _FIT_TOL]
                 first = False
                 continue
+            # the stop test on Python numbers (the same float64 operations, on a few dozen stars)
+            go = [st > _FIT_TOL and st * st / max(pv - st, 1e-12) > _FIT_TOL
+                  for st, pv in zip(step.tolist(), (prev if every else prev[act]).tolist())]
             if every:  # the same updates without the index copies
                 A = y[:, 0]
                 uv += d
-                left = step * step / np.maximum(prev - step, 1e-12)
                 prev = step
             else:
                 A[act] = y[:, 0]
                 uv[act] += d
-                left = step * step / np.maximum(prev[act] - step, 1e-12)
                 prev[act] = step
-            act = act[(step > _FIT_TOL) & (left > _FIT_TOL)]
+            act = act[go]
     lim = h if max_shift is None else max_shift
     # a finite positive amplitude and a finite position within lim of the peak (NaN and infinities fail
     # these comparisons: no separate isfinite)
     ok = (A > 0) & (A < np.inf) & (np.abs(uv[:, 0] - pj) <= lim) & (np.abs(uv[:, 1] - pi) <= lim)
+    if ok.all():  # (the usual case: uv and A are this call's own arrays)
+        return uv, A
     return np.where(ok[:, None], uv, uv0), np.where(ok, A, 0.0)
 
 
@@ -1131,7 +1275,7 @@ def _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, p
     nbm = nb_max
     if hot is not None:
         # the pixels of idx (sorted) next to a hot one: the few neighbours looked up in idx, not idx in them
-        near_hot = (hot[:, None] + np.array([-W - 1, -W, -W + 1, -1, 1, W - 1, W, W + 1])).ravel()
+        near_hot = (hot[:, None] + _ring_offsets(W, False)).ravel()
         pos = idx.searchsorted(near_hot)
         np.minimum(pos, idx.size - 1, out=pos)
         hit = idx[pos] == near_hot
@@ -1143,24 +1287,24 @@ def _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, p
     cand = _flatnonzero(is_big[lab] & (val >= nbm) & (raw < sat))
     if cand.size == 0:
         return None
-    c_lab, c_val, c_raw = lab[cand], val[cand], raw[cand]
-    c_i, c_j = idx[cand] // W, idx[cand] % W
-    # a blob whose only local maximum is its peak has nothing to split: those are set aside at once
-    counts = np.bincount(c_lab)
-    labs = _flatnonzero(counts)
-    where = np.empty(counts.size, dtype=np.int64)
-    where[c_lab] = np.arange(c_lab.size)  # a label's (last) local maximum: its only one when counts == 1
-    first, counts = where[labs], counts[labs]
-    k0s = np.searchsorted(comp, labs)  # comp is ascending
-    lone = (counts == 1) & (c_i[first] == pi[k0s]) & (c_j[first] == pj[k0s])
+    # the few candidates in Python numbers: each blob's local maxima in index order, by label
+    c_flat, c_val, c_raw = idx[cand].tolist(), val[cand].tolist(), raw[cand].tolist()
+    blobs = {}
+    for q, L in enumerate(lab[cand].tolist()):
+        blobs.setdefault(L, []).append(q)
+    k_of = {L: k for k, L in enumerate(comp.tolist())}
+    pil, pjl = pi.tolist(), pj.tolist()
     out = []
-    for L, k0 in zip(labs[~lone].tolist(), k0s[~lone].tolist()):
-        m = _flatnonzero(c_lab == L)
-        acc = [(int(pi[k0]), int(pj[k0]))]
-        for q in m[np.argsort(-c_val[m], kind="stable")]:
+    for L in sorted(blobs):
+        m = blobs[L]
+        k0 = k_of[L]
+        if len(m) == 1 and c_flat[m[0]] == pil[k0] * W + pjl[k0]:
+            continue  # the blob's only local maximum is its peak: nothing to split
+        acc = [(pil[k0], pjl[k0])]
+        for q in sorted(m, key=lambda q: -c_val[q]):  # brightest first, ties in index order (a stable sort)
             if len(acc) >= max_peaks:
                 break
-            i, j, v = int(c_i[q]), int(c_j[q]), float(c_val[q])
+            (i, j), v = divmod(c_flat[q], W), c_val[q]
             d = [math.hypot(i - a, j - b) for a, b in acc]
             n_near = min(range(len(d)), key=d.__getitem__)  # np.argmin(d): the first nearest
             if d[n_near] < min_sep:
@@ -1172,7 +1316,7 @@ def _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, p
             seg = resid[si, sj] if resid is not None else px.take(si * W + sj) - bkg
             if v - float(seg.min()) >= max(3.0 * sigma, 0.2 * v):
                 acc.append((i, j))
-                out.append((int(L), i, j, v, float(c_raw[q])))
+                out.append((L, i, j, v, c_raw[q]))
     if not out:
         return None
     o = np.array(out, dtype=np.float64)
@@ -1186,8 +1330,12 @@ def _cog(vals, X, Y, pi, pj):
     w = np.maximum(vals, 0.0)
     sw = w.sum(axis=(1, 2))
     ok = sw > 0
-    sw = np.where(ok, sw, 1.0)
     uv = np.empty((len(w), 2))
+    if ok.all():  # (the usual case: the same numbers without the masks)
+        uv[:, 0] = (w * X).sum(axis=(1, 2)) / sw
+        uv[:, 1] = (w * Y).sum(axis=(1, 2)) / sw
+        return uv
+    sw = np.where(ok, sw, 1.0)
     uv[:, 0] = np.where(ok, (w * X).sum(axis=(1, 2)) / sw, pj)
     uv[:, 1] = np.where(ok, (w * Y).sum(axis=(1, 2)) / sw, pi)
     return uv
@@ -1238,11 +1386,13 @@ def _axis_ratio_mm(vals, x, y, uv, sigma):
     m = (D[:, 1] @ w @ D[:, 0].transpose(0, 2, 1)).reshape(n_st, 9)  # [dy power * 3 + dx power]
     s = m[:, 0]
     ok = s > 0
-    q = m[:, _MOMENTS] / np.where(ok, s, 1.0)[:, None]  # mxx, myy, mxy less the pixel's 1/12
+    every = bool(ok.all())  # (the usual case: no masks)
+    q = m[:, _MOMENTS] / (s if every else np.where(ok, s, 1.0))[:, None]  # mxx, myy, mxy less the pixel's 1/12
     half_tr = (q[:, 0] + q[:, 1]) * 0.5 + 1.0 / 12.0
     disc = np.hypot((q[:, 0] - q[:, 1]) * 0.5, q[:, 2])
     l2 = np.maximum(half_tr - disc, 1e-12)
-    return np.where(ok, np.sqrt((half_tr + disc) / l2), np.nan)
+    ratio = np.sqrt((half_tr + disc) / l2)
+    return ratio if every else np.where(ok, ratio, np.nan)
 
 
 _MOMENTS = np.array([2, 6, 4])  # sum w dx^2, sum w dy^2, sum w dx dy in _axis_ratio_mm's 3 x 3 moments

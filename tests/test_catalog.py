@@ -178,6 +178,9 @@ def test_sky_index_cap_cosines(catalog, monkeypatch, run):
     rng = np.random.default_rng(9)
     for d, r in _caps(rng, 200):
         rows, cos = catalog.sky.cap_cosines(d, r)
+        with_xyz = catalog.sky.cap_cosines(d, r, with_xyz=True)
+        assert np.array_equal(with_xyz[0], rows) and np.array_equal(with_xyz[1], cos)
+        assert np.array_equal(with_xyz[2], catalog.xyz[rows])  # the same numbers, read from the run
         want = np.sort(np.asarray(catalog.tree.query_ball_point(d, float(chord(r))), dtype=np.int64))
         assert np.all(np.diff(rows) > 0) and set(want.tolist()) <= set(rows.tolist())
         np.testing.assert_allclose(cos, catalog.xyz[rows] @ (d / np.linalg.norm(d)), rtol=0, atol=1e-15)

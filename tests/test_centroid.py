@@ -654,3 +654,35 @@ def test_few_values_counts_as_unique():
         x = rng.integers(0, n_vals, 256).astype(np.float32) - np.float32(0.3)
         for k in (8, 32, 64):
             assert _few_values(x, k) == (np.unique(x).size < k)
+
+
+def test_uint8_noise_from_the_histogram_is_the_per_sample_path():
+    """A uint8 frame whose block medians are all equal (blocks of 2^k samples, or one block) takes its noise
+    from the samples' 256-bin histogram (_u8_noise; counted from the contiguous blocks where they hold every
+    sample, else from a copy of the samples); the same frame as uint16 takes the per-sample path (the
+    bilinear map, the partitions, the clipped sums): the same grid, level, sigma and flat flag, bit for
+    bit; on blocks of other sizes (300 x 257: 18 samples a block) the general path is kept."""
+    from skyview.centroid import _background_stats
+    rng = np.random.default_rng(5)
+    shapes = [(1024, 1024), (600, 800), (300, 257), (100, 90), (40, 40), (512, 2048)]
+    hist_path = set()
+    for trial in range(72):
+        H, W = shapes[trial % 6]
+        level, noise = rng.uniform(2, 220), (rng.uniform(0.2, 0.6) if trial % 12 < 6 else rng.uniform(0.6, 8))
+        img = np.clip(np.rint(rng.normal(level, noise, (H, W))), 0, 255).astype(np.uint8)
+        img[rng.integers(0, H, 30), rng.integers(0, W, 30)] = 255  # hot pixels and stars: outliers
+        a, b = _background_stats(img), _background_stats(img.astype(np.uint16))
+        np.testing.assert_array_equal(a[0], b[0])
+        assert a[1:] == b[1:]
+        if a[0].min() == a[0].max():
+            hist_path.add((H, W))
+    assert set(shapes) <= hist_path  # (every shape compared on the histogram path, or 300 x 257 on the other)
+
+
+def test_sparse_nonzero_is_flatnonzero():
+    from skyview.centroid import _flatnonzero_sparse
+    rng = np.random.default_rng(9)
+    for shape in ((64, 4096), (33, 4096), (3, 5), (8,), (7, 8), (0, 8), (16, 1024)):  # (>= 128 KiB: the word scan)
+        for p in (0.0, 0.001, 0.05, 0.5, 1.0):
+            m = rng.random(shape) < p
+            assert np.array_equal(_flatnonzero_sparse(m), np.flatnonzero(m))

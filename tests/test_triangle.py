@@ -419,14 +419,14 @@ def test_pair_join_prunes_and_joins_in_the_same_order(improved, region, cam, mon
         out = []
         for dense, prune in ((True, True), (False, True), (False, False)):
             monkeypatch.setattr(lookup, "JOIN_DENSE", lookup.JOIN_DENSE if dense else -1)  # -1: always by_star
-            monkeypatch.setattr(lookup, "_ends", ends if prune else lambda *args: np.ones((3, args[4]), dtype=bool))
+            monkeypatch.setattr(lookup, "_ends", ends if prune else lambda *args: np.ones((3, args[3]), dtype=bool))
             t = improved.triangle_bounds(f.obs.vectors[:6], 10 * SIGMA, lookup=False)  # many candidates
             out.append([improved.join_pairs(t, k).tolist() for k in range(len(t["area"]))])
         assert out[0] == out[1] == out[2]
         n += sum(map(len, out[0]))
     assert n >= 300  # (3 frames of 20 triangles)
     pi, pj = improved.pair_i, improved.pair_j
-    on = ends(pi, pj, [0, 5, 7], [4, 7, 9], len(region.xyz), 2)  # side rp left out: every star may be r or p
+    on = ends(improved.pair_ends, [0, 5, 7], [4, 7, 9], len(region.xyz), 2)  # side rp left out: every star may be r or p
     assert on[2].all() and set(np.flatnonzero(on[0])) == set(pi[:4]) | set(pj[:4])
     assert set(np.flatnonzero(on[1])) == set(pi[5:7]) | set(pj[5:7])
 

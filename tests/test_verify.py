@@ -352,6 +352,7 @@ def test_fast_paths_agree_with_the_general_ones(cat, cam, monkeypatch):
     monkeypatch.setattr(V, "PREFILTER_PAIRS", 0)  # every frame's pairs through the dot-product prefilter
     assert run() == fast
     monkeypatch.setattr(V, "_apart", lambda x, radius_rad: False)  # every ambiguity and crowd counted
+    monkeypatch.setattr(V, "_stars_apart", lambda catalog, rows, v, radius_rad: False)
     assert run() == fast
     monkeypatch.setattr(V, "BRUTE_PAIRS", 0)  # every distance from a k-d tree
     monkeypatch.setattr(V, "ONE_TO_ONE_PY", -1)  # the numpy pairing
@@ -417,6 +418,53 @@ def test_has_neighbour_is_the_kd_tree_count(cat):
         want = np.asarray(cat.tree.query_ball_point(cat.xyz[rows], chords, return_length=True)) >= 2
         assert np.array_equal(_has_neighbour(cat, rows, chords), want)
         assert np.array_equal(_has_neighbour(cat, rows, chords), want)  # remembered the second time
+
+
+def test_nearest_table_is_each_stars_nearest_chord_and_cached(cat, tmp_path, monkeypatch):
+    """The verification's table of nearest-neighbour chords is GuideCatalog.nearest_chords of every
+    star (inf beyond the reach, 0 for a star that shares its place), built once and read back from
+    the cache with the same numbers; a catalog of one star has no neighbour."""
+    from skyview.identify import database
+    from skyview.identify.verify import NEAREST_REACH_RAD, nearest_table
+
+    monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
+    built = nearest_table(cat)
+    assert np.array_equal(built, cat.nearest_chords(np.arange(len(cat.xyz)), NEAREST_REACH_RAD))
+    assert np.isinf(built).any() and np.isfinite(built).any()
+    files = list((tmp_path / "databases").glob("nearest-*.npz"))
+    assert len(files) == 1
+    assert np.array_equal(nearest_table(cat), built)  # from the file
+    twin = cat.select(np.r_[np.arange(len(cat.xyz)), 0], "star 0 twice")  # star 0 twice: each one's nearest is the other
+    assert nearest_table(twin)[0] == 0.0 and nearest_table(twin)[-1] == 0.0
+    assert np.isinf(nearest_table(cat.select(np.array([5]), "one star")))[0]
+    assert database.clear_cache("nearest")[0] == 3 and not list((tmp_path / "databases").glob("nearest-*"))
+
+
+def test_stars_apart_only_where_no_ball_holds_two(cat):
+    """_stars_apart (from the remembered nearest neighbours) says True only where no two of the stars lie
+    within twice the ball's chord, turned by any attitude; it says False next to a close pair, and
+    beyond the neighbours' reach it is _apart itself."""
+    from skyview.catalog import chord
+    from skyview.identify.verify import NEAREST_REACH_RAD, _apart, _stars_apart
+
+    rng = np.random.default_rng(4)
+    said = []
+    for k in range(300):
+        R = random_attitudes(1, rng)[0]
+        rows = np.sort(rng.choice(len(cat.xyz), int(rng.integers(0, 80)), replace=False))
+        v = cat.xyz[rows] @ R.T
+        radius = float(rng.choice([1e-4, 1e-3, 5e-3, 0.02]))
+        got = _stars_apart(cat, rows, v, radius)
+        d = np.linalg.norm(v[:, None] - v[None], axis=2) + np.diag(np.full(len(rows), np.inf))
+        if got:
+            assert len(rows) < 2 or d.min() > 2 * chord(radius)
+        said.append(got)
+    assert any(said) and not all(said)
+    i, j = cat.pairs_within(np.radians(0.05))[0]
+    pair = np.array([i, j])
+    assert not _stars_apart(cat, pair, cat.xyz[pair], np.radians(0.05))
+    wide = 0.6 * NEAREST_REACH_RAD  # twice its chord beyond the reach
+    assert _stars_apart(cat, pair, cat.xyz[pair], wide) == _apart(cat.xyz[pair], wide)
 
 
 def test_svd_attitude_one_sigma_is_the_per_pair_path_to_the_bit():
@@ -522,6 +570,8 @@ def test_local_density_from_the_stars_around_a_frame_is_the_kd_tree_count(cat, c
         want[want < 3] = 0.0
         want /= area
         np.testing.assert_array_equal(local_density(cat, d, leave, among=near.wide), want)
+        assert np.array_equal(near.wide_xyz, cat.xyz[near.wide]) and np.array_equal(near.xyz, cat.xyz[near.idx])
+        np.testing.assert_array_equal(local_density(cat, d, leave, among=near.wide, among_xyz=near.wide_xyz), want)
         np.testing.assert_array_equal(local_density(cat, d, leave), want)
     assert not near.covers(-d, LOCAL_RADIUS_RAD)  # the far side of the sky is not among its stars
 

@@ -66,7 +66,8 @@ def add_parsers(sub) -> None:
     ksub.add_parser("list", help="the cached databases, their size and last use")
     kc = ksub.add_parser("clear", help="delete the cached databases (they are rebuilt when next needed)")
     kc.add_argument("--method", default=None, metavar="NAME",
-                    help=f"only this database's files: patterns (the blind database) or a method "
+                    help=f"only this database's files: patterns (the blind database), nearest (the verification's "
+                         f"table of each star's nearest neighbour) or a method "
                          f"({', '.join(method_names())})")
     k.set_defaults(func=cmd_cache)
 

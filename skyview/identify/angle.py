@@ -179,7 +179,7 @@ class AngleMethod(PivotMethod):
         V, sigma = search.V, search.sigma
         m = search.n if self.max_stars is None else min(search.n, self.max_stars)  # the stars that form angles
         ii, jj = pair_indices(m)
-        theta = angles(V[ii], V[jj])
+        theta = angles(V.take(ii, axis=0), V.take(jj, axis=0))
         bound = self.beta * np.sqrt(2.0) * sigma  # beta sigma_p, sigma_p = sqrt(2) sigma (eq. 14)
         counts = _Ranges(self.kv.sorted_values, theta, bound)
         if self.order == "largest":
@@ -502,25 +502,24 @@ def _join(H: np.ndarray, used: list[int], p: int, q: int, ci: np.ndarray, cj: np
         raise ValueError("a pivot angle must share a star with the hypotheses")
     ip = used.index(p)
     m = n_catalog if n_catalog is not None else max(int(H.max(initial=0)), int(cp.max(initial=0))) + 1
-    if 8 * len(H) < len(cp):
-        # few hypotheses (after the first join): only the candidates on their stars can join, so group
-        # just those (the same blocks in the same order: the selection keeps the candidates' order and
-        # the grouping is stable) instead of sorting every candidate of the angle
-        on = np.zeros(m, dtype=bool)
-        on[H[:, ip]] = True
-        sel = np.flatnonzero(on[cp])
-        cp, cq = cp[sel], cq[sel]
+    # only the candidates on the hypotheses' stars can join, so group just those (the same blocks in the same
+    # order: the selection keeps the candidates' order and the grouping is stable) instead of sorting every
+    # candidate of the angle (also for the first join's ~1,000 hypotheses: about a quarter are left)
+    on = np.zeros(m, dtype=bool)
+    on[H[:, ip]] = True
+    sel = on[cp].nonzero()[0]
+    cp, cq = cp.take(sel), cq.take(sel)
     cqs, start, size = by_star(cp, cq, m)
     v = H[:, ip]
-    cnt = size[v]
+    cnt = size.take(v)  # (take: an index without numpy's index parsing)
     rows = np.arange(len(H)).repeat(cnt)
     # each hypothesis meets its star's block: the block's start plus the rank within it
-    newq = cqs[np.arange(int(cnt.sum())) + (start[v] - cnt.cumsum() + cnt).repeat(cnt)]
+    newq = cqs.take(np.arange(int(cnt.sum())) + (start.take(v) - cnt.cumsum() + cnt).repeat(cnt))
     if q in used:  # closed loop: the pair (H[p], H[q]) must be a candidate as it is
         hit = newq == H[rows, used.index(q)]
         return H[np.bincount(rows[hit], minlength=len(H)) > 0], used, None
     k = H.shape[1]
-    Hr = H[rows]
+    Hr = H.take(rows, axis=0)
     ok = Hr[:, 0] != newq  # a catalog star is never two observed stars
     for c in range(1, k):
         ok &= Hr[:, c] != newq

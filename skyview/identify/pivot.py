@@ -33,6 +33,7 @@ ORDERS = ("largest", "fewest")
 # star(s) ("shared-star"); beyond the paper: full assignments joined on the shared star(s) ("join")
 PIVOTINGS = ("shared-star", "lists", "join")
 MAX_EQUIVALENT = 16  # at most this many hypotheses are compared for unresolved close pairs
+_INT16_MAX = int(np.iinfo(np.int16).max)  # `by_star`'s radix-sortable keys fit below it
 
 
 @dataclass(frozen=True)
@@ -284,16 +285,16 @@ def by_star(cp: np.ndarray, cq: np.ndarray, m: int) -> tuple[np.ndarray, np.ndar
     per catalog star the start and size of its block (= np.searchsorted on the sorted cp, without a
     binary search per hypothesis; the sort is numpy's radix sort on 16-bit keys when they fit). The
     start of an empty block is 0 (its size says there is nothing to read)."""
-    key = cp.astype(np.int16) if m <= np.iinfo(np.int16).max else cp
+    key = cp.astype(np.int16) if m <= _INT16_MAX else cp
     order = key.argsort(kind="stable")
     size = np.bincount(cp, minlength=m)
     # each block starts where the sorted keys change: O(len(cp)), where a cumulative sum over all m
     # catalog stars costs ~12 us (numpy's cumsum is not vectorised) for ~1,000 candidates
-    ks = key[order]
+    ks = key.take(order)  # (take: an index without numpy's index parsing)
     first = (ks[1:] != ks[:-1]).nonzero()[0] + 1
     start = np.zeros(m, dtype=np.int64)
-    start[ks[first]] = first  # the first block starts at 0
-    return cq[order], start, size
+    start[ks.take(first)] = first  # the first block starts at 0
+    return cq.take(order), start, size
 
 
 def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:

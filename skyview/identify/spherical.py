@@ -364,9 +364,11 @@ def triangle_sigmas(A, B, C, a, b, c, sigma: float) -> tuple[list[float], list[f
     s2 = float(sigma) ** 2
     sig = float(sigma)
     out_area, out_triple = [], []
+    # (dot3 and cross3 written out: the same operations in the same order, without the calls)
     for k in range(n):
         t1, t2, t3, t4 = tan[4 * k:4 * k + 4]
-        s1, s2_, s3, s4 = (1.0 / (x * x) for x in cos[4 * k:4 * k + 4])
+        c1, c2, c3, c4 = cos[4 * k:4 * k + 4]
+        s1, s2_, s3, s4 = 1.0 / (c1 * c1), 1.0 / (c2 * c2), 1.0 / (c3 * c3), 1.0 / (c4 * c4)
         u1, u2, u3, u4 = s1 * t2 * t3 * t4, t1 * s2_ * t3 * t4, t1 * t2 * s3 * t4, t1 * t2 * t3 * s4  # eq. 23
         z2 = t1 * t2 * t3 * t4
         if not z2 > 0.0:
@@ -374,31 +376,29 @@ def triangle_sigmas(A, B, C, a, b, c, sigma: float) -> tuple[list[float], list[f
         z = math.sqrt(z2)
         den = 8.0 * z
         w = 4.0 / (1.0 + z2)
-        H = (w * ((u1 - u2 + u3 + u4) / den), w * ((u1 + u2 - u3 + u4) / den), w * ((u1 + u2 + u3 - u4) / den))
+        h0, h1, h2 = w * ((u1 - u2 + u3 + u4) / den), w * ((u1 + u2 - u3 + u4) / den), w * ((u1 + u2 + u3 - u4) / den)
         # cos of the vertex angles at A, B, C (vertex_angles) and the triple product's gradients (triple_sigma)
         P = (A[k], B[k], C[k])
         cs, v = [], []
         for i in range(3):
-            p, qv, r = P[i], P[(i + 1) % 3], P[(i + 2) % 3]
-            qp, rp = dot3(qv, p), dot3(r, p)
-            tqv = (qv[0] - qp * p[0], qv[1] - qp * p[1], qv[2] - qp * p[2])
-            trv = (r[0] - rp * p[0], r[1] - rp * p[1], r[2] - rp * p[2])
-            nn = math.sqrt(tqv[0] * tqv[0] + tqv[1] * tqv[1] + tqv[2] * tqv[2]) * \
-                math.sqrt(trv[0] * trv[0] + trv[1] * trv[1] + trv[2] * trv[2])
+            (p0, p1, p2), (q0, q1, q2), (r0, r1, r2) = P[i], P[(i + 1) % 3], P[(i + 2) % 3]
+            qp, rp = (q0 * p0 + q2 * p2) + q1 * p1, (r0 * p0 + r2 * p2) + r1 * p1
+            x0, x1, x2 = q0 - qp * p0, q1 - qp * p1, q2 - qp * p2  # q's tangent part at p
+            y0, y1, y2 = r0 - rp * p0, r1 - rp * p1, r2 - rp * p2  # r's
+            nn = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) * math.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
             if not nn > 0.0:
                 return None
-            cs.append(min(max(dot3(tqv, trv) / nn, -1.0), 1.0))
-            g = cross3(qv, r)
-            gp = dot3(g, p)
-            g = (g[0] - gp * p[0], g[1] - gp * p[1], g[2] - gp * p[2])
-            v.append(dot3(g, g))
+            cs.append(min(max(((x0 * y0 + x2 * y2) + x1 * y1) / nn, -1.0), 1.0))
+            g0, g1, g2 = q1 * r2 - q2 * r1, q2 * r0 - q0 * r2, q0 * r1 - q1 * r0  # q x r
+            gp = (g0 * p0 + g2 * p2) + g1 * p1
+            g0, g1, g2 = g0 - gp * p0, g1 - gp * p1, g2 - gp * p2
+            v.append((g0 * g0 + g2 * g2) + g1 * g1)
         cA, cB, cC = cs
         d = 2.0 * s2
-        Cm = ((d, s2 * cB, s2 * cA), (s2 * cB, d, s2 * cC), (s2 * cA, s2 * cC, d))
-        var = 0.0
-        for i in range(3):
-            for j in range(3):
-                var += H[i] * Cm[i][j] * H[j]
+        eB, eA, eC = s2 * cB, s2 * cA, s2 * cC
+        # H C H^T summed term by term in row order, as the loop over (i, j) from 0.0 did
+        var = ((((((((h0 * d * h0 + h0 * eB * h1) + h0 * eA * h2) + h1 * eB * h0) + h1 * d * h1) + h1 * eC * h2)
+                 + h2 * eA * h0) + h2 * eC * h1) + h2 * d * h2)
         out_area.append(math.sqrt(max(var, 0.0)) if math.isfinite(var) else np.inf)
         out_triple.append(sig * math.sqrt(v[0] + v[1] + v[2]))
     return out_area, out_triple
@@ -417,11 +417,10 @@ def sides_few(A, B, C) -> list[tuple[float, float, float]]:
     one numpy arcsin call for all of them). c, the angle of C and A, is also verify.angular_distance(C, A)."""
     half = []
     for P in zip(A, B, C):
-        for u, v in ((0, 1), (1, 2), (2, 0)):  # the sides a, b, c of `sides`
-            x, y = P[u], P[v]
-            d = (x[0] - y[0], x[1] - y[1], x[2] - y[2])
-            half.append(min(math.sqrt(dot3(d, d)) / 2.0, 1.0))
-    side = (2.0 * np.arcsin(np.array(half))).tolist()
+        for (x0, x1, x2), (y0, y1, y2) in ((P[0], P[1]), (P[1], P[2]), (P[2], P[0])):  # a, b, c of `sides`
+            d0, d1, d2 = x0 - y0, x1 - y1, x2 - y2
+            half.append(min(math.sqrt((d0 * d0 + d2 * d2) + d1 * d1) / 2.0, 1.0))  # (dot3, written out)
+    side = [2.0 * x for x in np.arcsin(half).tolist()]  # (doubling is exact: numpy's 2.0 * arcsin)
     return [(side[k], side[k + 1], side[k + 2]) for k in range(0, len(side), 3)]
 
 
@@ -432,18 +431,21 @@ def lhuilier_few(sides) -> list[float]:
     for a, b, c in sides:
         s = 0.5 * (a + b + c)
         arg += (0.5 * s, 0.5 * (s - a), 0.5 * (s - b), 0.5 * (s - c))
-    tan = np.tan(np.array(arg)).tolist()
-    p = [max(tan[k] * tan[k + 1] * tan[k + 2] * tan[k + 3], 0.0) for k in range(0, len(tan), 4)]
-    return (4.0 * np.arctan(np.sqrt(np.array(p)))).tolist()
+    tan = np.tan(arg).tolist()
+    # math.sqrt rounds as np.sqrt does (IEEE), and 4.0 * is exact
+    p = [math.sqrt(max(tan[k] * tan[k + 1] * tan[k + 2] * tan[k + 3], 0.0)) for k in range(0, len(tan), 4)]
+    return [4.0 * x for x in np.arctan(p).tolist()]
 
 
 @lru_cache(maxsize=None)
 def _few_plan(depth: int):
     """`_plan(depth)` relabelled for `polar_moment_few`: the corners, then each level's new points in one
-    contiguous block ((start, stop, (2, k) ends) per level: written in place); the edges as one (2, e + 1)
-    index with a last, zero-length edge (0, 0), whose arc is exactly 0; each piece's (zero, a, b, c) edges
-    as (4, pieces) (then s - 0 = s: the four L'Huilier tangents in one call); the pieces as (3, pieces + 1)
-    with a last "piece" (A, B, C), whose normalised vertex sum is the centroid."""
+    contiguous block ((start, stop, (2, k) ends) per level: written in place); the ends of every difference
+    whose arc is taken, (2, e + 1 + pieces) into the points followed by the pieces' centroids: the edges,
+    a last, zero-length edge (0, 0), whose arc is exactly 0, then each piece's centroid and the whole
+    triangle's; each piece's (zero, a, b, c) edges as (4, pieces) (then s - 0 = s: the four L'Huilier
+    tangents in one call); the pieces as (3, pieces + 1) with a last "piece" (A, B, C), whose normalised
+    vertex sum is the centroid. Returns (points, blocks, arc ends, edges + 1, piece edges, pieces)."""
     n_pts, corners, levels, tris, edges, tri_edges = _plan(depth)
     order = list(corners) + [int(p) for new, _, _ in levels for p in new]
     relabel = np.empty(n_pts, dtype=np.intp)
@@ -453,36 +455,45 @@ def _few_plan(depth: int):
         blocks.append((pos, pos + len(new), np.stack([relabel[e1], relabel[e2]])))
         pos += len(new)
     edge_ends = np.concatenate([relabel[edges], [[0, 0]]]).T
+    centroids = n_pts + np.arange(len(tris))
+    arc_ends = np.concatenate([edge_ends, [centroids, np.full(len(tris), n_pts + len(tris))]], axis=1)
     piece_edges = np.concatenate([np.full((1, len(tris)), len(edges)), tri_edges.T])
     pieces = np.concatenate([relabel[tris], [[0, 1, 2]]]).T
-    return n_pts, blocks, edge_ends, piece_edges, pieces
+    return n_pts, blocks, arc_ends, edge_ends.shape[1], piece_edges, pieces
 
 
 def polar_moment_few(A, B, C, depth: int = MOMENT_DEPTH) -> np.ndarray:
     """polar_moment(A, B, C, depth) of (n, 3) arrays (or lists of n 3-vectors), the same numbers to the last
     bit (the same operations on the same values, the same final np.einsum), in half of the numpy calls: each
-    level's points written in place, one gather per group of points, sums of two or three terms as one
-    reduction over the first axis (which adds in order), the centroid normalised with the pieces' vertex
-    sums, the arcs of the sides and of the pieces' centroids in one pass, the four L'Huilier tangents in
-    one call. For a few triangles, where the calls are the cost."""
-    n_pts, blocks, edge_ends, piece_edges, pieces = _few_plan(int(depth))
-    n_edges, n_pieces = edge_ends.shape[1], pieces.shape[1] - 1
+    level's points written in place, one gather per group of points (`ndarray.take`, a third of the cost of
+    an index), sums of two or three terms added in order (as a reduction over the first axis adds), the
+    centroid normalised with the pieces' vertex sums, the arcs of the sides and of the pieces' centroids in
+    one pass, the four L'Huilier tangents in one call. For a few triangles, where the calls are the cost.
+
+    The arcs are kept as half-angles x (arc = 2 x, exactly: doubling is exact), which saves three
+    multiplications: L'Huilier's s = 0.5 (a + b + c) is (x + y + z) and 0.5 (s - a) is 0.5 s - x, to the
+    bit (halving and doubling commute with rounding); its 4 arctan and theta^2 = 4 x^2 make each term of
+    the final sum 16 times x^2 arctan, and so the sum 16 times the sum of those (every partial sum scaled
+    by 16, exactly)."""
+    n_pts, blocks, arc_ends, n_edges, piece_edges, pieces = _few_plan(int(depth))
     out = np.empty(len(A))
     for s in range(0, len(A), _CHUNK):
         e = min(s + _CHUNK, len(A))
         P = np.empty((n_pts, e - s, 3))
         P[:3] = (A[s:e], B[s:e], C[s:e])  # arrays or lists of 3-vectors: one conversion
         for lo, hi, ends in blocks:
-            v = np.add.reduce(P[ends], axis=0)
+            E = P.take(ends, axis=0)
+            v = E[0] + E[1]
             np.divide(v, np.sqrt(np.add.reduce(v * v, axis=-1, keepdims=True)), out=P[lo:hi])  # normalize
-        Q = np.add.reduce(P[pieces], axis=0)  # the pieces' vertex sums, then the whole triangle's
+        E = P.take(pieces, axis=0)
+        Q = E[0] + E[1] + E[2]  # the pieces' vertex sums (in order, as np.add.reduce), then the whole triangle's
         Q /= np.sqrt(np.add.reduce(Q * Q, axis=-1, keepdims=True))  # centroids (normalize)
-        d = np.empty((n_edges + n_pieces, e - s, 3))  # the sides' ends, then each piece's centroid from G
-        ends = P[edge_ends]
-        np.subtract(ends[0], ends[1], out=d[:n_edges])
-        np.subtract(Q[:-1], Q[-1:], out=d[n_edges:])
-        arcs = 2.0 * np.arcsin(np.minimum(np.sqrt(np.einsum("...i,...i->...", d, d)) / 2.0, 1.0))  # arc
-        dA = lhuilier_zero_first(arcs[piece_edges])
-        theta = arcs[n_edges:]
-        out[s:e] = np.einsum("ij,ij->j", theta * theta, dA)
-    return out
+        E = np.concatenate([P, Q]).take(arc_ends, axis=0)  # the sides' ends, then each piece's centroid and G
+        d = E[0] - E[1]
+        half = np.arcsin(np.minimum(np.sqrt(np.einsum("...i,...i->...", d, d)) / 2.0, 1.0))  # `arc` / 2
+        S = half.take(piece_edges, axis=0)  # each piece's (zero, a, b, c) / 2
+        T = np.tan(0.5 * np.add.reduce(S[1:], axis=0) - S)  # `lhuilier_zero_first`'s tangents
+        excess = np.arctan(np.sqrt(np.maximum(np.multiply.reduce(T, axis=0), 0.0)))  # dA / 4
+        theta = half[n_edges:]  # theta / 2
+        out[s:e] = np.einsum("ij,ij->j", theta * theta, excess)
+    return out * 16.0

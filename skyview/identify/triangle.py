@@ -180,7 +180,10 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         """No triangle database: the angle database's pairs (shared with the angle method) and the
         polar-moment sigma line (a small database of its own)."""
 
-        self.pair_i, self.pair_j, self.kv_pairs, info = load_pair_database(catalog, camera)
+        pair_i, pair_j, self.kv_pairs, info = load_pair_database(catalog, camera)
+        # both stars of each pair side by side: the pairs of an angle range are one contiguous block (`join_pairs`)
+        self.pair_ends = np.stack([pair_i, pair_j], axis=1)
+        self.pair_i, self.pair_j = self.pair_ends[:, 0], self.pair_ends[:, 1]
         self.pair_max_sep_rad = float(info["max_sep_rad"])
         params = {"max_radius_rad": self.max_radius_rad, "depth": self.depth, "moment_sigma": MOMENT_PARAMS,
                   "sample": MOMENT_SAMPLE_TRIANGLES, "version": MOMENT_SIGMA_VERSION}
@@ -276,12 +279,13 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         V, sigma = search.V, search.sigma
         m = search.n if self.max_stars is None else min(search.n, self.max_stars)
         t = self.triangle_bounds(V[:m], sigma, lookup=self.order == "fewest")
-        if self.order == "fewest":
-            rank = np.lexsort((-t["area"], t["counts"]))
-        else:
-            rank = (-t["area"]).argsort(kind="stable")
-        priority = np.empty(len(rank), dtype=np.int64)
-        priority[rank] = np.arange(len(rank))
+        # the lower the priority, the sooner a chain takes the triangle (`next_by_priority`)
+        priority = -t["area"]  # largest first; a tie: the lower index first (argmin's and a stable sort's)
+        if self.order == "fewest" or np.isnan(priority).any():  # (NaN: no order; none from unit vectors)
+            rank = (np.lexsort((priority, t["counts"])) if self.order == "fewest"
+                    else priority.argsort(kind="stable"))
+            priority = np.empty(len(rank), dtype=np.int64)
+            priority[rank] = np.arange(len(rank))  # the ranks
         t["priority"] = priority
         t["tol"] = 2.0 * search.radius
         t["sigma"] = sigma
@@ -298,7 +302,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         # verification ("unique" also when that one star set fits in no vertex order)
         return {"triangle_stars": m, "triangles": len(t["area"])}, {
             "first_chain": {"outcome": "unique" if first.answer is not None else first.outcome,
-                            "matches": ({int(o): int(c) for o, c in zip(first.used, first.answer)}
+                            "matches": (dict(zip(map(int, first.used), first.answer.tolist()))
                                         if first.answer is not None else {}),
                             "vertex_order_ok": first.best is not None}}
 
@@ -416,7 +420,8 @@ class TriangleMethod(TriangleLookup, PivotMethod):
         if H is checked:
             Hc = H
         elif len(triangles) == 1 and H is t.get("oriented", {}).get(first) and first in t.get("consistent_rows", {}):
-            Hc = H[np.array(t["consistent_rows"][first], dtype=bool)]  # what `consistent` returns, from the join
+            kept = t["consistent_rows"][first]  # what `consistent` returns, from the join
+            Hc = H if all(kept) else H[np.array(kept, dtype=bool)]
         else:
             Hc = self.consistent(V, used, triangles, H, sigma, t)
         if len(Hc) == 0:  # the paper would report this set; it fits in no vertex order, so it is wrong

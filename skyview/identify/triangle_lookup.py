@@ -56,15 +56,16 @@ class TriangleLookup:
         pairs, side_of = _side_pairs(len(V))
         # the sides a = AB, b = BC, c = CA of every triangle (as sph.sides) are angles between two stars:
         # each pair's once (the arc of C, A is that of A, C: the difference only changes sign)
-        ends = V[pairs]  # both stars of every pair, in one gather
+        ends = V.take(pairs, axis=0)  # both stars of every pair, in one gather (take: no index parsing)
         arcs = np.zeros(pairs.shape[1] + 1)
         sph.arc(ends[0], ends[1], out=arcs[:-1])
-        S4 = arcs[side_of]  # (4, n): 0, a, b, c
+        S4 = arcs.take(side_of)  # (4, n): 0, a, b, c
         S = S4[1:]
         area = sph.lhuilier_zero_first(S4)  # = sph.lhuilier(*S)
         n = len(area)
         # the rest are measured as the search visits them (`_measure`); the triple product with them
-        nan = np.full((5, n), np.nan)
+        nan = np.empty((5, n))
+        nan.fill(np.nan)  # (np.full's Python wrapper costs more than both calls)
         out = dict(ti=ti, tj=tj, tk=tk, sides=S.T, area=area, triple=nan[0], sigma=sigma, V=V, area_bound=nan[1],
                    moment=nan[2], moment_bound=nan[3], triple_sigma=nan[4])
         if lookup or self.order == "fewest":
@@ -118,7 +119,10 @@ class TriangleLookup:
         (`sph.triangle_sigmas`: the same numbers as the batch; its polar moment is left to `join_pairs`,
         which computes it with the candidates' in a batch of two or more, as `_moments` explains). False
         when the triangle is degenerate (then `_measure` does it)."""
-        A, B, C = t["V"][[t["ti"][k], t["tj"][k], t["tk"][k]]].tolist()
+        if "V_list" not in t:
+            t["V_list"] = t["V"].tolist()  # the frame's stars as lists, once
+        Vl = t["V_list"]
+        A, B, C = Vl[t["ti"][k]], Vl[t["tj"][k]], Vl[t["tk"][k]]
         a, b, c = t["sides"][k].tolist()
         sig = sph.triangle_sigmas([A], [B], [C], [a], [b], [c], t["sigma"])
         if sig is None:
@@ -128,6 +132,7 @@ class TriangleLookup:
         t["triple"][k] = sph.dot3(A, sph.cross3(B, C))  # = sph.triple
         t["moment_pending"] = pend = np.array([k])
         t["moment_pending_corners"] = (pend, ([A], [B], [C]))  # for `_moments`, as lists
+        t.setdefault("corners", {})[k] = (A, B, C)  # for `_close_few`
         return True
 
     def _set_moment(self, t: dict, idx: np.ndarray, moment: np.ndarray) -> None:
@@ -142,7 +147,8 @@ class TriangleLookup:
         """Observed triangle k measured (`_measure`), with the next unmeasured ones in the search order
         (database="pairs": but for the polar moments, which `join_pairs` computes next; with
         area_sigma="stars" too, k alone, in plain floats: `_measure_one`)."""
-        if not np.isnan(t["area_bound"][k]):
+        done = t["area_bound"][k]
+        if done == done:  # not NaN: measured (a NaN is unequal to itself; np.isnan costs a ufunc call)
             return
         if self.database == "pairs" and self.area_sigma == "stars" and self._measure_one(t, k):
             return
@@ -239,27 +245,29 @@ class TriangleLookup:
         # the pairs of each side: kv_pairs.ranges (its two binary searches; lo <= hi, as tol > 0)
         values = self.kv_pairs.sorted_values
         st, sp = values.searchsorted(lo, "left").tolist(), values.searchsorted(hi, "right").tolist()
-        pi, pj, xyz = self.pair_i, self.pair_j, self.catalog.xyz
-        a1, b1 = pi[st[0]:sp[0]], pj[st[0]:sp[0]]
-        a2, b2 = pi[st[1]:sp[1]], pj[st[1]:sp[1]]
+        E, xyz = self.pair_ends, self.catalog.xyz
         # each star of a candidate ends a pair of both its sides (p: pq and rp, q: pq and qr, r: qr and rp):
         # a pair with a star that does not is dropped before the join (a few dozen of ~1,000 are left). Side
         # rp's pairs are the database's, whose stored angles are to the bit those computed below; but near
         # the database's largest angle (where the catalog's pair search might round a pair out) rp is left
         # to the test below alone. Then the same triangles, in the same order, as joining every pair.
-        rp = hi[2] < (1.0 - 1e-9) * self.pair_max_sep_rad
-        on1, on2, on3 = _ends(pi, pj, st, sp, len(xyz), 3 if rp else 2)
+        rp = float(hi[2]) < (1.0 - 1e-9) * self.pair_max_sep_rad
+        on1, on2, on3 = _ends(E, st, sp, len(xyz), 3 if rp else 2)
         p_ok, q_ok, r_ok = on1 & on3, on1 & on2, on2 & on3
-        cp, cq = np.concatenate([a1, b1]), np.concatenate([b1, a1])  # (catalog p, catalog q), both orientations
+        # (catalog p, catalog q) of side pq's pairs in both orientations, (i, j) then (j, i): [pair_i, pair_j]
+        # and [pair_j, pair_i] of its block, each one copy; the same for side qr's (q, r)
+        block = E[st[0]:sp[0]]
+        cp, cq = block.T.ravel(), block[:, ::-1].T.ravel()
         keep = p_ok[cp] & q_ok[cq]
         cp, cq = cp[keep], cq[keep]
-        q2, r2 = np.concatenate([a2, b2]), np.concatenate([b2, a2])
+        block = E[st[1]:sp[1]]
+        q2, r2 = block.T.ravel(), block[:, ::-1].T.ravel()
         keep = q_ok[q2] & r_ok[r2]
         q2, r2 = q2[keep], r2[keep]
         if len(cp) * len(q2) <= JOIN_DENSE:
             # every (pq, qr) pair with the same star on q: row-major, so in pq's order and then qr's (by_star's)
-            rows, cols = np.nonzero(cq[:, None] == q2[None, :])
-            a, b, c = cp[rows], cq[rows], r2[cols]
+            rows, cols = divmod((cq[:, None] == q2).ravel().nonzero()[0], len(q2))  # (1-D nonzero: faster)
+            a, b, c = cp.take(rows), cq.take(rows), r2.take(cols)
         else:
             r2s, start, size = by_star(q2, r2, len(xyz))  # side qr's pairs in blocks by their star on q
             cnt = size[cq]
@@ -268,7 +276,7 @@ class TriangleLookup:
             a, b = cp[rows], cq[rows]
         t.setdefault("side_counts", {})[k] = (sp[0] - st[0], sp[1] - st[1])
         if len(a) <= SMALL:  # the usual few: the same tests in plain floats, the same numbers
-            return self._close_few(t, k, a.tolist(), b.tolist(), c.tolist(), float(lo[2]), float(hi[2]))
+            return self._close_few(t, k, a, b, c, float(lo[2]), float(hi[2]))
         ok = c != a
         a, b, c = a[ok], b[ok], c[ok]
         # side rp: the angle exactly as the database computes its pairs' (for many, first a cheap test on
@@ -301,32 +309,30 @@ class TriangleLookup:
             a, b, c = a[ok], b[ok], c[ok]
         return np.stack([a, b, c], axis=1)
 
-    def _close_few(self, t: dict, k: int, a: list[int], b: list[int], c: list[int], lo: float, hi: float
+    def _close_few(self, t: dict, k: int, a: np.ndarray, b: np.ndarray, c: np.ndarray, lo: float, hi: float
                    ) -> np.ndarray:
         """`join_pairs`' tests of a few joined triangles (catalog stars a, b, c on p, q, r) in plain floats,
         the same numbers as its arrays: r is not p; side rp within [lo, hi] and the database's largest angle
         (the third of `sph.sides_few`, = angular_distance(C, A) as the database computes its pairs'); the
         handedness where the observed sign is certain; the area within its bound (`sph.lhuilier_few` of the
         same sides, = sph.area); the polar moment within its bound (`_moments`). Returns (h, 3) rows."""
-        keep = [i for i in range(len(a)) if c[i] != a[i]]
-        a, b, c = [a[i] for i in keep], [b[i] for i in keep], [c[i] for i in keep]
-        n = len(a)
         xyz = self.catalog.xyz
         # side rp first by its squared chord, which the angle grows with: outside the bounds' own squared
-        # chords, widened far beyond any rounding, no angle can pass (most of the joined triangles)
+        # chords, widened far beyond any rounding, no angle can pass (most of the joined triangles; on the
+        # arrays, as the joined triangles are a dozen or so and the few left are one or two)
         c_lo = (2.0 * math.sin(lo / 2.0)) ** 2 * (1.0 - 1e-9) if lo > 0.0 else 0.0
         c_hi = (2.0 * math.sin(hi / 2.0)) ** 2 * (1.0 + 1e-9) if hi < math.pi else math.inf
-        ABC = xyz[a + b + c].tolist()
-        near = []
-        for i in range(n):
-            x, y = ABC[2 * n + i], ABC[i]
-            d0, d1, d2 = x[0] - y[0], x[1] - y[1], x[2] - y[2]
-            if c_lo <= d0 * d0 + d1 * d1 + d2 * d2 <= c_hi:
-                near.append(i)
-        A, B, C = ([ABC[o + i] for i in near] for o in (0, n, 2 * n))
-        a, b, c = [a[i] for i in near], [b[i] for i in near], [c[i] for i in near]
+        d = xyz.take(c, axis=0) - xyz.take(a, axis=0)
+        chord2 = np.einsum("ij,ij->i", d, d)
+        ok = (chord2 >= c_lo) & (chord2 <= c_hi)
+        if not c_lo > 0.0:  # r on p has a zero chord: only a zero lower bound keeps it
+            ok &= c != a
+        near = ok.nonzero()[0]
+        abc = np.array((a, b, c)).take(near, axis=1)
+        a, b, c = abc.tolist()
+        A, B, C = xyz.take(abc, axis=0).tolist()
         # the observed triangle's sides first, in the same call (for `consistent_rows`)
-        P, Q, R = t["V"][[int(t["ti"][k]), int(t["tj"][k]), int(t["tk"][k])]].tolist()
+        P, Q, R = t.get("corners", {}).get(k) or t["V"][[t["ti"][k], t["tj"][k], t["tk"][k]]].tolist()
         obs, *sides = sph.sides_few([P] + A, [Q] + B, [R] + C)
         top = self.pair_max_sep_rad
         tr, trs = float(t["triple"][k]), float(t["triple_sigma"][k])
@@ -464,14 +470,13 @@ def _combinations(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return out
 
 
-def _ends(pi: np.ndarray, pj: np.ndarray, st: list[int], sp: list[int], n: int, sides: int) -> np.ndarray:
-    """Which of n catalog stars end one of the pairs (pi, pj)[st[s]:sp[s]] of each of the first `sides`
-    sides s, as (3, n) booleans (a side left out: every star)."""
+def _ends(E: np.ndarray, st: list[int], sp: list[int], n: int, sides: int) -> np.ndarray:
+    """Which of n catalog stars end one of the pairs E[st[s]:sp[s]] ((pairs, 2): both stars of each) of
+    each of the first `sides` sides s, as (3, n) booleans (a side left out: every star)."""
     on = np.zeros((3, n), dtype=bool)
     for s in range(sides):
         row = on[s]  # (a 1-D scatter is faster than on[s, index])
-        row[pi[st[s]:sp[s]]] = True
-        row[pj[st[s]:sp[s]]] = True
+        row[E[st[s]:sp[s]]] = True  # both stars of each pair: one contiguous block of the database
     if sides < 3:
         on[sides:] = True
     return on

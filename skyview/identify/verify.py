@@ -70,8 +70,9 @@ Python lists (`_Frame.agreeing`); whether a matched catalog star has a neighbour
 radius comes from each star's nearest-neighbour chord, looked up once per catalog (`_has_neighbour`);
 the estimate from every match is remembered for the solver's attitude stage (`attitude.remember_svd`).
 The hypothesis stars' ambiguity and the crowding count are only counted when two pool stars (two
-observed stars) lie close enough for one radius to hold both (`_apart`: one product of the rows; the
-triangle inequality says nothing else can be ambiguous or crowded); the Poisson-binomial tail runs on
+observed stars) lie close enough for one radius to hold both (`_stars_apart`: the pool stars' remembered
+nearest-neighbour chords; `_apart`: one product of the observed rows; the triangle inequality says
+nothing else can be ambiguous or crowded); the Poisson-binomial tail runs on
 the Python floats of p_tested (the same IEEE operations as numpy's).
 Each of these gives the general path's (and the k-d tree's) numbers to the last bit
 (tests/test_verify.py and tests/test_catalog.py compare them).
@@ -117,22 +118,26 @@ BLEND_RADIUS_PX = 5.0
 
 def local_density(catalog: GuideCatalog, directions_icrs: np.ndarray, leave_out: np.ndarray | None = None,
                   radius_rad: float = LOCAL_RADIUS_RAD, min_count: int = LOCAL_MIN_COUNT,
-                  among: np.ndarray | None = None) -> np.ndarray:
+                  among: np.ndarray | None = None, among_xyz: np.ndarray | None = None) -> np.ndarray:
     """Catalog stars per steradian within radius_rad of each direction, 0 where fewer than min_count.
 
     leave_out: how many stars to discount per direction (the star it landed on). With fewer than
     min_count stars the count is Poisson noise (0.35 expected within 1 deg at mag 6), not a density.
     among: catalog rows known to hold every star within radius_rad of the directions (the stars
-    around a frame: fewer to measure). The counts are the k-d tree's (`GuideCatalog.ball_counts`).
+    around a frame: fewer to measure; among_xyz: their directions, where the caller has them). The
+    counts are the k-d tree's (`GuideCatalog.ball_counts`).
     """
     d = np.asarray(directions_icrs, dtype=np.float64)
     d = d[None] if d.ndim == 1 else d  # = np.atleast_2d
     if len(d) == 0:
         return np.zeros(0)
     ch, area = _chord_area(float(radius_rad))
-    n = catalog.ball_counts(d, ch, among).astype(np.float64)
-    if leave_out is not None:
-        n = np.maximum(n - leave_out, 0.0)
+    n = catalog.ball_counts(d, ch, among, among_xyz)
+    # (float64 counts; a count below min_count is 0, so one below 0 needs no np.maximum first when
+    # min_count > 0: the same numbers, +0.0 included)
+    n = n.astype(np.float64) if leave_out is None else n - leave_out  # (int64 - float64: float64, exact)
+    if leave_out is not None and min_count <= 0:
+        n = np.maximum(n, 0.0)
     n[n < min_count] = 0.0
     return n / area
 
@@ -322,10 +327,10 @@ class Verification:
             "radius_max_arcsec": float(self.radius_max_rad * RAD_TO_ARCSEC),
             "n_hypothesis": int(self.n_hypothesis), "n_agree": int(self.n_agree), "n_tested": int(self.n_tested),
             "n_frame": int(self.n_frame), "n_hypotheses": int(self.n_hypotheses),
-            "p_single": float(self.p_single), "p_tested": [float(p) for p in self.p_tested],
+            "p_single": float(self.p_single), "p_tested": list(map(float, self.p_tested)),
             "p_false": float(self.p_false),
             "max_residual_arcsec": float(self.max_residual_rad * RAD_TO_ARCSEC),
-            "n_matches": len(self.matches), "ambiguous": [int(i) for i in self.ambiguous],
+            "n_matches": len(self.matches), "ambiguous": list(map(int, self.ambiguous)),
         }
 
 
@@ -415,6 +420,11 @@ def _nearest_two(query: np.ndarray, ref: np.ndarray, bound: float, keep: np.ndar
     return d[:, 0], j[:, 0], d1
 
 
+def _plus_one(q: np.ndarray) -> np.ndarray:
+    """|q_i|^2 + 1 per row (the squared lengths _Frame._within's dot-product prefilter adds to |v|^2 = 1)."""
+    return _einsum("ij,ij->i", q, q) + 1.0
+
+
 def _count_within(query: np.ndarray, ref: np.ndarray, chords: np.ndarray) -> np.ndarray:
     """How many ref rows lie within each query's chord (= cKDTree(ref).query_ball_point(query, chords,
     return_length=True)). The chords are _chords's; from PREFILTER_PAIRS pairs only those a dot product
@@ -495,19 +505,11 @@ NEAREST_REACH_RAD = float(np.radians(1.0))  # nearest neighbours are looked for 
 def _has_neighbour(catalog: GuideCatalog, rows: np.ndarray, chords: np.ndarray) -> np.ndarray:
     """catalog.tree.query_ball_point(catalog.xyz[rows], chords, return_length=True) >= 2: whether
     another catalog star lies within each chord. From the chord to each star's nearest neighbour
-    (`GuideCatalog.nearest_chords`: the tree's k=2 distance; inf beyond NEAREST_REACH_RAD), looked up
-    once per star and catalog and remembered (NaN until then); a neighbour within NEAREST_UNSURE of
+    (`nearest_table`: the tree's k=2 distance; inf beyond NEAREST_REACH_RAD, one table per catalog,
+    cached); a neighbour within NEAREST_UNSURE of
     the limit, or a chord beyond half the reach, is counted exactly (`GuideCatalog.ball_counts`), so
     the answer is the tree's answer."""
-    nn = _NEAREST.get(catalog)
-    if nn is None:
-        nn = _NEAREST[catalog] = np.full(len(catalog.xyz), np.nan)
-    d = nn[rows]
-    miss = np.isnan(d)
-    if miss.any():
-        new = rows[miss]
-        nn[new] = catalog.nearest_chords(new, NEAREST_REACH_RAD)
-        d = nn[rows]
+    d = _nearest(catalog, rows)
     out = d <= chords
     unsure = (np.abs(d - chords) <= NEAREST_UNSURE * chords) | (chords > 0.5 * _NEAREST_REACH_CHORD)
     if unsure.any():
@@ -516,6 +518,54 @@ def _has_neighbour(catalog: GuideCatalog, rows: np.ndarray, chords: np.ndarray) 
 
 
 _NEAREST_REACH_CHORD = float(chord(NEAREST_REACH_RAD))
+
+
+def _nearest(catalog: GuideCatalog, rows: np.ndarray) -> np.ndarray:
+    """The chord from each catalog star (rows) to its nearest other star (inf beyond NEAREST_REACH_RAD),
+    from the catalog's table of them (`nearest_table`), read once per catalog and process."""
+    nn = _NEAREST.get(catalog)
+    if nn is None:
+        nn = _NEAREST[catalog] = nearest_table(catalog)
+    return nn[rows]
+
+
+def nearest_table(catalog: GuideCatalog) -> np.ndarray:
+    """The chord from every catalog star to its nearest other star, inf where none lies within
+    NEAREST_REACH_RAD: the k-d tree's k=2 query (`GuideCatalog.nearest_chords` gives the same numbers
+    star by star), built once per catalog and cached on disk as a database (8 bytes a star: 36 kB at
+    mag 6, 0.6 MB for the full 78,000-star catalog; it loads in about a millisecond). Whole, not star by
+    star as frames ask: a first frame in a new part of the sky costs no more than the next one."""
+    from skyview.identify import database
+
+    key = database.make_key("nearest", {"reach_rad": NEAREST_REACH_RAD}, catalog, None)
+    arrays, _ = database.load_or_build(key, lambda: {"chord": _nearest_chords_all(catalog)})
+    return np.asarray(arrays["chord"], dtype=np.float64)
+
+
+def _nearest_chords_all(catalog: GuideCatalog) -> np.ndarray:
+    """nearest_table's build: one k=2 query of the catalog's k-d tree (a star's first answer is itself,
+    or a star at the same place: the chord 0 either way)."""
+    if len(catalog.xyz) < 2:
+        return np.full(len(catalog.xyz), np.inf)
+    d, _ = catalog.tree.query(catalog.xyz, k=2, distance_upper_bound=_NEAREST_REACH_CHORD)
+    return np.ascontiguousarray(d[:, 1], dtype=np.float64)
+
+
+APART_CHORD_MARGIN = 1e-9  # on a chord: a million times the rounding of a turned direction's chords
+
+
+def _stars_apart(catalog: GuideCatalog, rows: np.ndarray, v: np.ndarray, radius_rad: float) -> bool:
+    """Whether no ball of radius_rad holds two of the catalog stars `rows` (their directions v, turned by
+    an attitude): as `_apart(v, radius_rad)`, but from each star's nearest other catalog star
+    (`_nearest`, remembered per catalog): all of them farther than twice the ball's chord (and
+    APART_CHORD_MARGIN, far more than a turn's rounding of a chord) say so for any attitude. A False
+    where _apart would say True only costs the exact count (`_Frame.ambiguous`: the same answer)."""
+    if len(rows) < 2:
+        return True
+    c2 = 4.0 * math.sin(0.5 * min(radius_rad, math.pi)) + APART_CHORD_MARGIN
+    if c2 >= _NEAREST_REACH_CHORD:  # beyond the reach of the remembered neighbours: the products
+        return _apart(v, radius_rad)
+    return float(_nearest(catalog, rows).min()) > c2
 
 
 def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
@@ -544,20 +594,24 @@ def _solid_angle_sr(camera: Camera) -> float:
     return camera.solid_angle_sr
 
 
+_NO_ROWS = np.zeros(0, dtype=np.int64)
+_NO_XYZ = np.zeros((0, 3))
+
+
 class _Near:
     """The catalog stars within some radius of a direction, fetched once per verification and reused
     by every re-estimated attitude whose frame they still cover (a refit moves the boresight by
     arcseconds): `rows(b, radius)` is catalog.within(b, radius) or a superset of it, ascending; and
-    `wide`, the stars within `wide_rad` (the local density's reach) or a superset."""
+    `wide`, the stars within `wide_rad` (the local density's reach) or a superset (`wide_xyz`: their
+    directions)."""
 
     def __init__(self, catalog: GuideCatalog, wide_rad: float = 0.0):
         self.catalog = catalog
         self.center = self.unit = None  # the direction fetched around (and it normalised)
         self.radius = -1.0
         self.wide_rad = wide_rad
-        self.idx = np.zeros(0, dtype=np.int64)
-        self.xyz = np.zeros((0, 3))
-        self.wide = self.idx
+        self.idx = self.wide = _NO_ROWS  # (shared empty arrays, replaced, never written to)
+        self.xyz = self.wide_xyz = _NO_XYZ
 
     def rows(self, b: np.ndarray, radius: float) -> np.ndarray:
         """The rows (and `self.xyz`, their directions), ascending."""
@@ -571,9 +625,9 @@ class _Near:
         self.wide_rad = max(self.wide_rad, self.radius)
         # the stars the sky index puts within each radius (ascending, as catalog.within gives them; a
         # 1e-9 margin on the cosine: a superset)
-        self.wide, cos_b = self.catalog.sky.cap_cosines(self.center, self.wide_rad)
-        self.idx = self.wide[cos_b >= math.cos(min(self.radius, math.pi)) - 1e-9]
-        self.xyz = self.catalog.xyz[self.idx]
+        self.wide, cos_b, self.wide_xyz = self.catalog.sky.cap_cosines(self.center, self.wide_rad, True)
+        inner = cos_b >= math.cos(min(self.radius, math.pi)) - 1e-9
+        self.idx, self.xyz = self.wide[inner], self.wide_xyz[inner]  # (= catalog.xyz[idx])
         return self.idx
 
     def covers(self, directions: np.ndarray, radius_rad: float) -> bool:
@@ -605,9 +659,11 @@ class _Frame:
                 every = False
             else:  # = camera.project without its per-call overhead: the same numbers
                 z = v[:, 2]
-                front = z > 1e-12
-                every = bool(front.all())  # (the usual case: every star in front, nothing to replace)
+                # (the usual case: every star in front, nothing to replace; = (z > 1e-12).all(): a NaN
+                # minimum compares False, as every NaN z would)
+                every = float(z.min()) > 1e-12
                 if not every:
+                    front = z > 1e-12
                     z = np.where(front, z, 1.0)
                 # x = fx (v_x / z) + cx and y likewise, both columns at once (the same operations)
                 fxy, cxy = _focal_centre(camera)
@@ -631,14 +687,15 @@ class _Frame:
         self.rows = rows[pool]
         self.v = v[pool]
 
-    def _within(self, q: np.ndarray, cq: np.ndarray, chords: bool = True
+    def _within(self, q: np.ndarray, cq: np.ndarray, chords: bool = True, qq1: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """The pairs (row k of q, pool star j, chord) with chord <= cq[k], k ascending and j ascending
         within a row. The chords are _chords's numbers (the same differences and sums, pair by pair);
         on larger frames only the pairs a dot product puts within reach (a 1e-12 margin on the squared
         chord, a thousand times its rounding) are measured. chords=False: the chords may be left out
         (None) where every pair the dot product keeps lies within reach by more than that margin (they
-        are then surely within: only the pairs are asked for)."""
+        are then surely within: only the pairs are asked for). qq1: |q|^2 + 1 per row, where the caller
+        has it (`_plus_one`: verify's every round asks with the same q)."""
         n, m = len(q), len(self.v)
         if n * m < PREFILTER_PAIRS:
             D = _chords(q, self.v)
@@ -646,12 +703,11 @@ class _Frame:
             return ks, js, D[ks, js]
         # |q - v|^2 = |q|^2 + |v|^2 - 2 q.v <= cq^2, with |v|^2 = 1 to ~1e-15 (catalog unit vectors
         # turned by an attitude): q.v >= (|q|^2 + 1 - cq^2) / 2, less the margin
-        qq = _einsum("ij,ij->i", q, q)
-        g = q @ self.v.T
-        reach = 0.5 * ((qq + 1.0) - cq * cq)
-        ks, js = (g >= (reach - 0.5 * PREFILTER_MARGIN)[:, None]).nonzero()
-        # every kept pair is surely within when as many pairs clear the upper limit (a subset of them)
-        if not chords and np.count_nonzero(g >= (reach + 0.5 * PREFILTER_MARGIN)[:, None]) == len(ks):
+        # (e = q.v - reach: within ~1e-15 of (cq^2 - |q - v|^2) / 2, a margin's 1/500)
+        e = q @ self.v.T - (0.5 * ((_plus_one(q) if qq1 is None else qq1) - cq * cq))[:, None]
+        ks, js = (e >= -0.5 * PREFILTER_MARGIN).nonzero()
+        # every kept pair is surely within when each clears the upper limit
+        if not chords and (len(ks) == 0 or float(e[ks, js].min()) >= 0.5 * PREFILTER_MARGIN):
             return ks, js, None
         diff = q[ks] - self.v[js]
         d = np.sqrt(_einsum("ij,ij->i", diff, diff))
@@ -669,20 +725,25 @@ class _Frame:
         return np.bincount(pairs, minlength=len(q)) >= 2  # = second nearest within
 
     def agreeing(self, vectors: np.ndarray, others: np.ndarray, exclude_rows: np.ndarray, radii,
-                 q: np.ndarray | None = None) -> tuple[dict[int, int], set[int]]:
+                 q: np.ndarray | None = None, qq1: np.ndarray | None = None, exclude_list: list | None = None
+                 ) -> tuple[dict[int, int], set[int]]:
         """Observed stars among `others` within their radius of a catalog star not in exclude_rows
         (one-to-one), and those with two or more catalog stars within it (ambiguous: not in the dict).
-        q: vectors[others], where the caller has it."""
+        q: vectors[others], qq1: `_plus_one(q)`, exclude_list: exclude_rows as a list of Python ints,
+        where the caller has them."""
         if len(others) == 0 or len(self.rows) == 0:
             return {}, set()
         q = vectors[others] if q is None else q
-        cq = 2.0 * np.sin(_per_item(radii, len(others)) / 2.0)  # = chord(radii)
+        # = chord(radii) (verify passes one radius per star: no _per_item)
+        cq = 2.0 * np.sin((radii if type(radii) is np.ndarray and radii.shape == others.shape
+                           else _per_item(radii, len(others))) / 2.0)
         if len(others) * len(self.v) <= BRUTE_PAIRS:
-            qs, cs, ds = self._within(q, cq, chords=not ONE_EACH_FAST)
+            qs, cs, ds = self._within(q, cq, not ONE_EACH_FAST, qq1)
             q_l, c_l = qs.tolist(), cs.tolist()
             if ONE_EACH_FAST and len(set(q_l)) == len(q_l) and len(set(c_l)) == len(c_l):
                 rows_c = self.rows[cs].tolist()
-                if set(rows_c).isdisjoint(np.asarray(exclude_rows).ravel().tolist()):
+                if set(rows_c).isdisjoint(np.asarray(exclude_rows).ravel().tolist() if exclude_list is None
+                                          else exclude_list):
                     # the usual frame: every star has at most one catalog star within its radius, none
                     # of the hypothesis, and no catalog star is wanted twice: no ambiguity, all agree
                     return dict(zip(others[qs].tolist(), rows_c)), set()
@@ -703,7 +764,7 @@ class _Frame:
         # star not in the hypothesis (= argmin over those: the first column on a tie) is within the
         # radius exactly when one of its pairs is such a star
         if ds is None:
-            qs, cs, ds = self._within(q, cq)
+            qs, cs, ds = self._within(q, cq, True, qq1)
             q_l, c_l = qs.tolist(), cs.tolist()
         ds = ds.tolist()
         keep_l = keep.tolist()
@@ -761,7 +822,8 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     h_cat = np.array([hypothesis[i] for i in h_keys], dtype=np.int64)
     if h_obs[0] < 0 or h_obs[-1] >= n_obs:  # sorted
         raise ValueError("hypothesis refers to an observed star that does not exist")
-    if len(set(h_cat.tolist())) != len(h_cat):
+    h_cat_l = h_cat.tolist()  # (Python ints)
+    if len(set(h_cat_l)) != len(h_cat_l):
         out.reason = "the hypothesis assigns one catalog star to two observed stars"
         return out
 
@@ -793,15 +855,19 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     solid_angle = _solid_angle_sr(camera)
     out.p_single = p_single(out.n_frame, solid_angle, r)
     q = vectors[others]
-    agree, amb = frame.agreeing(vectors, others, h_cat, radii, q)
+    qq1 = _plus_one(q)  # (every round's q)
+    agree, amb = frame.agreeing(vectors, others, h_cat, radii, q, qq1, h_cat_l)
     out.n_agree = len(agree) + len(amb)  # an unresolved close pair still is a catalog star
     out.agreeing = agree
     # density: the frame's, or the local one around each tested star where that is higher (a
     # cluster); the star a tested star landed on is left out of its own neighbourhood
-    landed = np.array([o in agree or o in amb for o in others.tolist()], dtype=np.float64)
+    others_l = others.tolist()
+    landed = np.array([o in agree or o in amb for o in others_l], dtype=np.float64)
     tested = q @ R
-    dens = np.maximum(out.n_frame / solid_angle, local_density(
-        catalog, tested, leave_out=landed, among=near.wide if near.covers(tested, LOCAL_RADIUS_RAD) else None))
+    cover = near.covers(tested, LOCAL_RADIUS_RAD)
+    dens = np.maximum(out.n_frame / solid_angle, local_density(catalog, tested, leave_out=landed,
+                                                              among=near.wide if cover else None,
+                                                              among_xyz=near.wide_xyz if cover else None))
     out.p_tested = np.minimum(1.0, dens * np.pi * radii ** 2).tolist()
     if statistic == CALIBRATED:
         out.p_false = (_p_false_floats(out.n_agree, out.p_tested, n_hypotheses) if out.n_tested > 0 and out.n_agree > 0
@@ -825,7 +891,8 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     # identity is ambiguous
     # (every step below is a deterministic function of the matches it starts from: when a round
     # leaves the matches as they were, its estimate, frame and agreements are reused, not recomputed)
-    hyp = dict(zip(h_obs.tolist(), h_cat.tolist()))
+    h_obs_l = h_obs.tolist()
+    hyp = dict(zip(h_obs_l, h_cat_l))
     current = {**hyp, **agree}
     done = None  # (matches, their estimate, its observed indices and catalog rows) of the last round
     for _ in range(2):
@@ -835,42 +902,50 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         radii_all = star_radii(vectors, est.covariance, sigma_rad, r, unit_all)  # every star's, for this estimate
         radii = radii_all[others]
         frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r, near, count=False)
-        agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii, q)
+        agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii, q, qq1, h_cat_l)
         done = (current, est, e_obs, e_cat)
         current = {**hyp, **agree_i}
     h_rad = radii_all[h_obs]
-    # (no two pool stars close enough for one radius to hold both: nobody is ambiguous, nothing to count)
-    h_amb = np.zeros(len(h_obs), dtype=bool) if _apart(frame.v, float(h_rad.max())) else frame.ambiguous(b_h, h_rad)
-    final = {o: c for o, c, a in zip(h_obs.tolist(), h_cat.tolist(), h_amb.tolist()) if not a}  # Python ints
+    if _stars_apart(catalog, frame.rows, frame.v, float(h_rad.max())):
+        # (no two pool stars close enough for one radius to hold both: nobody is ambiguous)
+        final = dict(hyp)  # Python ints, in h_obs order (as the comprehension below)
+        ambiguous = set(amb_i)
+    else:
+        h_amb = frame.ambiguous(b_h, h_rad)
+        final = {o: c for o, c, a in zip(h_obs_l, h_cat_l, h_amb.tolist()) if not a}
+        ambiguous = set(h_obs[h_amb].tolist()) | amb_i
     final.update(agree_i)
-    ambiguous = set(h_obs[h_amb].tolist()) | amb_i
+    dropped: list[int] = []
     if len(final) >= 2:
         same = final == done[0]
         # (the same matches: the same sorted indices and rows the estimate was made of)
         est, f_obs, f_cat = done[1:] if same else _estimate(vectors, final, catalog, sigma_rad)
-        done = (dict(final), est)
         rad = radii_all[f_obs] if same else star_radii(None, est.covariance, sigma_rad, r,
                                                        (unit_all[0][f_obs], unit_all[1][f_obs]))
         pred = catalog.xyz[f_cat] @ est.R.T
         # every reported star must fit the final attitude (a hypothesis star that only just fitted
         # its own attitude may not) ...
         misfit = angular_distance(vectors[f_obs], pred) > rad
-        # ... and a catalog star with two observed stars within the radius (a false star or a hot
-        # pixel next to a star) may belong to either, so neither is reported
-        crowd = (np.zeros(len(f_obs), dtype=bool) if _apart(vectors, float(rad.max()))
-                 else _count_within(pred, vectors, chord(rad)) >= 2)
         # ... and a catalog star with another catalog star closer than the sensor resolves may be
         # half of a blend whose centroid sits between the two: its identity is either
         blend = np.maximum(rad, BLEND_RADIUS_PX * camera.pixel_scale_rad)
-        blended = _has_neighbour(catalog, f_cat, chord(blend))
-        for o in f_obs[misfit | crowd | blended].tolist():
-            final.pop(int(o))
-        ambiguous |= set(f_obs[crowd | blended].tolist())
+        unclear = _has_neighbour(catalog, f_cat, 2.0 * np.sin(blend / 2.0))  # (= chord(blend))
+        # ... and a catalog star with two observed stars within the radius (a false star or a hot
+        # pixel next to a star) may belong to either, so neither is reported (none is where no
+        # radius can hold two observed stars)
+        if not _apart(vectors, float(rad.max())):
+            unclear |= _count_within(pred, vectors, chord(rad)) >= 2
+        dropped = f_obs[misfit | unclear].tolist()  # (Python ints)
+        for o in dropped:
+            final.pop(o)
+        if dropped:
+            ambiguous |= set(f_obs[unclear].tolist())
     out.ambiguous = sorted(ambiguous)
     if len(final) < 2:
         out.reason = "fewer than two observed stars have an unambiguous identity"
         return out
-    est = done[1] if final == done[0] else _estimate(vectors, final, catalog, sigma_rad)[0]
+    if dropped:  # (else the estimate above is of these very matches)
+        est = _estimate(vectors, final, catalog, sigma_rad)[0]
     out.passed = True
     out.reason = f"{out.n_agree} of {out.n_tested} other stars agree, P(false) = {out.p_false:.2e}"
     out.R = est.R
@@ -892,6 +967,17 @@ def _estimate(vectors, matches, catalog, sigma_rad):
     return est, obs, rows
 
 
+_LAZY_STEP = None  # skyview.identify.base.LazyStep (base imports this module: imported when first used)
+
+
+def _lazy_step():
+    global _LAZY_STEP
+    from skyview.identify.base import LazyStep
+
+    _LAZY_STEP = LazyStep
+    return LazyStep
+
+
 VERIFY_NUMBERS = ("n_agree", "n_tested", "p_false", "threshold_effective", "radius_arcsec", "n_hypotheses",
                   "p_single")
 
@@ -902,8 +988,7 @@ def verification_step(ver: Verification, hypothesis: dict[int, int], *, cap: int
     of the verification (VERIFY_NUMBERS, as `Verification.to_dict` gives them), plus the method's own
     `numbers` and Step fields (groups, layers). The catalog rows are listed when first read (from a
     copy of the matches taken now: `LazyStep`)."""
-    from skyview.identify.base import LazyStep
-
+    LazyStep = _LAZY_STEP or _lazy_step()
     shown = dict(ver.matches or hypothesis)
     nums = {"n_agree": int(ver.n_agree), "n_tested": int(ver.n_tested), "p_false": float(ver.p_false),
             "threshold_effective": float(ver.threshold_effective),
