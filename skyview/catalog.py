@@ -422,8 +422,9 @@ class GuideCatalog:
         qq = _einsum("ij,ij->i", c, c)
         # (lim_all: the square of the one chord of every center: the numbers of ch * ch, without the array)
         e = g - 0.5 * ((1.0 + qq) - (ch * ch if lim_all is None else lim_all))[:, None]  # s <= lim where e >= 0
-        n = (e > 1e-10).sum(axis=1)
-        if e.size == 0 or np.abs(e).min() > 1e-10:  # (the usual case: every pair decided by its product)
+        # (np.add.reduce and np.minimum.reduce: what .sum(axis=1) and .min() call, without their wrappers)
+        n = np.add.reduce(e > 1e-10, axis=1)
+        if e.size == 0 or np.minimum.reduce(np.abs(e), axis=None) > 1e-10:  # (usual: every pair decided by its product)
             return n
         if lim_all is not None:  # (ch: the one chord, lim_all its square)
             ch = np.full(len(c), ch)

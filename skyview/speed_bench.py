@@ -2,9 +2,11 @@
 
 `run_speed_bench` renders n images of a scenario exactly as `skyview bench` does (one rng seeded with
 `seed`: random_attitudes(n, rng), then the per-trial noise seeds rng.integers(0, 2**31 - 1, n);
-scenario.camera(), scenario.render_kwargs(), SensorModel()), writes each one as a PNG (16 bit, or 8
-bit for 8-bit sensors; the simulator's own JPEG bytes when the scenario has jpeg_quality) into a
-work folder, then times, one image after the other, in this process:
+scenario.camera(), scenario.render_kwargs(), SensorModel(bit_depth=bit_depth)), writes each one as a
+PNG (8 bit by default, as `skyview simulate` writes frames and as issue 11 states its figures: one ADU
+per read-noise sigma, stars brighter than Hp ~3.7 saturate; or 16 bit, the ADC spanning the full well;
+the simulator's own JPEG bytes when the scenario has jpeg_quality) into a work folder, then times, one
+image after the other, in this process:
 
 - decode: `skyview.centroid.load_image` of the file (reported apart; the totals below exclude it,
   and "total + decode" includes it);
@@ -53,6 +55,8 @@ REPO = Path(__file__).resolve().parent.parent
 PEERS_WORKER = REPO / "benchmarks" / "peers_worker.py"
 DEFAULT_PEERS_PYTHON = REPO / ".venv-peers" / "bin" / "python"
 DEFAULT_METHODS = (("angle", "improved"), ("triangle", "improved"))
+BIT_DEPTHS = (8, 16)
+DEFAULT_BIT_DEPTH = 8  # as `skyview simulate` writes frames
 STAGES = ("decode", "centroid", "identify", "attitude", "total", "total+decode")
 MAX_ERROR_PX = 5.0
 RAD_TO_ARCSEC = 180.0 / math.pi * 3600.0
@@ -71,9 +75,10 @@ def boresight_error_px(R_est, R_true, pixel_scale_rad: float) -> float:
     return float(math.atan2(np.linalg.norm(np.cross(a, b)), float(a @ b)) / pixel_scale_rad)
 
 
-def render_images(scenario, n: int, seed: int, work: Path, catalog) -> list[dict]:
-    """n frames of `scenario` rendered as `skyview bench` renders them, written to `work`:
-    [{name, path, width, height, R (true), truth}]."""
+def render_images(scenario, n: int, seed: int, work: Path, catalog, bit_depth: int = DEFAULT_BIT_DEPTH
+                  ) -> list[dict]:
+    """n frames of `scenario` rendered as `skyview bench` renders them (the sensor's ADC of `bit_depth`
+    bits), written to `work`: [{name, path, width, height, R (true), truth}]."""
     from skyview.attitude import random_attitudes
     from skyview.simulate import SensorModel, save_frame, simulate_image
 
@@ -84,7 +89,7 @@ def render_images(scenario, n: int, seed: int, work: Path, catalog) -> list[dict
     seeds = rng.integers(0, 2**31 - 1, size=n)
     images = []
     for k in range(n):
-        frame = simulate_image(catalog, camera, attitudes[k], SensorModel(), seed=int(seeds[k]),
+        frame = simulate_image(catalog, camera, attitudes[k], SensorModel(bit_depth=bit_depth), seed=int(seeds[k]),
                                **scenario.render_kwargs())
         path = work / f"trial{k:04d}{'.jpg' if frame.jpeg is not None else '.png'}"
         save_frame(frame, path, force=True)  # the simulator's own JPEG bytes, or a lossless PNG
@@ -184,7 +189,8 @@ def _summarize(entry: dict) -> dict:
 
 def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS, blind: bool = True,
                     peers: bool = True, python: str | None = None, work_dir: Path | None = None,
-                    max_error_px: float = MAX_ERROR_PX, rounds: int = 2, progress: bool = True) -> dict:
+                    max_error_px: float = MAX_ERROR_PX, rounds: int = 2, progress: bool = True,
+                    bit_depth: int = DEFAULT_BIT_DEPTH) -> dict:
     """The speed benchmark (module docstring); a JSON-ready summary."""
     import cv2
 
@@ -194,6 +200,8 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
 
     if n < 1:
         raise BadInput("the number of images (-n) must be at least 1")
+    if bit_depth not in BIT_DEPTHS:
+        raise BadInput(f"bit depth {bit_depth} is not supported: use 8 or 16")
     cv2.setNumThreads(1)
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if progress else (lambda msg: None)
     catalog = load_guide_catalog()
@@ -203,8 +211,8 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
         tmp = tempfile.TemporaryDirectory(prefix="skyview-speed-")
         work_dir = Path(tmp.name)
     try:
-        say(f"rendering {n} images of {scenario.name} into {work_dir}")
-        images = render_images(scenario, n, seed, Path(work_dir), catalog)
+        say(f"rendering {n} {bit_depth}-bit images of {scenario.name} into {work_dir}")
+        images = render_images(scenario, n, seed, Path(work_dir), catalog, bit_depth)
         decoded = []
         load_image(images[0]["path"])  # warm-up
         for im in images:
@@ -258,6 +266,7 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
             if name != "tetra3rs" and r["stages_ms"].get("total", {}).get("median") is not None:
                 ratios[name] = r["stages_ms"]["total"]["median"] / peer
     return {"kind": "speed", "scenario": scenario.to_dict(), "n": n, "seed": seed, "rounds": int(rounds),
+            "bit_depth": int(bit_depth),
             "results": results,
             "setup_ms": setup, "ratio_to_tetra3rs": ratios, "peer_note": peer_note,
             "machine": {"python": platform.python_version(), "cpu": platform.machine(), "cores": os.cpu_count(),
@@ -270,7 +279,8 @@ def _f(x, fmt=".2f") -> str:
 
 def format_markdown(s: dict) -> str:
     sc = s["scenario"]
-    lines = [f"# Speed: {sc['name']} ({s['n']} images, seed {s['seed']})", "", sc["description"], "",
+    depth = s.get("bit_depth", 16)  # (summaries saved before the option were 16-bit)
+    lines = [f"# Speed: {sc['name']} ({s['n']} {depth}-bit images, seed {s['seed']})", "", sc["description"], "",
              f"Milliseconds per image (median / p95 over the images, each image's fastest of {s['rounds']} "
              "rounds, the solvers taking turns), one image after the other in one process. `total` is "
              "centroids + identification (verification included) + attitude on the decoded image; `decode` is "

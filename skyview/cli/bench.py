@@ -37,6 +37,8 @@ def cmd_bench(a) -> int:
                        "--compare and --centroids")
     if a.speed:
         return _bench_speed(a)
+    if a.bit_depth is not None:
+        raise BadInput("--bit-depth goes with --speed (the other benches render as their scenario says)")
     if a.blind:
         return _bench_blind(a)
     if a.fov_error is not None:
@@ -147,7 +149,7 @@ def bench_scenario(a):
 def _bench_speed(a) -> int:
     """`bench --speed`: per-stage times of skyview (and tetra3rs when its virtualenv exists), same images."""
     from skyview.bench import save_results
-    from skyview.speed_bench import DEFAULT_METHODS, format_markdown, run_speed_bench
+    from skyview.speed_bench import DEFAULT_BIT_DEPTH, DEFAULT_METHODS, format_markdown, run_speed_bench
 
     if a.blind or a.centroids or a.record_failures or a.jobs != 1 or a.fov_error is not None:
         raise BadInput("--speed times one process with the exact FOV: leave out --blind, --centroids, "
@@ -159,7 +161,8 @@ def _bench_speed(a) -> int:
     if a.rounds < 1:
         raise BadInput("--rounds must be at least 1")
     summary = run_speed_bench(scenario, a.n, seed=a.seed, methods=methods, peers=not a.no_peers,
-                              python=a.peers_python, rounds=a.rounds, progress=not a.quiet)
+                              python=a.peers_python, rounds=a.rounds, progress=not a.quiet,
+                              bit_depth=a.bit_depth or DEFAULT_BIT_DEPTH)
     md = format_markdown(summary)
     print(md)
     j, m = save_results(summary, out_dir, f"speed-{file_tag(scenario.name)}-n{a.n}-seed{a.seed}", markdown=md)
@@ -245,6 +248,9 @@ def add_parsers(sub) -> None:
     b.add_argument("--no-peers", action="store_true", help="with --speed: skyview alone")
     b.add_argument("--rounds", type=int, default=2, help="with --speed: passes over the images, the solvers "
                    "taking turns; each image keeps its fastest (default 2)")
+    b.add_argument("--bit-depth", type=int, choices=(8, 16), default=None,
+                   help="with --speed: bits per pixel of the rendered images, 8 (default, as `skyview simulate` "
+                        "writes them) or 16")
     b.add_argument("--centroids", action="store_true",
                    help="measure centroid accuracy (pixels, by SNR) instead, over -n images")
     b.add_argument("--compare", action="store_true",

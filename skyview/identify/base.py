@@ -346,8 +346,7 @@ class Identifier(ABC):
     def begin(self, obs: Observation) -> Search:
         """The frame's sigma (the observation's when it is a positive number, else the method's), the
         checked vectors and an empty result (FAILED until the search runs)."""
-        from skyview.identify.verify import match_radius
-
+        match_radius = (_VERIFY or _verify_module()).match_radius
         t0 = time.perf_counter()
         s = obs.sigma_rad
         sigma = float(s) if (s is not None and math.isfinite(s) and s > 0) else self.sigma_rad
@@ -369,8 +368,8 @@ class Identifier(ABC):
     def verify(self, search: Search, hyp: Hypothesis):
         """The shared verification of one hypothesis, counted in the Bonferroni factor, recorded as a
         'verify' step; `result.verification` keeps its figures."""
-        from skyview.identify.verify import verification_step, verify
-
+        mod = _VERIFY or _verify_module()
+        verification_step, verify = mod.verification_step, mod.verify
         search.n_hypotheses += int(hyp.count)
         search.verifications += 1
         ver = verify(search.V, hyp.matches, self.catalog, self.camera, search.sigma,
@@ -422,6 +421,17 @@ class Identifier(ABC):
             result.reason = self.failure_reason(search)
         result.stats = {"stars": search.n, **search.stats, "time_s": time.perf_counter() - search.t0}
         return result
+
+
+_VERIFY = None  # skyview.identify.verify (it imports scipy: imported when first used, then kept here)
+
+
+def _verify_module():
+    global _VERIFY
+    import skyview.identify.verify as verify
+
+    _VERIFY = verify
+    return verify
 
 
 class SequenceIdentifier(Identifier):

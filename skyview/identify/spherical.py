@@ -45,6 +45,11 @@ from functools import lru_cache
 
 import numpy as np
 
+try:  # the C function np.einsum calls when not optimising (the same numbers, without its Python wrapper)
+    from numpy._core.multiarray import c_einsum as _einsum
+except ImportError:  # pragma: no cover
+    _einsum = np.einsum
+
 MOMENT_DEPTH = 3  # the paper's recursion depth: 4^3 = 64 pieces
 _CHUNK = 1024  # triangles per vectorised block in polar_moment (~1 MB per array: stays in cache)
 
@@ -69,7 +74,7 @@ def _stack3(x, y, z) -> np.ndarray:
 def arc(u: np.ndarray, v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Angle between unit vectors (last axis), accurate for small angles (written to `out` if given)."""
     d = np.asarray(u, dtype=np.float64) - np.asarray(v, dtype=np.float64)
-    return np.multiply(2.0, np.arcsin(np.minimum(np.sqrt(np.einsum("...i,...i->...", d, d)) / 2.0, 1.0)), out=out)
+    return np.multiply(2.0, np.arcsin(np.minimum(np.sqrt(_einsum("...i,...i->...", d, d)) / 2.0, 1.0)), out=out)
 
 
 def sides(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -490,10 +495,10 @@ def polar_moment_few(A, B, C, depth: int = MOMENT_DEPTH) -> np.ndarray:
         Q /= np.sqrt(np.add.reduce(Q * Q, axis=-1, keepdims=True))  # centroids (normalize)
         E = np.concatenate([P, Q]).take(arc_ends, axis=0)  # the sides' ends, then each piece's centroid and G
         d = E[0] - E[1]
-        half = np.arcsin(np.minimum(np.sqrt(np.einsum("...i,...i->...", d, d)) / 2.0, 1.0))  # `arc` / 2
+        half = np.arcsin(np.minimum(np.sqrt(_einsum("...i,...i->...", d, d)) / 2.0, 1.0))  # `arc` / 2
         S = half.take(piece_edges, axis=0)  # each piece's (zero, a, b, c) / 2
         T = np.tan(0.5 * np.add.reduce(S[1:], axis=0) - S)  # `lhuilier_zero_first`'s tangents
         excess = np.arctan(np.sqrt(np.maximum(np.multiply.reduce(T, axis=0), 0.0)))  # dA / 4
         theta = half[n_edges:]  # theta / 2
-        out[s:e] = np.einsum("ij,ij->j", theta * theta, excess)
+        out[s:e] = _einsum("ij,ij->j", theta * theta, excess)
     return out * 16.0

@@ -101,6 +101,7 @@ try:  # the C function behind np.einsum (the same numbers, without its Python di
     from numpy._core.multiarray import c_einsum as _einsum
 except ImportError:  # pragma: no cover
     _einsum = np.einsum
+_min, _max = np.minimum.reduce, np.maximum.reduce  # what ndarray.min() / .max() call, without their Python wrappers
 
 CALIBRATED = "calibrated"
 TETRA3 = "tetra3"
@@ -457,10 +458,10 @@ def _apart(x: np.ndarray, radius_rad: float) -> bool:
     if n < 2:
         return True
     g = x @ x.T
-    s_min = float(g.diagonal().min())
+    s_min = float(_min(g.diagonal()))
     g.flat[::n + 1] = -np.inf  # a row with itself
     c = 2.0 * math.sin(0.5 * min(radius_rad, math.pi))
-    return 2.0 * s_min - 2.0 * float(g.max()) > 4.0 * c * c + APART_MARGIN
+    return 2.0 * s_min - 2.0 * float(_max(g, axis=None)) > 4.0 * c * c + APART_MARGIN
 
 
 def _one_to_one(d0: np.ndarray, j0: np.ndarray, cq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -565,7 +566,7 @@ def _stars_apart(catalog: GuideCatalog, rows: np.ndarray, v: np.ndarray, radius_
     c2 = 4.0 * math.sin(0.5 * min(radius_rad, math.pi)) + APART_CHORD_MARGIN
     if c2 >= _NEAREST_REACH_CHORD:  # beyond the reach of the remembered neighbours: the products
         return _apart(v, radius_rad)
-    return float(_nearest(catalog, rows).min()) > c2
+    return float(_min(_nearest(catalog, rows))) > c2
 
 
 def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
@@ -636,7 +637,7 @@ class _Near:
             return False
         if len(directions) == 0:
             return True
-        cos_far = float((directions @ self.unit).min())
+        cos_far = float(_min(directions @ self.unit))
         return math.acos(max(-1.0, min(1.0, cos_far))) + radius_rad + 1e-7 <= self.wide_rad
 
 
@@ -661,7 +662,7 @@ class _Frame:
                 z = v[:, 2]
                 # (the usual case: every star in front, nothing to replace; = (z > 1e-12).all(): a NaN
                 # minimum compares False, as every NaN z would)
-                every = float(z.min()) > 1e-12
+                every = float(_min(z)) > 1e-12
                 if not every:
                     front = z > 1e-12
                     z = np.where(front, z, 1.0)
@@ -707,7 +708,7 @@ class _Frame:
         e = q @ self.v.T - (0.5 * ((_plus_one(q) if qq1 is None else qq1) - cq * cq))[:, None]
         ks, js = (e >= -0.5 * PREFILTER_MARGIN).nonzero()
         # every kept pair is surely within when each clears the upper limit
-        if not chords and (len(ks) == 0 or float(e[ks, js].min()) >= 0.5 * PREFILTER_MARGIN):
+        if not chords and (len(ks) == 0 or float(_min(e[ks, js])) >= 0.5 * PREFILTER_MARGIN):
             return ks, js, None
         diff = q[ks] - self.v[js]
         d = np.sqrt(_einsum("ij,ij->i", diff, diff))
@@ -831,7 +832,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     est = svd_attitude(b_h, r_h, sigma_rad)
     R = est.R
     resid = angular_distance(b_h, r_h @ R.T)
-    out.max_residual_rad = float(resid.max())
+    out.max_residual_rad = float(_max(resid))
     if out.max_residual_rad > r:
         out.reason = (f"the hypothesis does not fit itself: a residual of {out.max_residual_rad * RAD_TO_ARCSEC:.1f}\" "
                       f"exceeds the match radius {r * RAD_TO_ARCSEC:.1f}\"")
@@ -845,10 +846,10 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     # rows are the same numbers)
     unit_all = _unit_rows(vectors)
     radii = star_radii(None, est.covariance, sigma_rad, r, (unit_all[0][others], unit_all[1][others]))
-    out.radius_max_rad = float(radii.max()) if len(radii) else r
+    out.radius_max_rad = float(_max(radii)) if len(radii) else r
     # the catalog stars around the frame, fetched once for every round below, as far as the local
     # density of the observed stars reaches (an observed star lies acos(z) from the boresight)
-    z_min = float(vectors[:, 2].min())
+    z_min = float(_min(vectors[:, 2]))
     near = _Near(catalog, math.acos(max(-1.0, min(1.0, z_min))) + LOCAL_RADIUS_RAD + NEAR_SLACK_RAD)
     frame = _Frame(catalog, camera, R, r, out.radius_max_rad, near)
     out.n_frame = frame.n_frame
@@ -901,12 +902,12 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         est, e_obs, e_cat = _estimate(vectors, current, catalog, sigma_rad)
         radii_all = star_radii(vectors, est.covariance, sigma_rad, r, unit_all)  # every star's, for this estimate
         radii = radii_all[others]
-        frame = _Frame(catalog, camera, est.R, r, float(radii.max()) if len(radii) else r, near, count=False)
+        frame = _Frame(catalog, camera, est.R, r, float(_max(radii)) if len(radii) else r, near, count=False)
         agree_i, amb_i = frame.agreeing(vectors, others, h_cat, radii, q, qq1, h_cat_l)
         done = (current, est, e_obs, e_cat)
         current = {**hyp, **agree_i}
     h_rad = radii_all[h_obs]
-    if _stars_apart(catalog, frame.rows, frame.v, float(h_rad.max())):
+    if _stars_apart(catalog, frame.rows, frame.v, float(_max(h_rad))):
         # (no two pool stars close enough for one radius to hold both: nobody is ambiguous)
         final = dict(hyp)  # Python ints, in h_obs order (as the comprehension below)
         ambiguous = set(amb_i)
@@ -933,7 +934,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
         # ... and a catalog star with two observed stars within the radius (a false star or a hot
         # pixel next to a star) may belong to either, so neither is reported (none is where no
         # radius can hold two observed stars)
-        if not _apart(vectors, float(rad.max())):
+        if not _apart(vectors, float(_max(rad))):
             unclear |= _count_within(pred, vectors, chord(rad)) >= 2
         dropped = f_obs[misfit | unclear].tolist()  # (Python ints)
         for o in dropped:
