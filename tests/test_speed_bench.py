@@ -28,18 +28,18 @@ def test_speed_bench_scores_and_times_every_stage(tmp_path):
     assert "tetra3rs" not in s["results"] and s["ratio_to_tetra3rs"] == {}
     pngs = sorted(tmp_path.glob("trial*.png"))
     assert len(pngs) == 3  # the images the peers would read
-    assert s["bit_depth"] == 8 and load_image(pngs[0]).dtype == np.uint8  # as `skyview simulate` writes them
+    assert s["bit_depth"] == 16 and load_image(pngs[0]).dtype == np.uint16  # the frames tetra3rs is made for
     md = format_markdown(s)
-    assert "| angle (improved) |" in md and "load average" in md and "3 8-bit images" in md
+    assert "| angle (improved) |" in md and "load average" in md and "3 16-bit images" in md
     t = s["results"]["triangle (improved)"]  # the default pair of issue 11: angle and triangle, improved
     assert t["n"] == 3 and t["outcomes"]["incorrect"] == 0 and t["outcomes"]["correct"] >= 1
 
 
-def test_speed_bench_renders_16_bit_frames_when_asked(tmp_path):
+def test_speed_bench_renders_8_bit_frames_when_asked(tmp_path):
     s = run_speed_bench(get_scenario("cole8"), 1, seed=0, blind=False, peers=False, work_dir=tmp_path,
-                        rounds=1, progress=False, methods=(("angle", "improved"),), bit_depth=16)
-    assert s["bit_depth"] == 16 and load_image(next(tmp_path.glob("trial*.png"))).dtype == np.uint16
-    assert "1 16-bit images" in format_markdown(s)
+                        rounds=1, progress=False, methods=(("angle", "improved"),), bit_depth=8)
+    assert s["bit_depth"] == 8 and load_image(next(tmp_path.glob("trial*.png"))).dtype == np.uint8
+    assert "1 8-bit images" in format_markdown(s)
     with pytest.raises(BadInput, match="bit depth 12"):
         run_speed_bench(get_scenario("cole8"), 1, peers=False, work_dir=tmp_path, bit_depth=12)
 
@@ -72,7 +72,7 @@ def test_cli_speed_bench_refuses_other_modes(capsys):
     assert main(["bench", "--speed", "--blind", "-n", "1"]) == 2
     err = capsys.readouterr().err
     assert "--speed" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
-    assert main(["bench", "--bit-depth", "16", "-n", "1"]) == 2  # the other benches render as their scenario says
+    assert main(["bench", "--bit-depth", "8", "-n", "1"]) == 2  # the other benches render as their scenario says
     err = capsys.readouterr().err
     assert "--bit-depth goes with --speed" in err and len(err.strip().splitlines()) == 1
     assert main(["bench", "--speed", "--bit-depth", "12", "-n", "1"]) == 2  # argparse's choices

@@ -249,8 +249,8 @@ def add_parsers(sub) -> None:
     b.add_argument("--rounds", type=int, default=2, help="with --speed: passes over the images, the solvers "
                    "taking turns; each image keeps its fastest (default 2)")
     b.add_argument("--bit-depth", type=int, choices=(8, 16), default=None,
-                   help="with --speed: bits per pixel of the rendered images, 8 (default, as `skyview simulate` "
-                        "writes them) or 16")
+                   help="with --speed: bits per pixel of the rendered images, 16 (default: the frames tetra3rs's "
+                        "centroider is made for) or 8 (as `skyview simulate` writes them)")
     b.add_argument("--centroids", action="store_true",
                    help="measure centroid accuracy (pixels, by SNR) instead, over -n images")
     b.add_argument("--compare", action="store_true",
