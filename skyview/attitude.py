@@ -175,9 +175,9 @@ def _weights(n: int, sigma: float | np.ndarray) -> np.ndarray:
 
 
 def _inverse_3x3(F) -> np.ndarray | None:
-    """Inverse of a symmetric 3x3 matrix (an array or nested lists) by cofactors; None when it is near
+    """Inverse of a symmetric 3x3 matrix (nested lists of Python floats) by cofactors; None when it is near
     singular (then pinv)."""
-    (a, b, c), (_, d, e), (_, _, f) = F.tolist() if isinstance(F, np.ndarray) else F  # Python floats
+    (a, b, c), (_, d, e), (_, _, f) = F
     c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
     det = a * c00 + b * c01 + c * c02
     scale = max(abs(a), abs(d), abs(f))

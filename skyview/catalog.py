@@ -24,10 +24,12 @@ import numpy as np
 
 from skyview.errors import BadInput, SkyviewError
 
-try:  # the C function behind np.einsum (the same numbers, without its Python dispatch)
-    from numpy._core.multiarray import c_einsum as _einsum
+try:  # the C function np.einsum calls when not optimising: the same numbers without its Python dispatch
+    # (~1 us a call); the hot paths of the catalog, the verification and the triangle method use it
+    from numpy._core.multiarray import c_einsum as einsum_c
 except ImportError:  # pragma: no cover
-    _einsum = np.einsum
+    einsum_c = np.einsum
+_einsum = einsum_c
 
 HIP2_EPOCH = 1991.25
 DEFAULT_EPOCH = 2025.0
@@ -333,7 +335,7 @@ class GuideCatalog:
     # ---------------------------------------------------------------- neighbour queries
     @cached_property
     def sky(self) -> SkyIndex:
-        """The sky index of `within`, `ball_rows`, `ball_counts`, `nearest_chords` (built when first asked for)."""
+        """The sky index of `within`, `ball_rows`, `ball_counts` (built when first asked for)."""
         return SkyIndex(self.xyz)
 
     # The queries below give the k-d tree's answers (`tree`: scipy's cKDTree on xyz): a star is within a
@@ -437,19 +439,6 @@ class GuideCatalog:
             if len(unsure):
                 n[unsure] = self.tree.query_ball_point(c[unsure], ch[unsure], return_length=True)
         return n
-
-    def nearest_chords(self, rows: np.ndarray, reach_rad: float) -> np.ndarray:
-        """The chord from each star (rows) to its nearest other star, as the k-d tree's k=2 query gives
-        it (the square root of its squared chord, summed as the tree sums it); inf where no other star
-        lies within reach_rad."""
-        rows = np.asarray(rows, dtype=np.int64)
-        best = np.full(len(rows), np.inf)
-        if len(rows) == 0:
-            return best
-        ci, found, s, _ = self._pairs_within(self.xyz[rows], np.full(len(rows), float(chord(reach_rad))))
-        other = found != rows[ci]
-        np.minimum.at(best, ci[other], s[other])
-        return np.sqrt(best)
 
     def within(self, direction: np.ndarray, radius_rad: float) -> np.ndarray:
         """Indices of stars within `radius_rad` of a unit vector, sorted by index (from the sky index:

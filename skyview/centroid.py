@@ -562,14 +562,14 @@ def _map_weights(n_out: int, n_blocks: int, b: int, start: int, step: int) -> np
 def _upsample_at(grid: np.ndarray, by: int, bx: int, H: int, W: int, start: int, step: int) -> np.ndarray:
     """_upsample(grid, by, bx, H, W)[start::step, start::step] from two products with cached weights
     (the same interpolation: the values agree to float32 rounding, ~1e-7 relative)."""
-    g = grid.astype(np.float32)
+    g = np.asarray(grid, dtype=np.float32)
     return _map_weights(H, g.shape[0], by, start, step) @ g @ _map_weights(W, g.shape[1], bx, start, step).T
 
 
-def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int, contiguous: bool = True) -> np.ndarray:
+def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int) -> np.ndarray:
     """(H, W) map from block values at block centres ((i + 0.5) * by - 0.5, (j + 0.5) * bx - 0.5):
     bilinear between centres, linear extrapolation beyond the outer ones (one extra ring of blocks
-    extrapolated from the outer two, then cv2.resize and crop; contiguous=False: the crop as a view)."""
+    extrapolated from the outer two, then cv2.resize and crop)."""
     g = grid.astype(np.float32)
     gh, gw = g.shape
     p = np.empty((gh + 2, gw + 2), dtype=np.float32)
@@ -579,8 +579,7 @@ def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int, contiguous: bo
     p[:, 0] = 2 * p[:, 1] - p[:, 2] if gw > 1 else p[:, 1]
     p[:, -1] = 2 * p[:, -2] - p[:, -3] if gw > 1 else p[:, 1]
     big = cv2.resize(p, ((gw + 2) * bx, (gh + 2) * by), interpolation=cv2.INTER_LINEAR)
-    crop = big[by: by + H, bx: bx + W]
-    return np.ascontiguousarray(crop) if contiguous else crop
+    return np.ascontiguousarray(big[by: by + H, bx: bx + W])
 
 
 # ============================================================================ detection
@@ -665,8 +664,7 @@ def _neighbour_max(px, H, W, bkg, resid, fi: np.ndarray) -> np.ndarray:
     inner = (i > 0) & (i < H - 1) & (j > 0) & (j < W - 1)
     k = _flatnonzero(inner)
     if k.size:
-        offs = np.array([-W - 1, -W, -W + 1, -1, 1, W - 1, W, W + 1], dtype=np.int64)
-        nf = fi[k][:, None] + offs
+        nf = fi[k][:, None] + _ring_offsets(W, False)
         v = (resid.reshape(-1)[nf] if resid is not None else px.take(nf)).max(axis=1).astype(np.float64)
         out[k] = v if resid is not None else v - bkg
     b = _flatnonzero(~inner)
@@ -879,14 +877,10 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
             at_side |= (idx < W) | (idx >= (H - 1) * W)
         side = _flatnonzero(at_side)
         if side.size:
-            # their zero-padded neighbourhoods (the gather's numbers, no hot pixel repaired yet): rows and
-            # columns clipped to the image for the read, the neighbours off it 0 in the maximum
-            rr = (idx[side] // W)[:, None] + _NB9_ROWS
-            cc = j[side, None] + _NB9_COLS
-            on = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
-            raw9 = f.reshape(-1)[np.minimum(np.maximum(rr, 0), H - 1) * W + np.minimum(np.maximum(cc, 0), W - 1)]
-            nb9[:, side] = raw9.T
-            v = np.where(on, raw9.astype(np.float64) - bkg, 0.0)
+            # their zero-padded neighbourhoods: the gather's own numbers (no hot pixel repaired yet)
+            v, _, raw9 = _gather_px(px, H, W, bkg, None, idx[side] // W, j[side], 1)
+            nb9[:, side] = raw9.reshape(-1, 9).T  # (the frame's values: exact in its dtype)
+            v = v.reshape(-1, 9)
             v[:, 4] = -np.inf
             nb_max[side] = v.max(axis=1)
     elif idx.size <= _GATHER_HOT_MAX:
@@ -1029,20 +1023,20 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         # to 30 %) starts from the three-point fit: it converges on the least-squares position the
         # reference reaches from its iwcog start, without the iwcog iterations; the others (saturated,
         # blended, JPEG blocks, noise) start from the iwcog position, as in the reference
+        def iwcog_of(sel):  # the iwcog positions of the stars sel, from their own cog (each star's is its own)
+            v_s, x_s, y_s, pi_s, pj_s = vals[sel], X[sel], Y[sel], pi[sel], pj[sel]
+            return _iwcog_sep(v_s, x_s, y_s, _cog(v_s, x_s, y_s, pi_s, pj_s), s_eff, h, pi_s, pj_s, iterations)
+
         psf_like = g_unsat & (np.abs(g_s2 - s_eff * s_eff) < 0.3 * s_eff * s_eff)
         iw = _flatnonzero(~psf_like)
         start = g_uv.copy()
         if iw.size:
-            v_iw, x_iw, y_iw, pi_iw, pj_iw = vals[iw], X[iw], Y[iw], pi[iw], pj[iw]  # (each star's cog is its own)
-            start[iw] = _iwcog_sep(v_iw, x_iw, y_iw, _cog(v_iw, x_iw, y_iw, pi_iw, pj_iw), s_eff, h, pi_iw, pj_iw,
-                                   iterations)
+            start[iw] = iwcog_of(iw)
         use = rawv < sat if valid is None else valid & (rawv < sat)
         uv, amp = _psf_fit_sep(vals, use, X, Y, start, psf_used, h, pi, pj, iterations)
         failed = _flatnonzero((amp <= 0) & psf_like)
         if failed.size:  # no fit: the iwcog position, as the reference gives
-            uv_cog = _cog(vals, X, Y, pi, pj) if uv_cog is None else uv_cog
-            uv[failed] = _iwcog_sep(vals[failed], X[failed], Y[failed], uv_cog[failed], s_eff, h, pi[failed],
-                                    pj[failed], iterations)
+            uv[failed] = iwcog_of(failed)
         if blended.any():
             b = _flatnonzero(blended)
             uv_b = np.where(g_ok[b, None], g_uv[b], np.stack([pj[b], pi[b]], axis=1).astype(np.float64))
@@ -1102,7 +1096,7 @@ _FIT_TOL = 1e-4  # px: the Gauss-Newton fit of a star stops once its step (or th
 
 def _iwcog_sep(vals, X, Y, uv0, s_eff, h, pi, pj, iterations):
     """_iwcog with the separable weight exp(-dx^2/2s^2) exp(-dy^2/2s^2), u and v stepped together as
-    one (n, 2) array (the same sums in the same order as stepping them apart: the same positions)."""
+    one (n, 2) array, the weighted sums as batched products (the reference's positions to ~1e-13 px)."""
     XY = np.empty((len(X), 2, X.shape[2]))  # (n, 2, w): columns, rows
     XY[:, 0], XY[:, 1] = X[:, 0, :], Y[:, :, 0]
     k = -1.0 / (2.0 * s_eff * s_eff)
@@ -1180,8 +1174,7 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
     # the profiles' and the derivatives' factors, by the first axis of T below
     scale = np.array([0.5, -1.0 / (s * math.sqrt(2.0 * math.pi))])[:, None, None, None]
     act = np.arange(n_st)
-    prev = None  # each star's last step (px)
-    first = True
+    prev = None  # each star's last step (px); None before the first
     with np.errstate(divide="ignore", invalid="ignore"):  # (a context: half the cost of two np.seterr calls)
         for _ in range(max(3, iterations)):
             m = act.size
@@ -1234,17 +1227,12 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
             # contraction with the ratio of its last two: step^2 / (previous step - step)), is below _FIT_TOL
             ad = np.abs(d)
             step = np.maximum(ad[:, 0], ad[:, 1])  # = ad.max(axis=1), without a reduction's overhead
-            if first:  # no previous step: the error left (step^2 / 1e-12) is above _FIT_TOL wherever step is
-                A = y[:, 0]
-                uv += d
-                prev = step
-                act = act[step > _FIT_TOL]
-                first = False
-                continue
-            # the stop test on Python numbers (the same float64 operations, on a few dozen stars)
-            go = [st > _FIT_TOL and st * st / max(pv - st, 1e-12) > _FIT_TOL
-                  for st, pv in zip(step.tolist(), (prev if every else prev[act]).tolist())]
-            if every:  # the same updates without the index copies
+            if prev is None:  # no previous step: the error left (step^2 / 1e-12) is above _FIT_TOL wherever step is
+                go = step > _FIT_TOL
+            else:  # the stop test on Python numbers (the same float64 operations, on a few dozen stars)
+                go = [st > _FIT_TOL and st * st / max(pv - st, 1e-12) > _FIT_TOL
+                      for st, pv in zip(step.tolist(), (prev if every else prev[act]).tolist())]
+            if every:  # the same updates without the index copies (always after the first step)
                 A = y[:, 0]
                 uv += d
                 prev = step

@@ -314,17 +314,14 @@ def _gauss3(vals, h, pi, pj):
 def _axis_ratio(vals, X, Y, uv, sigma):
     """sqrt(l1 / l2) of the intensity second moments (pixels above 2 sigma) about the centroid."""
     w = np.where(vals > 2.0 * sigma, vals, 0.0)
-    # the offsets are separable (dx by column, dy by row): the moments from the window's column and row
-    # sums and one batched product for the cross term (the same sums, in another order)
-    dx = X[:, 0, :] - uv[:, 0, None]  # (N, n)
-    dy = Y[:, :, 0] - uv[:, 1, None]
-    wc = w.sum(axis=1)  # (N, n): each column's sum
-    s = wc.sum(axis=1)
+    s = w.sum(axis=(1, 2))
     ok = s > 0
     s = np.where(ok, s, 1.0)
-    mxx = (wc * dx * dx).sum(axis=1) / s + 1.0 / 12.0
-    myy = (w.sum(axis=2) * dy * dy).sum(axis=1) / s + 1.0 / 12.0
-    mxy = ((w @ dx[:, :, None])[:, :, 0] * dy).sum(axis=1) / s
+    dx = X - uv[:, 0, None, None]
+    dy = Y - uv[:, 1, None, None]
+    mxx = (w * dx * dx).sum(axis=(1, 2)) / s + 1.0 / 12.0
+    myy = (w * dy * dy).sum(axis=(1, 2)) / s + 1.0 / 12.0
+    mxy = (w * dx * dy).sum(axis=(1, 2)) / s
     tr = mxx + myy
     disc = np.sqrt(np.maximum((mxx - myy) ** 2 / 4.0 + mxy ** 2, 0.0))
     l1 = tr / 2.0 + disc

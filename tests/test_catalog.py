@@ -139,8 +139,8 @@ def test_sky_index_gives_the_kd_tree_sets(catalog, monkeypatch, run):
 
 
 def test_sky_index_counts_and_nearest_are_the_kd_tree_answers(catalog):
-    """ball_counts (with and without rows known to hold the stars) and nearest_chords answer as the tree,
-    chords exactly at a neighbour's distance and a hair either side included."""
+    """ball_counts (with and without rows known to hold the stars) answers as the tree, chords exactly at a
+    neighbour's distance and a hair either side included."""
     rng = np.random.default_rng(11)
     sub = catalog.brighter_than(7.0)
     for spread in (0.01, 0.3, 3.0):
@@ -154,10 +154,6 @@ def test_sky_index_counts_and_nearest_are_the_kd_tree_answers(catalog):
                                       sub.tree.query_ball_point(c, float(ch[0]), return_length=True))
     rows = rng.choice(len(sub), 400, replace=False)
     nn = sub.tree.query(sub.xyz[rows], k=2)[0][:, 1]
-    got = sub.nearest_chords(rows, np.radians(2.0))
-    near = nn <= chord(np.radians(2.0))
-    np.testing.assert_array_equal(got[near], nn[near])
-    assert np.all(np.isinf(got[~near]))
     for chords in (nn, nn * (1 + 1e-15), nn * (1 - 1e-15)):  # on the limit: the tree's own count
         want = sub.tree.query_ball_point(sub.xyz[rows], chords, return_length=True)
         np.testing.assert_array_equal(sub.ball_counts(sub.xyz[rows], chords), want)

@@ -421,15 +421,23 @@ def test_has_neighbour_is_the_kd_tree_count(cat):
 
 
 def test_nearest_table_is_each_stars_nearest_chord_and_cached(cat, tmp_path, monkeypatch):
-    """The verification's table of nearest-neighbour chords is GuideCatalog.nearest_chords of every
-    star (inf beyond the reach, 0 for a star that shares its place), built once and read back from
-    the cache with the same numbers; a catalog of one star has no neighbour."""
+    """The verification's table of nearest-neighbour chords is every star's chord to its nearest other
+    star (measured here star by star; inf beyond the reach, 0 for a star that shares its place), built
+    once and read back from the cache with the same numbers; a catalog of one star has no neighbour."""
     from skyview.identify import database
     from skyview.identify.verify import NEAREST_REACH_RAD, nearest_table
 
     monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
     built = nearest_table(cat)
-    assert np.array_equal(built, cat.nearest_chords(np.arange(len(cat.xyz)), NEAREST_REACH_RAD))
+    reach = 2.0 * np.sin(NEAREST_REACH_RAD / 2.0)
+    want = np.empty(len(cat.xyz))
+    for k in range(0, len(cat.xyz), 500):  # every pair's chord, a block of stars at a time
+        d = np.linalg.norm(cat.xyz[k:k + 500, None] - cat.xyz[None], axis=2)
+        d[np.arange(len(d)), np.arange(k, k + len(d))] = np.inf  # not a star with itself
+        want[k:k + len(d)] = d.min(axis=1)
+    far = want > reach * (1 + 1e-12)
+    assert np.isinf(built[far]).all() and np.isfinite(built[~far]).all()
+    np.testing.assert_allclose(built[~far], want[~far], rtol=1e-12, atol=1e-15)
     assert np.isinf(built).any() and np.isfinite(built).any()
     files = list((tmp_path / "databases").glob("nearest-*.npz"))
     assert len(files) == 1

@@ -85,7 +85,7 @@ from skyview.identify import database
 from skyview.identify.base import LazyStep, Search, Step
 from skyview.identify.kvector import KVector
 from skyview.identify.layers import Hypotheses
-from skyview.identify.pivot import (Chain, PivotMethod, PivotParams, angles, by_star, pair_indices,
+from skyview.identify.pivot import (Chain, PivotMethod, PivotParams, by_star, pair_indices,
                                    take_pattern, uses_any)
 from skyview.identify.verify import angular_distance
 
@@ -179,7 +179,7 @@ class AngleMethod(PivotMethod):
         V, sigma = search.V, search.sigma
         m = search.n if self.max_stars is None else min(search.n, self.max_stars)  # the stars that form angles
         ii, jj = pair_indices(m)
-        theta = angles(V.take(ii, axis=0), V.take(jj, axis=0))
+        theta = angular_distance(V.take(ii, axis=0), V.take(jj, axis=0))
         bound = self.beta * np.sqrt(2.0) * sigma  # beta sigma_p, sigma_p = sqrt(2) sigma (eq. 14)
         counts = _Ranges(self.kv.sorted_values, theta, bound)
         if self.order == "largest":
@@ -533,9 +533,9 @@ def _close(H: np.ndarray, ip: int, iq: int, xyz: np.ndarray, lo: float, hi: floa
     """`_join` of a closed loop: the hypotheses whose catalog stars on the angle's two observed stars
     (columns ip, iq) form a candidate pair. The candidates are every catalog pair whose database angle
     lies in [lo, hi] (the look-up is exact and the database holds every pair up to its range, which
-    hi stays below), and the database's angle of a pair is `pivot.angles` of its two stars (the same
+    hi stays below), and the database's angle of a pair is `angular_distance` of its two stars (the same
     numbers, in either order): so the test is the angle itself, without grouping the candidates."""
-    d = angles(xyz[H[:, ip]], xyz[H[:, iq]])
+    d = angular_distance(xyz[H[:, ip]], xyz[H[:, iq]])
     return H[(d >= lo) & (d <= hi)]
 
 

@@ -377,10 +377,10 @@ class Identifier(ABC):
                      threshold=self.threshold, radius_rad=search.radius)
         numbers, record = hyp.judge(ver) if hyp.judge is not None else ({}, {})
         vd = ver.to_dict()
+        search.steps.append(verification_step(ver, hyp.matches, numbers={**hyp.numbers, **numbers}, vd=vd,
+                                              groups=list(hyp.groups), layers=tuple(hyp.layers)))
         if record:
             vd |= record
-        search.steps.append(verification_step(ver, hyp.matches, numbers={**hyp.numbers, **numbers},
-                                              groups=list(hyp.groups), layers=tuple(hyp.layers)))
         search.result.verification = vd
         return ver
 

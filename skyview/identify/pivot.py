@@ -27,6 +27,7 @@ from skyview.attitude import svd_attitude
 from skyview.errors import BadInput
 from skyview.identify.base import Hypothesis, Identifier, Search, Step
 from skyview.identify.params import MethodParams
+from skyview.identify.verify import angular_distance
 
 ORDERS = ("largest", "fewest")
 # the paper's pairwise list pruning: a common star anywhere ("lists") or on the shared observed
@@ -269,7 +270,7 @@ class PivotMethod(Identifier):
         if len(H) < 2 or len(H) > MAX_EQUIVALENT:
             return False
         xyz = self.catalog.xyz
-        return bool((angles(xyz[H], xyz[H[:1]]) <= tol).all())
+        return bool((angular_distance(xyz[H], xyz[H[:1]]) <= tol).all())
 
     def _best(self, V: np.ndarray, used: list[int], H: np.ndarray, sigma: float) -> np.ndarray:
         """Among equivalent hypotheses, the one that fits the observed stars best."""
@@ -295,14 +296,6 @@ def by_star(cp: np.ndarray, cq: np.ndarray, m: int) -> tuple[np.ndarray, np.ndar
     start = np.zeros(m, dtype=np.int64)
     start[ks.take(first)] = first  # the first block starts at 0
     return cq.take(order), start, size
-
-
-def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """`verify.angular_distance` of float64 unit vectors (along the last axis) with fewer numpy calls
-    and the same numbers: np.linalg.norm is the square root of the summed squares, and the clip of a
-    non-negative number to [0, 1] is its minimum with 1."""
-    d = a - b
-    return 2.0 * np.arcsin(np.minimum(np.sqrt(np.add.reduce(d * d, axis=-1)) / 2.0, 1.0))
 
 
 @lru_cache(maxsize=256)

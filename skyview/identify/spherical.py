@@ -45,10 +45,7 @@ from functools import lru_cache
 
 import numpy as np
 
-try:  # the C function np.einsum calls when not optimising (the same numbers, without its Python wrapper)
-    from numpy._core.multiarray import c_einsum as _einsum
-except ImportError:  # pragma: no cover
-    _einsum = np.einsum
+from skyview.catalog import einsum_c as _einsum
 
 MOMENT_DEPTH = 3  # the paper's recursion depth: 4^3 = 64 pieces
 _CHUNK = 1024  # triangles per vectorised block in polar_moment (~1 MB per array: stays in cache)

@@ -19,6 +19,7 @@ from functools import lru_cache, partial
 
 import numpy as np
 
+from skyview.catalog import einsum_c
 from skyview.identify import spherical as sph
 from skyview.identify.pivot import by_star
 from skyview.identify.triangle_database import BLOCK, _block_search
@@ -283,7 +284,7 @@ class TriangleLookup:
         # the dot product, a little wider than the bounds: the same triangles as computing every angle)
         if len(a) > SMALL:
             hi_rp = min(float(hi[2]), self.pair_max_sep_rad)
-            near = sph._einsum("ij,ij->i", xyz[c], xyz[a]) >= np.cos(min(hi_rp + 1e-6, np.pi))
+            near = einsum_c("ij,ij->i", xyz[c], xyz[a]) >= np.cos(min(hi_rp + 1e-6, np.pi))
             a, b, c = a[near], b[near], c[near]
         d = angular_distance(xyz[c], xyz[a])
         ok = (d >= lo[2]) & (d <= hi[2]) & (d <= self.pair_max_sep_rad)
@@ -323,7 +324,7 @@ class TriangleLookup:
         c_lo = (2.0 * math.sin(lo / 2.0)) ** 2 * (1.0 - 1e-9) if lo > 0.0 else 0.0
         c_hi = (2.0 * math.sin(hi / 2.0)) ** 2 * (1.0 + 1e-9) if hi < math.pi else math.inf
         d = xyz.take(c, axis=0) - xyz.take(a, axis=0)
-        chord2 = sph._einsum("ij,ij->i", d, d)
+        chord2 = einsum_c("ij,ij->i", d, d)
         ok = (chord2 >= c_lo) & (chord2 <= c_hi)
         if not c_lo > 0.0:  # r on p has a zero chord: only a zero lower bound keeps it
             ok &= c != a

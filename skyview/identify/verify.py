@@ -1,6 +1,6 @@
 """The verification every identification method ends in.
 
-Long (~850 lines) because it is one procedure with its statistics (the calibrated Poisson-binomial and
+Long (~1,000 lines) because it is one procedure with its statistics (the calibrated Poisson-binomial and
 the tetra3 binomial), the per-star radii, the blend and crowding checks, and the exact fast paths it
 takes on small frames (each tested against its plain form in tests/test_verify.py).
 
@@ -95,12 +95,9 @@ from scipy.special import bdtr, bdtrc
 
 from skyview.attitude import RAD_TO_ARCSEC, remember_svd, svd_attitude
 from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, chord
+from skyview.catalog import GuideCatalog, chord, einsum_c as _einsum
+from skyview.identify.base import LazyStep
 
-try:  # the C function behind np.einsum (the same numbers, without its Python dispatch: ~1 us a call)
-    from numpy._core.multiarray import c_einsum as _einsum
-except ImportError:  # pragma: no cover
-    _einsum = np.einsum
 _min, _max = np.minimum.reduce, np.maximum.reduce  # what ndarray.min() / .max() call, without their Python wrappers
 
 CALIBRATED = "calibrated"
@@ -229,12 +226,14 @@ def p_false_calibrated(n_agree: int, n_tested: int, p, n_hypotheses: int = 1) ->
     """
     if n_tested <= 0 or n_agree <= 0:
         return 1.0
-    return _p_false_floats(n_agree, _per_item(p, n_tested).tolist(), n_hypotheses)
+    # (a list of one float per star, as verify has p_tested, is used as it is: the same floats)
+    ps = p if type(p) is list and len(p) == n_tested else _per_item(p, n_tested).tolist()
+    return _p_false_floats(n_agree, ps, n_hypotheses)
 
 
 def _p_false_floats(n_agree: int, ps: list[float], n_hypotheses: int) -> float:
-    """p_false_calibrated of one probability per tested star as Python floats (verify's p_tested; at
-    least one star tested, one agreeing): the comparisons and numbers numpy's arrays give."""
+    """p_false_calibrated of one probability per tested star as Python floats (at least one star
+    tested, one agreeing): the comparisons and numbers numpy's arrays give."""
     p0 = ps[0]
     if p0 == p0 and ps.count(p0) == len(ps):  # = np.all(ps == ps[0]) (count: `is` or ==; NaN: never)
         tail = float(bdtrc(n_agree - 1, len(ps), p0))  # P[X >= n_agree]
@@ -532,8 +531,7 @@ def _nearest(catalog: GuideCatalog, rows: np.ndarray) -> np.ndarray:
 
 def nearest_table(catalog: GuideCatalog) -> np.ndarray:
     """The chord from every catalog star to its nearest other star, inf where none lies within
-    NEAREST_REACH_RAD: the k-d tree's k=2 query (`GuideCatalog.nearest_chords` gives the same numbers
-    star by star), built once per catalog and cached on disk as a database (8 bytes a star: 36 kB at
+    NEAREST_REACH_RAD: the k-d tree's k=2 query, built once per catalog and cached on disk as a database (8 bytes a star: 36 kB at
     mag 6, 0.6 MB for the full 78,000-star catalog; it loads in about a millisecond). Whole, not star by
     star as frames ask: a first frame in a new part of the sky costs no more than the next one."""
     from skyview.identify import database
@@ -871,8 +869,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
                                                               among_xyz=near.wide_xyz if cover else None))
     out.p_tested = np.minimum(1.0, dens * np.pi * radii ** 2).tolist()
     if statistic == CALIBRATED:
-        out.p_false = (_p_false_floats(out.n_agree, out.p_tested, n_hypotheses) if out.n_tested > 0 and out.n_agree > 0
-                       else 1.0)  # = p_false_calibrated(n_agree, n_tested, p_tested, n_hypotheses)
+        out.p_false = p_false_calibrated(out.n_agree, out.n_tested, out.p_tested, n_hypotheses)
     else:
         fov_rad = np.radians(camera.fov_deg)
         out.p_false = p_false_tetra3(len(hypothesis) + out.n_agree, n_obs, out.n_frame, r / fov_rad)
@@ -968,32 +965,18 @@ def _estimate(vectors, matches, catalog, sigma_rad):
     return est, obs, rows
 
 
-_LAZY_STEP = None  # skyview.identify.base.LazyStep (base imports this module: imported when first used)
-
-
-def _lazy_step():
-    global _LAZY_STEP
-    from skyview.identify.base import LazyStep
-
-    _LAZY_STEP = LazyStep
-    return LazyStep
-
-
 VERIFY_NUMBERS = ("n_agree", "n_tested", "p_false", "threshold_effective", "radius_arcsec", "n_hypotheses",
                   "p_single")
 
 
 def verification_step(ver: Verification, hypothesis: dict[int, int], *, cap: int = 200,
-                      numbers: dict | None = None, **fields):
+                      numbers: dict | None = None, vd: dict | None = None, **fields):
     """The 'verify' step every method records: the matches (or the rejected hypothesis), the figures
-    of the verification (VERIFY_NUMBERS, as `Verification.to_dict` gives them), plus the method's own
-    `numbers` and Step fields (groups, layers). The catalog rows are listed when first read (from a
-    copy of the matches taken now: `LazyStep`)."""
-    LazyStep = _LAZY_STEP or _lazy_step()
+    of the verification (VERIFY_NUMBERS of `Verification.to_dict`: `vd`, where the caller has made it),
+    plus the method's own `numbers` and Step fields (groups, layers). The catalog rows are listed when
+    first read (from a copy of the matches taken now: `LazyStep`)."""
+    vd = ver.to_dict() if vd is None else vd
     shown = dict(ver.matches or hypothesis)
-    nums = {"n_agree": int(ver.n_agree), "n_tested": int(ver.n_tested), "p_false": float(ver.p_false),
-            "threshold_effective": float(ver.threshold_effective),
-            "radius_arcsec": float(ver.radius_rad * RAD_TO_ARCSEC), "n_hypotheses": int(ver.n_hypotheses),
-            "p_single": float(ver.p_single), "passed": float(ver.passed)} | (numbers or {})
+    nums = {k: vd[k] for k in VERIFY_NUMBERS} | {"passed": float(ver.passed)} | (numbers or {})
     return LazyStep("verify", ("verified: " if ver.passed else "rejected: ") + ver.reason, observed=sorted(shown),
                     catalog_of=lambda: [int(r) for _, r in sorted(shown.items())][:cap], numbers=nums, **fields)
