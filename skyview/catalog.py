@@ -398,15 +398,14 @@ class GuideCatalog:
         c = c[None] if c.ndim == 1 else c  # = np.atleast_2d
         if len(c) == 0:
             return np.zeros(0, dtype=np.int64)
-        if isinstance(chords, float):  # one chord (the local density's): its square, a Python float, for all
-            ch, lim = chords, chords * chords  # (as an array only where it is needed)
+        if isinstance(chords, float):  # one chord (the local density's): a Python float for all, an array
+            ch = chords  # only where it is needed
         else:
             ch = np.asarray(chords, dtype=np.float64)
             ch = np.full(len(c), float(ch)) if ch.ndim == 0 else np.array(np.broadcast_to(ch, (len(c),)))
-            lim = None
         if among is not None and len(c) * len(among) <= PAIRS_AT_ONCE:
-            return self._counts_among(c, ch, np.asarray(among, dtype=np.int64), lim, among_xyz)
-        if lim is not None:
+            return self._counts_among(c, ch, np.asarray(among, dtype=np.int64), among_xyz)
+        if isinstance(ch, float):
             ch = np.full(len(c), ch)
         ci, _, _, unsure = self._pairs_within(c, ch, among)
         n = np.bincount(ci, minlength=len(c))
@@ -414,7 +413,7 @@ class GuideCatalog:
             n[unsure] = self.tree.query_ball_point(c[unsure], ch[unsure], return_length=True)
         return n
 
-    def _counts_among(self, c: np.ndarray, ch: np.ndarray | float, among: np.ndarray, lim_all: float | None = None,
+    def _counts_among(self, c: np.ndarray, ch: np.ndarray | float, among: np.ndarray,
                       among_xyz: np.ndarray | None = None) -> np.ndarray:
         """ball_counts over the rows `among`, from dot products: |p - c|^2 = 1 + |c|^2 - 2 p.c (p a
         unit vector to ~1e-16) is within ~1e-15 of the squared chord the tree sums, so a pair whose
@@ -422,13 +421,13 @@ class GuideCatalog:
         as the tree measures them (`squared_chords`)."""
         g = c @ (self.xyz[among] if among_xyz is None else among_xyz).T
         qq = _einsum("ij,ij->i", c, c)
-        # (lim_all: the square of the one chord of every center: the numbers of ch * ch, without the array)
-        e = g - 0.5 * ((1.0 + qq) - (ch * ch if lim_all is None else lim_all))[:, None]  # s <= lim where e >= 0
+        # (ch: one chord per center, or a Python float for all: its square the same number either way)
+        e = g - 0.5 * ((1.0 + qq) - ch * ch)[:, None]  # s <= lim where e >= 0
         # (np.add.reduce and np.minimum.reduce: what .sum(axis=1) and .min() call, without their wrappers)
         n = np.add.reduce(e > 1e-10, axis=1)
         if e.size == 0 or np.minimum.reduce(np.abs(e), axis=None) > 1e-10:  # (usual: every pair decided by its product)
             return n
-        if lim_all is not None:  # (ch: the one chord, lim_all its square)
+        if isinstance(ch, float):
             ch = np.full(len(c), ch)
         lim = ch * ch
         ks, js = np.nonzero(np.abs(e) <= 1e-10)

@@ -33,7 +33,7 @@ moments add up to J 4^-d); depth 3 is 1.6 % below J, and the same for the catalo
 measurement, which is all that matters for matching.
 
 The search measures one to a few triangles at a time, where numpy's per-call overhead is the cost:
-`triangle_sigmas`, `area_few`, `dot3` / `cross3` (plain floats) and `polar_moment_few`,
+`triangle_sigmas`, `sides_few` and `lhuilier_few` (the area), `dot3` / `cross3` (plain floats) and `polar_moment_few`,
 `lhuilier_zero_first` (fewer numpy calls) give the numbers of the vectorised functions to the last bit
 (tests/test_triangle.py checks them bit for bit).
 """
@@ -404,13 +404,6 @@ def triangle_sigmas(A, B, C, a, b, c, sigma: float) -> tuple[list[float], list[f
         out_area.append(math.sqrt(max(var, 0.0)) if math.isfinite(var) else np.inf)
         out_triple.append(sig * math.sqrt(v[0] + v[1] + v[2]))
     return out_area, out_triple
-
-
-def area_few(A, B, C) -> list[float]:
-    """area(A, B, C) of a few triangles (sequences of 3-vectors) as a list of floats: the same numbers to
-    the last bit (the same operations: the chords summed as np.einsum sums them, arcsin, tan and arctan
-    from numpy, one call each for every triangle), without the ~20 us of numpy calls on tiny arrays."""
-    return lhuilier_few(sides_few(A, B, C))
 
 
 def sides_few(A, B, C) -> list[tuple[float, float, float]]:

@@ -66,7 +66,7 @@ class TriangleLookup:
         n = len(area)
         # the rest are measured as the search visits them (`_measure`); the triple product with them
         nan = np.empty((5, n))
-        nan.fill(np.nan)  # (np.full's Python wrapper costs more than both calls)
+        nan.fill(np.nan)
         out = dict(ti=ti, tj=tj, tk=tk, sides=S.T, area=area, triple=nan[0], sigma=sigma, V=V, area_bound=nan[1],
                    moment=nan[2], moment_bound=nan[3], triple_sigma=nan[4])
         if lookup or self.order == "fewest":
@@ -276,7 +276,7 @@ class TriangleLookup:
             c = r2s[np.repeat(start[cq] - np.cumsum(cnt) + cnt, cnt) + np.arange(int(cnt.sum()))]
             a, b = cp[rows], cq[rows]
         t.setdefault("side_counts", {})[k] = (sp[0] - st[0], sp[1] - st[1])
-        if len(a) <= SMALL:  # the usual few: the same tests in plain floats, the same numbers
+        if len(a) <= SMALL:  # the usual few: the tests in plain floats, the same numbers
             return self._close_few(t, k, a, b, c, float(lo[2]), float(hi[2]))
         ok = c != a
         a, b, c = a[ok], b[ok], c[ok]
@@ -289,20 +289,17 @@ class TriangleLookup:
         d = angular_distance(xyz[c], xyz[a])
         ok = (d >= lo[2]) & (d <= hi[2]) & (d <= self.pair_max_sep_rad)
         a, b, c = a[ok], b[ok], c[ok]
+        if len(a) <= SMALL:  # now few: the rest of the tests in plain floats (the same numbers, side rp again)
+            return self._close_few(t, k, a, b, c, float(lo[2]), float(hi[2]))
         tr, trs = float(t["triple"][k]), float(t["triple_sigma"][k])
         ar, da = float(t["area"][k]), float(t["area_bound"][k])
-        if len(a) <= SMALL:  # the usual few: in plain floats, the same numbers (`sph.area_few`)
-            keep = _hand_and_area(xyz, a, b, c, tr if abs(tr) > self.beta * trs else None, ar, da)
-            a, b, c = a[keep], b[keep], c[keep]
-            A, B, C = xyz[a], xyz[b], xyz[c]
-        else:
-            A, B, C = xyz[a], xyz[b], xyz[c]
-            if abs(tr) > self.beta * trs:
-                ok = np.sign(sph.triple(A, B, C)) == np.sign(tr)
-                a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
-            area = sph.area(A, B, C)
-            ok = (area >= ar - da) & (area <= ar + da)
+        A, B, C = xyz[a], xyz[b], xyz[c]
+        if abs(tr) > self.beta * trs:
+            ok = np.sign(sph.triple(A, B, C)) == np.sign(tr)
             a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
+        area = sph.area(A, B, C)
+        ok = (area >= ar - da) & (area <= ar + da)
+        a, b, c, A, B, C = a[ok], b[ok], c[ok], A[ok], B[ok], C[ok]
         moment = self._moments(t, A, B, C)  # also the observed triangles' left pending by `_ensure`
         if len(a):
             mo, dm = float(t["moment"][k]), float(t["moment_bound"][k])
@@ -481,21 +478,6 @@ def _ends(E: np.ndarray, st: list[int], sp: list[int], n: int, sides: int) -> np
     if sides < 3:
         on[sides:] = True
     return on
-
-
-def _hand_and_area(xyz: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, tr: float | None, area: float,
-                   bound: float) -> list[int]:
-    """`join_pairs`' last two tests of a few catalog triangles (a, b, c), in plain floats: the sign of
-    the triple product is that of the observed tr (None: not certain, not tested), then the area lies
-    within bound of the observed area. Returns the positions that pass."""
-    keep = list(range(len(a)))
-    if not keep:
-        return keep
-    P, Q, R = xyz[a].tolist(), xyz[b].tolist(), xyz[c].tolist()
-    if tr is not None:
-        keep = [i for i in keep if sph.sign(sph.dot3(P[i], sph.cross3(Q[i], R[i]))) == sph.sign(tr)]
-    found = sph.area_few([P[i] for i in keep], [Q[i] for i in keep], [R[i] for i in keep])
-    return [i for i, v in zip(keep, found) if area - bound <= v <= area + bound]
 
 
 @lru_cache(maxsize=64)
