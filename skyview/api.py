@@ -188,7 +188,7 @@ class Solution:
             mag_limit=_finite(result.mag_limit),
             sigma_boresight_arcsec=_finite(result.sigma_boresight_arcsec) if solved else None,
             sigma_roll_arcsec=_finite(result.sigma_roll_arcsec) if solved else None,
-            p_false=p_false, matches=matches, n_centroids=len(result.centroids),
+            p_false=p_false, matches=matches, n_centroids=result.centroids.n_detected,
             time_ms=MappingProxyType({str(k): float(v) for k, v in result.time_ms.items()}),
             epoch=float(result.epoch), result=result, notes=tuple(getattr(result, "notes", ())))
 

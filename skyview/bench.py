@@ -385,7 +385,7 @@ def _run_trial(ctx: _TrialContext, k: int):
         "status": ident.status if ident else "failed", "reason": result.reason,
         "unverified_outcome": unverified,
         "cause": (ident.stats.get("cause") if ident and outcome != "correct" else None),
-        "stars_in_fov": _n_catalog_stars(frame.truth), "centroids": len(result.centroids),
+        "stars_in_fov": _n_catalog_stars(frame.truth), "centroids": result.centroids.n_detected,
         "matches": len(result.matches), "wrong_matches": wrong,
         "pivots": (ident.stats.get("pivots") if ident else None),
         "p_false": (ident.verification.get("p_false") if ident else None),

@@ -150,6 +150,7 @@ class Centroids:
     n_hot_pixels_rejected: int = 0
     n_small_rejected: int = 0  # other blobs smaller than min_pixels
     n_extended_rejected: int = 0  # blobs far larger than a star (roof, tree, Moon, glare)
+    n_unmeasured: int = 0  # fainter stars detected but not measured (detect_centroids' max_stars)
     psf_sigma_px: float = float("nan")  # PSF sigma used by iwcog (measured or given)
     estimator: str = DEFAULT_ESTIMATOR
     image_shape: tuple[int, int] = (0, 0)
@@ -157,6 +158,11 @@ class Centroids:
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
+
+    @property
+    def n_detected(self) -> int:
+        """Stars detected: those measured here and the fainter ones left unmeasured (max_stars)."""
+        return len(self) + int(self.n_unmeasured)
 
     def to_list(self) -> list[dict]:
         """One JSON-ready dict per centroid, brightest first."""
@@ -179,6 +185,7 @@ class Centroids:
             "n": len(self), "background_level": self.background_level, "noise_sigma": self.noise_sigma,
             "threshold": self.threshold, "n_hot_pixels_rejected": self.n_hot_pixels_rejected,
             "n_small_rejected": self.n_small_rejected, "n_extended_rejected": self.n_extended_rejected,
+            "n_unmeasured": self.n_unmeasured,
             "psf_sigma_px": self.psf_sigma_px if math.isfinite(self.psf_sigma_px) else None,
             "estimator": self.estimator, "image_shape": list(self.image_shape), "params": self.params,
             "centroids": self.to_list(),
@@ -785,7 +792,8 @@ def _above_idx(f: np.ndarray, t32: np.float32, band_max: np.ndarray | None = Non
 def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | None = None, min_pixels: int = 2,
                      estimator: str = DEFAULT_ESTIMATOR, psf_sigma_px: float | None = None,
                      saturation_level: float | None = None, max_axis_ratio: float = 1.4,
-                     background_block: int = 64, iterations: int = 6, deblend: bool = True) -> Centroids:
+                     background_block: int = 64, iterations: int = 6, deblend: bool = True,
+                     max_stars: int | None = None) -> Centroids:
     """Find stars in a 2-D image and measure their sub-pixel centroids (see the module docstring).
 
     window: odd side of the square measurement window (pixels) around each blob's brightest pixel;
@@ -796,6 +804,10 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
     deblend: split a blob with several peaks (each >= 2.5 px from a brighter one, with a dip of at
     least 20 % and 3 sigma between them) into one centroid per peak, flagged `blended`; with the
     "fit" estimator each one is refitted after subtracting its neighbours' fitted PSFs.
+    max_stars: measure only the brightest max_stars stars, as a star tracker does (the rest are
+    counted in `n_unmeasured`): each detected star's window sum ranks it before any position is
+    measured, so the answer is the first max_stars centroids of the whole set, field for field, at
+    a fraction of the cost in a dense field. None measures every star.
 
     The former implementation, `skyview.centroid_reference._detect_centroids_reference`, is what this
     one is tested against (tests/test_centroid.py states the tolerances): the same noise sigma to ~2 %
@@ -816,6 +828,8 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         raise BadInput(f"window={window} must be an odd number >= 3")
     if not (k_sigma > 0):
         raise BadInput(f"k_sigma={k_sigma} must be positive")
+    if max_stars is not None and (isinstance(max_stars, bool) or int(max_stars) != max_stars or max_stars < 1):
+        raise BadInput(f"max_stars={max_stars} must be a whole number >= 1 (or None: every star)")
     img = np.ascontiguousarray(to_gray(image))  # any memory order (Fortran, transposed views)
     if img.ndim != 2:
         raise BadInput(f"image must be 2-D (grey) or BGR/BGRA, got an array of shape {np.shape(image)}")
@@ -976,11 +990,12 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
 
     return _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw, sat, sigma, level, thr,
                     n_hot, n_small, H, W, estimator=estimator, psf_sigma_px=psf_sigma_px, window=window,
-                    iterations=iterations, max_axis_ratio=max_axis_ratio, params=params)
+                    iterations=iterations, max_axis_ratio=max_axis_ratio, params=params, max_stars=max_stars)
 
 
 def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw, sat, sigma, level, thr, n_hot,
-             n_small, H, W, *, estimator, psf_sigma_px, window, iterations, max_axis_ratio, params) -> Centroids:
+             n_small, H, W, *, estimator, psf_sigma_px, window, iterations, max_axis_ratio, params,
+             max_stars=None) -> Centroids:
     """Steps 3-4 of detect_centroids on the detected peaks (as in the reference): PSF width, window,
     positions, brightness, flags, extended-blob rejection, brightest-first order."""
     # one gather of the window the PSF usually asks for (7 x 7 for sigma 1.1 px, or the given window);
@@ -1005,6 +1020,34 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
 
     if h != h0:
         vals, valid, rawv = gather(h)
+    extended = area > max(MIN_EXTENDED_PX, EXTENDED_PSF_AREAS * math.pi * (3.0 * s_eff) ** 2)
+    n_extended = int(np.count_nonzero(extended))
+    brightness = vals.sum(axis=(1, 2))  # final for a star that is not blended (only the deblender changes vals)
+    keep_s = ~extended if n_extended else None
+    if max_stars is not None:
+        measured = _brightest(brightness, blended, extended, comp, int(max_stars))
+        if measured is not None:
+            keep_s = measured
+    n_eligible = len(pi) - n_extended
+    use = separable = separable_b = None
+    if estimator == "fit":
+        use = rawv < sat if valid is None else valid & (rawv < sat)  # the pixels the PSF fit uses
+        if keep_s is not None:
+            # the fit's form (separable products, or weights where a pixel is left out) is chosen on the whole
+            # set, for the single stars and for the blended ones, so that a star's position does not depend on
+            # which others are measured (the two forms agree to rounding, not bit for bit)
+            separable, separable_b = bool(use.all()), bool(use[blended].all())
+    if keep_s is not None:
+        keep_s = _flatnonzero(keep_s)
+        pi, pj, comp, area, saturated, blended = pi[keep_s], pj[keep_s], comp[keep_s], area[keep_s], \
+            saturated[keep_s], blended[keep_s]
+        peak_val, peak_raw, brightness, vals, rawv = peak_val[keep_s], peak_raw[keep_s], brightness[keep_s], \
+            vals[keep_s], rawv[keep_s]
+        g_ok, g_uv, g_s2, g_unsat = g_ok[keep_s], g_uv[keep_s], g_s2[keep_s], g_unsat[keep_s]
+        if valid is not None:
+            valid = valid[keep_s]
+        if use is not None:
+            use = use[keep_s]
     edge = np.zeros(len(pi), dtype=bool) if valid is None else ~valid.all(axis=(1, 2))
     d = np.arange(-h, h + 1, dtype=np.float64)
     X = pj[:, None, None] + d[None, None, :]
@@ -1032,8 +1075,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         start = g_uv.copy()
         if iw.size:
             start[iw] = iwcog_of(iw)
-        use = rawv < sat if valid is None else valid & (rawv < sat)
-        uv, amp = _psf_fit_sep(vals, use, X, Y, start, psf_used, h, pi, pj, iterations)
+        uv, amp = _psf_fit_sep(vals, use, X, Y, start, psf_used, h, pi, pj, iterations, separable=separable)
         failed = _flatnonzero((amp <= 0) & psf_like)
         if failed.size:  # no fit: the iwcog position, as the reference gives
             uv[failed] = iwcog_of(failed)
@@ -1056,31 +1098,52 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
                     models = _psf_models(x_a, y_a, uv_b[sb], amp_b[sb], psf_used)
                     np.subtract.at(vb, sa, models)
                 uv_b, amp_b = _psf_fit_sep(vb, use_b, X_b, Y_b, uv_b, psf_used, h, pi_b, pj_b, iterations,
-                                           max_shift=1.5)
+                                           max_shift=1.5, separable=separable_b)
             uv[b] = uv_b
             vals[b] = vb
+            brightness = brightness.copy()
+            brightness[b] = vb.sum(axis=(1, 2))
 
-    brightness = vals.sum(axis=(1, 2))
     ratio = _axis_ratio_mm(vals, X[:, 0, :], Y[:, :, 0], uv, sigma)
     psnr = peak_val / sigma
     ratio_limit = max_axis_ratio + 0.5 * np.minimum(np.maximum((20.0 - psnr) / 10.0, 0.0), 1.0)
     elongated = (ratio > ratio_limit) & (psnr >= 10.0)
-    extended = area > max(MIN_EXTENDED_PX, EXTENDED_PSF_AREAS * math.pi * (3.0 * s_eff) ** 2)
-    n_extended = int(np.count_nonzero(extended))
-    if n_extended:
-        keep_s = ~extended
-        uv, brightness, peak_raw, area = uv[keep_s], brightness[keep_s], peak_raw[keep_s], area[keep_s]
-        saturated, elongated, edge, blended, ratio = (saturated[keep_s], elongated[keep_s], edge[keep_s],
-                                                      blended[keep_s], ratio[keep_s])
     order = (-brightness).argsort(kind="stable")
+    if max_stars is not None:
+        order = order[:int(max_stars)]
     return Centroids(
         uv=uv[order].astype(np.float64, copy=False), brightness=brightness[order].astype(np.float64, copy=False),
         peak=peak_raw[order].astype(np.float64, copy=False), n_pixels=area[order], saturated=saturated[order],
         elongated=elongated[order], edge=edge[order], blended=blended[order], axis_ratio=ratio[order],
         background_level=level, noise_sigma=sigma, threshold=thr, n_hot_pixels_rejected=n_hot,
         n_small_rejected=n_small, psf_sigma_px=psf_used, estimator=estimator, image_shape=(H, W),
-        params=params, n_extended_rejected=n_extended,
+        params=params, n_extended_rejected=n_extended, n_unmeasured=n_eligible - len(order),
     )
+
+
+def _brightest(brightness, blended, extended, comp, n: int) -> np.ndarray | None:
+    """Which stars to measure so that the n brightest are among them (None: all that are not extended).
+
+    An unblended star's window sum `brightness` is its final brightness. A blended one's is its window
+    sum less its neighbours' fitted PSFs (positive amplitudes): at most its window sum. The n-th
+    brightest of the final set is at least the n-th brightest unblended star's, so no star whose window
+    sum is below that can be among the n; the stars of a blob are fitted together, so a blob with one
+    blended star that can be among them is measured whole. The brightest-first order of what is
+    measured, cut to n, is then the whole set's (a stable sort, ties kept in index order)."""
+    eligible = ~extended
+    unblended = eligible & ~blended
+    n_unblended = int(np.count_nonzero(unblended))
+    if int(np.count_nonzero(eligible)) <= n or n_unblended < n:
+        return None
+    nth = np.partition(brightness[unblended], n_unblended - n)[n_unblended - n]
+    bright = brightness >= nth
+    keep = unblended & bright
+    in_blend = eligible & blended
+    if in_blend.any():
+        blobs = np.unique(comp[in_blend & bright])
+        if blobs.size:
+            keep |= in_blend & np.isin(comp, blobs)
+    return keep
 
 
 # ---------------------------------------------------------------------------- fast estimators
@@ -1144,7 +1207,7 @@ _ADJ3 = np.array([[4, 5, 3, 7, 8, 6, 1, 2, 0], [8, 6, 7, 2, 0, 1, 5, 3, 4],
 _GUV = np.concatenate([(2 * _QU[:, None] + _QU[None, :]).ravel(), (4 + 2 * _QV[:, None] + _QV[None, :]).ravel()])
 
 
-def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None):
+def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None, separable=None):
     """Least-squares fit of a pixel-integrated Gaussian PSF of sigma s (amplitude and position) to the
     windows `vals` (N, n, n), pixels where `use` is False left out (saturated, off the image), by
     Gauss-Newton from uv0 (steps limited to 0.5 px; the amplitude starts at its linear least-squares
@@ -1154,7 +1217,8 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
     star stops once its step, or the error left after it (step^2 / (previous step - step): the rest of a
     geometric series with its last two steps' ratio), is below _FIT_TOL (near the minimum Gauss-Newton contracts by a small ratio, so a 1e-3 px step
     after a 0.05 px one leaves ~2e-5 px: the step that would only confirm it is not made).
-    (uv (N, 2), amplitude (N,)); where the fit fails, uv0 and amplitude 0."""
+    separable: use the separable products (every pixel of every window used) or the weighted ones; None
+    chooses by `use`. (uv (N, 2), amplitude (N,)); where the fit fails, uv0 and amplitude 0."""
     n_st = len(vals)
     n = vals.shape[1]
     if n_st == 0:
@@ -1163,7 +1227,7 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None)
     edges[:, 0] = X[:, 0, :1]  # each window's first column and row
     edges[:, 1] = Y[:, :1, 0]
     edges += np.arange(n + 1) - 0.5
-    if use.all():  # no pixel left out (the usual case): the separable products, no weights
+    if use.all() if separable is None else separable:  # no pixel left out (the usual case): no weights
         w = vw = None
     else:
         w = use.reshape(n_st, 1, n * n).astype(np.float64)

@@ -80,14 +80,17 @@ class Solver:
         t2 = time.perf_counter()
         self.setup_ms = {"catalog_load": (t1 - t0) * 1e3, "database_load": (t2 - t1) * 1e3}
 
-    def solve_array(self, image: np.ndarray) -> SolveResult:
+    def solve_array(self, image: np.ndarray, *, measure_all: bool = False) -> SolveResult:
+        """Centroid and identify one grey image of the camera's size. Only the max_stars brightest stars,
+        the ones the identification uses, are measured (as a star tracker does; the others are counted in
+        `centroids.n_unmeasured`); measure_all measures every detected star (to draw them all)."""
         if image.ndim != 2:
             raise BadInput(f"expected a single-channel image, got shape {image.shape}")
         if image.shape != (self.camera.height, self.camera.width):
             raise BadInput(f"image is {image.shape[1]}x{image.shape[0]} but the camera is "
                            f"{self.camera.width}x{self.camera.height}")
         t0 = time.perf_counter()
-        centroids = detect_centroids(image, k_sigma=self.k_sigma)
+        centroids = detect_centroids(image, k_sigma=self.k_sigma, max_stars=None if measure_all else self.max_stars)
         t1 = time.perf_counter()
         result = self.solve_centroids(centroids)
         result.time_ms = {"centroid": (t1 - t0) * 1e3, **result.time_ms}

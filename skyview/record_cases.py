@@ -71,7 +71,7 @@ class CaseRunner:
                                mag_limit=sc.mag_limit, n_false_stars=sc.n_false_stars,
                                false_star_placement=sc.false_star_placement, position_noise_rad=sc.noise_rad)
         sim_ms = (time.perf_counter() - t0) * 1e3
-        result = self.solver.solve_array(frame.image)
+        result = self.solver.solve_array(frame.image, measure_all=True)  # every detected star recorded
         outcome, _ = score_trial(result, frame.truth)
         meta = {"method": self.method, "variant": self.variant, "scenario": f"{sc.name}: {sc.description}",
                 "seed": int(seed), "outcome against truth": outcome,

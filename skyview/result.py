@@ -132,7 +132,7 @@ class SolveResult:
             "method": self.method,
             "variant": self.variant,
             "matches": self.matches,
-            "n_centroids": len(self.centroids),
+            "n_centroids": self.centroids.n_detected,
             "n_matches": len(self.matches),
             "verification": plain(ident.verification, nan_as_none=True) if ident else {},
             "identification": {"status": ident.status, "steps": len(ident.steps),

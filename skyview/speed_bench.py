@@ -115,7 +115,7 @@ def _time_solver(label: str, solve, images: list[dict], decoded: list[np.ndarray
                        "centroid": t.get("centroid"), "identify": t.get("identify"), "attitude": t.get("attitude"),
                        "total": t.get("total"), "wall": wall_ms, "decode": im["decode_ms"],
                        "total+decode": (t.get("total") or 0.0) + im["decode_ms"],
-                       "centroids": len(res.centroids), "matches": len(res.matches),
+                       "centroids": res.centroids.n_detected, "matches": len(res.matches),
                        "err_px": (boresight_error_px(res.R, im["R"], pixel_scale_rad) if res.solved else None)})
     return {"label": label, "trials": trials}
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import cv2
@@ -686,3 +687,65 @@ def test_sparse_nonzero_is_flatnonzero():
         for p in (0.0, 0.001, 0.05, 0.5, 1.0):
             m = rng.random(shape) < p
             assert np.array_equal(_flatnonzero_sparse(m), np.flatnonzero(m))
+
+
+def _same_first(full: Centroids, cut: Centroids, n: int) -> None:
+    """cut holds the first n centroids of full, field for field, bit for bit."""
+    k = min(n, len(full))
+    assert len(cut) == k and cut.n_unmeasured == len(full) - k
+    for f in dataclasses.fields(Centroids):
+        a, b = getattr(full, f.name), getattr(cut, f.name)
+        if isinstance(a, np.ndarray) and a.shape[:1] == (len(full),):
+            assert np.array_equal(a[:k], b, equal_nan=True), f.name
+        elif f.name != "n_unmeasured":
+            assert a == b or (a != a and b != b), f.name
+
+
+def test_brightest_stars_only_are_the_first_of_the_whole_set(cat):
+    """max_stars=N measures the N brightest of the detected stars only, and they are the first N of the
+    whole set, every field the same to the bit: on dense 20 deg frames (8 and 16 bit, many blends, stars
+    cut by the border), a frame with saturated stars, a blended pair and a hot pixel, and one with an
+    extended blob holding several peaks; every estimator, N below, at and above the number of stars."""
+    cam = Camera.from_fov(20.0, 1024, 768)
+    frames = [simulate_image(cat, cam, R, SensorModel(bit_depth=bd, n_hot_pixels=30), seed=k, mag_limit=9.0).image
+              for k, (R, bd) in enumerate(zip(random_attitudes(2, np.random.default_rng(8)), (8, 16)))]
+    rng = np.random.default_rng(5)
+    img = _star_image(rng.uniform(3, 253, (40, 2)), rng.uniform(2e3, 8e4, 40), shape=(256, 256), noise=3.0)
+    img[100, 100] = 60000  # a hot pixel
+    pair = _star_image([[60.0, 60.0], [63.2, 61.0]], [30000.0, 20000.0], shape=(256, 256), bias=0)
+    frames.append(np.clip(img.astype(np.int64) + pair, 0, 65535).astype(np.uint16))
+    glare = _star_image([[128.0, 128.0], [137.0, 131.0], [120.0, 136.0]], [4e6, 3e6, 3e6], shape=(256, 256),
+                        sigma=6.0, noise=3.0)  # one blob far larger than a star, with three peaks
+    frames.append(np.maximum(frames[-1], glare))
+    cut_blends = 0
+    for im in frames:
+        for est in ESTIMATORS:
+            full = detect_centroids(im, estimator=est)
+            assert full.n_unmeasured == 0
+            for n in sorted({1, 5, 25, max(len(full) - 1, 1), len(full), len(full) + 5}):
+                cut = detect_centroids(im, estimator=est, max_stars=n)
+                _same_first(full, cut, n)
+                cut_blends += int(est == "fit" and full.blended[n:].any() and full.blended[:n].any())
+    assert len(detect_centroids(frames[0])) > 150 and detect_centroids(frames[-1]).n_extended_rejected == 1
+    assert cut_blends >= 2  # blends on both sides of the cut
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(BadInput, match="max_stars"):
+            detect_centroids(frames[2], max_stars=bad)
+
+
+def test_solver_measures_only_the_stars_it_identifies_with(cat):
+    """The calibrated solver measures its max_stars brightest stars only; the identification is the same
+    as with every star measured (what the viewer asks for), and it is right."""
+    from skyview.pipeline import Solver
+    from skyview.scoring import score_trial
+    cam = Camera.from_fov(20.0, 1024, 1024)
+    frame = simulate_image(cat, cam, random_attitudes(1, np.random.default_rng(4))[0], SensorModel(), seed=2,
+                           mag_limit=8.5)
+    solver = Solver(cam, "angle", variant="improved", catalog=cat, max_stars=30)
+    res, res_all = solver.solve_array(frame.image), solver.solve_array(frame.image, measure_all=True)
+    assert len(res.centroids) == 30 and res_all.centroids.n_unmeasured == 0
+    assert res.centroids.n_detected == len(res_all.centroids) > 100
+    assert res.centroids.to_dict()["n_unmeasured"] == len(res_all.centroids) - 30
+    assert score_trial(res, frame.truth)[0] == "correct"
+    assert res.matches == res_all.matches and np.array_equal(res.R, res_all.R)
+    assert res.to_dict()["n_centroids"] == res.centroids.n_detected

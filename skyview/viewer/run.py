@@ -272,7 +272,7 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
         say(f"solving with {method} ({variant})")
     solver, lock = solvers.get(camera, method, variant, mag_limit, sigma_for(source))
     with lock:
-        result = solver.solve_array(source.image)
+        result = solver.solve_array(source.image, measure_all=True)  # every detected star drawn
     time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
     return make_run(source, result, solver.catalog, solver.max_stars, time_ms)
 
