@@ -12,7 +12,8 @@ is `skyview.identify.patterns`):
 2. Look-up. The five edge ratios of each quad, widened by +-`ratio_tolerance`, give the bins to look
    up in the sorted key table; the candidates' own ratios (from the catalog) must agree within the
    tolerance, and the FOV they imply (the catalog's largest separation over the image's) must lie
-   in the searched range.
+   in the searched range (a candidate whose level's band of sizes cannot give such an FOV is dropped
+   on its level alone, before its stars are read).
 3. Hypothesis. The four stars are put in correspondence by the permutation whose separations agree
    best; the attitude is the SVD solution of the four pairs with the implied FOV.
 4. Quick check. The catalog stars in that frame, the brightest `depth_factor` times as many as the
@@ -139,6 +140,11 @@ class BlindIdentifier:
         self.keys = np.asarray(arrays["keys"])  # plain views of the memory map
         self.rows = np.asarray(arrays["rows"])
         self.bucket_start = np.asarray(arrays["bucket_start"])
+        self.level = np.asarray(arrays["level"])
+        # each level's band of largest edges, radians, [lo, hi) (patterns.py), widened by 1e-6 for
+        # rounding: the look-up drops the patterns whose size cannot give an FOV it searches
+        band_hi = np.radians(np.asarray(arrays["edges_deg"], dtype=np.float64))
+        self._band = (band_hi / self.pattern_params.step * (1.0 - 1e-6), band_hi * (1.0 + 1e-6))
         self.database_info = {**info, "patterns": int(len(self.keys))}
         edges = self.pattern_params.levels()
         # a field shows patterns up to about its diagonal and down to a quarter of its width
@@ -244,6 +250,13 @@ class BlindIdentifier:
             if len(prow) == 0:
                 continue
             qrep = qi[ni]
+            # the FOV a pattern implies is fa * (its largest edge) / (the quad's): a pattern whose level's
+            # band of largest edges cannot put it in this rung's range is dropped before its stars are read
+            fits = self._sizes_fit(prow, largest[qrep] / fa, max(lo, fa / cover), min(hi, fa * cover))
+            if not fits.all():
+                prow, qrep = prow[fits], qrep[fits]
+                if len(prow) == 0:
+                    continue
             cat_v = self.catalog.xyz[self.rows[prow]]
             c_ratios, c_largest = pdb.edge_ratios(pdb.separations(cat_v))
             err = np.abs(c_ratios - ratios[qrep]).max(axis=1)
@@ -264,6 +277,13 @@ class BlindIdentifier:
         q, pr, f, er = q[first], pr[first], f[first], er[first]
         order = np.lexsort((er, q))  # quads in their brightness order, best agreement first
         return {"quad": q[order], "pattern": pr[order], "fov": f[order], "err": er[order]}
+
+    def _sizes_fit(self, prow: np.ndarray, size: np.ndarray, f_lo: float, f_hi: float) -> np.ndarray:
+        """Which table patterns prow can imply an FOV in [f_lo, f_hi] degrees for quads whose largest
+        edge is `size` times the assumed FOV (the FOV is the pattern's largest edge over size): those
+        whose level's band of largest edges reaches [f_lo * size, f_hi * size]."""
+        lvl = self.level[prow]
+        return (self._band[1][lvl] >= f_lo * size) & (self._band[0][lvl] <= f_hi * size)
 
     # ------------------------------------------------------------------ hypotheses
     def _check(self, uv, quads, cands, state: "_Search", steps, t0, max_checks: int) -> BlindResult | None:
