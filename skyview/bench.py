@@ -629,7 +629,7 @@ def _run_blind_trial(ctx: _BlindContext, k: int):
         "cause": cause,
         "stars_in_fov": _n_catalog_stars(frame.truth),
         "faint_in_fov": len(frame.truth["stars"]) - _n_catalog_stars(frame.truth),
-        "centroids": len(result.centroids), "matches": len(result.matches), "wrong_matches": wrong,
+        "centroids": result.centroids.n_detected, "matches": len(result.matches), "wrong_matches": wrong,
         "fov_true_deg": true_fov, "fov_given_deg": fov_given,
         "fov_fitted_deg": cam.fov_deg if cam is not None else None,
         "fov_error_pct": 100.0 * (cam.fov_deg / true_fov - 1.0) if cam is not None else None,

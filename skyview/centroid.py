@@ -1101,8 +1101,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
                                            max_shift=1.5, separable=separable_b)
             uv[b] = uv_b
             vals[b] = vb
-            brightness = brightness.copy()
-            brightness[b] = vb.sum(axis=(1, 2))
+            brightness[b] = vb.sum(axis=(1, 2))  # (brightness is this call's own array)
 
     ratio = _axis_ratio_mm(vals, X[:, 0, :], Y[:, :, 0], uv, sigma)
     psnr = peak_val / sigma
@@ -1137,13 +1136,10 @@ def _brightest(brightness, blended, extended, comp, n: int) -> np.ndarray | None
         return None
     nth = np.partition(brightness[unblended], n_unblended - n)[n_unblended - n]
     bright = brightness >= nth
-    keep = unblended & bright
     in_blend = eligible & blended
-    if in_blend.any():
-        blobs = np.unique(comp[in_blend & bright])
-        if blobs.size:
-            keep |= in_blend & np.isin(comp, blobs)
-    return keep
+    ranks = np.zeros(int(comp.max()) + 1, dtype=bool)  # by blob label: a blended star of it can rank
+    ranks[comp[in_blend & bright]] = True
+    return (unblended & bright) | (in_blend & ranks[comp])
 
 
 # ---------------------------------------------------------------------------- fast estimators
@@ -1278,8 +1274,10 @@ def _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, iterations, max_shift=None,
             # the residual's products): the new amplitude, and A times the step
             g = S9[:, _ADJ3]
             adj = (g[:, 0] * g[:, 1] - g[:, 2] * g[:, 3]).reshape(m, 3, 3)
-            y = (adj @ b[:, :, None])[:, :, 0]
-            y /= (S9[:, None, :3] @ adj[:, 0, :, None])[:, 0]  # the determinant (first row . first column)
+            # the 3 x 3 products written out, element by element: a star's numbers do not depend on the
+            # batch (a batched matmul sums differently when one star is left than when several are)
+            y = adj[:, :, 0] * b[:, 0, None] + adj[:, :, 1] * b[:, 1, None] + adj[:, :, 2] * b[:, 2, None]
+            y /= (S9[:, 0] * adj[:, 0, 0] + S9[:, 1] * adj[:, 0, 1] + S9[:, 2] * adj[:, 0, 2])[:, None]  # determinant
             y[:, 1:] /= Aa[:, None]  # (A + dA, du, dv)
             if not math.isfinite(float(y.sum())):  # a singular system or a zero amplitude: no step there
                 bad = ~np.isfinite(y)

@@ -51,7 +51,9 @@ def result_lines(result) -> list[tuple[str, str]]:
     rows = [("status", f"{'solved' if result.solved else 'not solved'} by {result.method} ({result.variant})")]
     if not result.solved:
         rows.append(("why", why_not(result)))
-    rows.append(("centroids / matched", f"{len(result.centroids)} / {len(result.matches)}"))
+    c = result.centroids
+    rows.append(("centroids / matched", f"{len(c)} / {len(result.matches)}"
+                 + (f" (of {c.n_detected} detected, the brightest measured)" if c.n_unmeasured else "")))
     if result.R is not None:
         ra, dec, roll = (math.degrees(x) for x in radec_roll_from_R(result.R))
         rows += [("RA / Dec / roll", f"{ra:.5f}° / {dec:+.5f}° / {roll:+.4f}°")]

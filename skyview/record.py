@@ -84,9 +84,7 @@ def result_markdown(result, *, truth: dict | None = None, meta: dict | None = No
                   f"- quaternion [w x y z]: {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}", ""]
     ident = result.identification
     lines += ["## Identification", "",
-              f"- {len(result.centroids)} centroids"
-              + (f" (the brightest of {result.centroids.n_detected} detected)" if result.centroids.n_unmeasured else "")
-              + f", {len(result.matches)} matched"
+              f"- {len(result.centroids)} centroids, {len(result.matches)} matched"
               + (f", {len(ident.steps)} steps, status {ident.status}" if ident else "")]
     if result.matches:
         lines += ["", "| # | u | v | HIP | Hp | residual (\") |", "|---|---|---|---|---|---|"]

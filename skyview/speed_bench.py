@@ -6,7 +6,7 @@ scenario.camera(), scenario.render_kwargs(), SensorModel(bit_depth=bit_depth)), 
 PNG (16 bit by default, the ADC spanning the full well: the frames tetra3rs's own centroider is made
 for; or 8 bit, as `skyview simulate` writes frames and as issue 11 states its centroid figure: one ADU
 per read-noise sigma, stars brighter than Hp ~3.7 saturate, and tetra3rs's extractor with its default
-settings finds 3 of 50 sparse 8 deg fields in ~18 ms; the simulator's own JPEG bytes when the scenario
+settings finds few stars: benchmarks/README.md); the simulator's own JPEG bytes when the scenario
 has jpeg_quality) into a work folder, then times, one image after the other, in this process:
 
 - decode: `skyview.centroid.load_image` of the file (reported apart; the totals below exclude it,

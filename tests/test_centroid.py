@@ -597,6 +597,36 @@ def test_separable_fit_is_the_weighted_form():
         np.testing.assert_allclose(a_s, a_w[k], rtol=1e-9)
 
 
+def test_a_star_fits_the_same_alone_as_in_any_batch():
+    """Each star's PSF fit and iwcog, in either form of the fit, are the numbers it gets fitted alone, bit
+    for bit: what lets detect_centroids(max_stars=N) measure a subset and give the whole set's first N
+    (a batched 3 x 3 matmul summed differently once a single star was left iterating)."""
+    from skyview.centroid import _cog, _iwcog_sep, _psf_fit_sep
+    rng = np.random.default_rng(21)
+    for trial in range(40):
+        n_st, h = int(rng.integers(2, 30)), int(rng.choice([2, 3, 4]))
+        vals = _random_windows(rng, n_st, 2 * h + 1, noise=float(rng.uniform(0.5, 10.0)))
+        pi, pj = rng.integers(10, 500, n_st), rng.integers(10, 500, n_st)
+        d = np.arange(-h, h + 1, dtype=np.float64)
+        X, Y = pj[:, None, None] + d[None, None, :], pi[:, None, None] + d[None, :, None]
+        uv0 = np.stack([pj, pi], axis=1) + rng.uniform(-0.7, 0.7, (n_st, 2))
+        use = np.ones(vals.shape, dtype=bool)
+        s = float(rng.uniform(0.7, 2.0))
+        cog = _cog(vals, X, Y, pi, pj)
+        iw = _iwcog_sep(vals, X, Y, cog, s, h, pi, pj, 6)
+        for separable in (True, False):
+            uv, amp = _psf_fit_sep(vals, use, X, Y, uv0, s, h, pi, pj, 6, separable=separable)
+            for k in range(n_st):
+                one = slice(k, k + 1)
+                uv_k, amp_k = _psf_fit_sep(vals[one], use[one], X[one], Y[one], uv0[one], s, h, pi[one], pj[one], 6,
+                                           separable=separable)
+                assert np.array_equal(uv_k[0], uv[k]) and amp_k[0] == amp[k]
+        for k in range(n_st):
+            one = slice(k, k + 1)
+            assert np.array_equal(_iwcog_sep(vals[one], X[one], Y[one], cog[one], s, h, pi[one], pj[one], 6)[0],
+                                  iw[k])
+
+
 def test_median_of_large_quantised_samples():
     """Large samples with few distinct values (the noise of an 8-bit frame: ~1 step) take the sort, the
     others the partition: np.median's value either way, odd and even counts."""

@@ -102,7 +102,7 @@ def cmd_demo(a) -> int:
     solver = Solver(camera, a.method, catalog=catalog, variant=a.variant)
     print(f"\n2. {a.method} ({a.variant}), told the exact FOV (database loaded in "
           f"{solver.setup_ms['database_load']:.0f} ms; a first run builds and caches it):")
-    result = solver.solve_array(frame.image)
+    result = solver.solve_array(frame.image, measure_all=True)  # every detected star, as its recording draws them
     out = with_truth(result, R, frame.truth)
     print_human(out)
     if a.record:  # the demo's own recording: an earlier demo's is replaced

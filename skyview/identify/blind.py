@@ -252,7 +252,8 @@ class BlindIdentifier:
             qrep = qi[ni]
             # the FOV a pattern implies is fa * (its largest edge) / (the quad's): a pattern whose level's
             # band of largest edges cannot put it in this rung's range is dropped before its stars are read
-            fits = self._sizes_fit(prow, largest[qrep] / fa, max(lo, fa / cover), min(hi, fa * cover))
+            f_lo, f_hi = max(lo, fa / cover), min(hi, fa * cover)  # the FOVs this rung accepts
+            fits = self._sizes_fit(prow, largest[qrep] / fa, f_lo, f_hi)
             if not fits.all():
                 prow, qrep = prow[fits], qrep[fits]
                 if len(prow) == 0:
@@ -261,7 +262,7 @@ class BlindIdentifier:
             c_ratios, c_largest = pdb.edge_ratios(pdb.separations(cat_v))
             err = np.abs(c_ratios - ratios[qrep]).max(axis=1)
             fov = fa * c_largest / largest[qrep]  # small-angle: the scale that maps image onto sky
-            keep = (err <= tol) & (fov >= lo) & (fov <= hi) & (fov >= fa / cover) & (fov <= fa * cover)
+            keep = (err <= tol) & (fov >= f_lo) & (fov <= f_hi)
             found_q.append(batch[qrep[keep]])
             found_p.append(prow[keep])
             found_f.append(fov[keep])

@@ -300,9 +300,7 @@ def result_markdown(run: Run, viewer_ms: dict | None = None) -> str:
     if not r.solved:
         lines.append(f"reason: {r.reason}  ")
         lines.append(f"**Why:** {why_not(r)}  ")
-    n_cent = (f"{len(r.centroids)}" if not r.centroids.n_unmeasured else
-              f"{r.centroids.n_detected} detected, the {len(r.centroids)} brightest measured")
-    rows = [("centroids", f"{n_cent} (brightest {run.n_used} used)"),
+    rows = [("centroids", f"{len(r.centroids)} (brightest {run.n_used} used)"),
             ("matched", f"{len(r.matches)}")]
     if r.R is not None:
         ra, dec, roll = (math.degrees(x) for x in radec_roll_from_R(r.R))
