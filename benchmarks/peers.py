@@ -6,7 +6,7 @@ Run with skyview's virtualenv (SKYVIEW_CACHE decides where databases are cached)
     SKYVIEW_CACHE=/tmp/svcache-peers .venv/bin/python benchmarks/peers.py --real tests/data/real-images
 
 1. Images: n images of a skyview bench scenario rendered exactly as `skyview bench --blind` renders them
-   (skyview.bench.run_blind_bench: one rng seeded with --seed, random_attitudes(n, rng), then the per-trial
+   (skyview.bench.runner.run_blind_bench: one rng seeded with --seed, random_attitudes(n, rng), then the per-trial
    noise seeds rng.integers(0, 2**31 - 1, n); scenario.camera(), scenario.render_kwargs(), SensorModel()),
    saved as 16-bit PNG (or the simulator's own JPEG bytes when the scenario has jpeg_quality) with a truth
    JSON each, in a work folder. Or, with --real DIR, the photographs in DIR with the attitudes of
@@ -38,12 +38,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from skyview.attitude import radec_roll_from_R, random_attitudes
-from skyview.catalog import load_guide_catalog
-from skyview.centroid import load_image
-from skyview.pipeline import BlindSolver
-from skyview.scenarios import get_scenario
-from skyview.simulate import SensorModel, simulate_image
+from skyview.core.attitude import radec_roll_from_R, random_attitudes
+from skyview.core.catalog import load_guide_catalog
+from skyview.detect.centroids import load_image
+from skyview.simulate.render import SensorModel, simulate_image
+from skyview.simulate.scenarios import get_scenario
+from skyview.solver.pipeline import BlindSolver
 
 REPO = Path(__file__).resolve().parent.parent
 WORKER = Path(__file__).resolve().parent / "peers_worker.py"
@@ -293,7 +293,7 @@ def format_markdown(report: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenario", default="blind8", help="a skyview scenario (skyview.scenarios), default blind8")
+    ap.add_argument("--scenario", default="blind8", help="a skyview scenario (skyview.simulate.scenarios), default blind8")
     ap.add_argument("-n", type=int, default=100, help="number of simulated images (default 100)")
     ap.add_argument("--seed", type=int, default=0, help="as skyview bench --seed (default 0)")
     ap.add_argument("--jpeg-quality", type=int, default=None, help="scenario.with_changes(jpeg_quality=Q)")

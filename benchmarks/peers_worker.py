@@ -62,7 +62,7 @@ def load_gray(path: str) -> np.ndarray:
 
 
 def R_from_radec_roll(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarray:
-    """skyview.attitude.R_from_radec_roll (degrees in): rows x right, y down, z boresight, in ICRS;
+    """skyview.core.attitude.R_from_radec_roll (degrees in): rows x right, y down, z boresight, in ICRS;
     roll = image-up from north towards east."""
     ra, dec, roll = (math.radians(x) for x in (ra_deg, dec_deg, roll_deg))
     b = np.array([math.cos(dec) * math.cos(ra), math.cos(dec) * math.sin(ra), math.sin(dec)])
@@ -191,8 +191,9 @@ def main() -> None:
     job = json.load(sys.stdin)
     makers = {"cedar": lambda: Cedar(job), "tetra3rs-fov": lambda: Tetra3rs(job, "fov"),
               "tetra3rs-blind": lambda: Tetra3rs(job, "blind")}
-    import tetra3rs
     from importlib.metadata import version
+
+    import tetra3rs
 
     answer = {"versions": {"cedar-solve": version("cedar-solve"), "tetra3rs": tetra3rs.__version__,
                            "numpy": np.__version__, "python": sys.version.split()[0]},

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 import skyview
-from skyview.centroid import load_image
+from skyview.detect.centroids import load_image
 
 REAL = Path(__file__).resolve().parent.parent / "tests" / "data" / "real-images"
 MAX_ERROR_ARCSEC = 0.1 * 3600.0

@@ -4,7 +4,7 @@ Every method is told each photograph's FOV exactly: the papers' calibrated mode,
 no distortion model. This is the test Juang, Kim & Junkins made with their method on night-sky images
 (7 of 10 identified). A solve is correct when its boresight is within 0.1 deg of the reference, wrong
 when it is solved but farther off; the last row is the default pipeline told nothing (blind). Prints
-the markdown table; `skyview bench --compare` runs the same (`skyview.compare.run_real`) beside the
+the markdown table; `skyview bench --compare` runs the same (`skyview.bench.compare.run_real`) beside the
 simulated comparison and writes docs/benchmarks.md's tables.
 
 Run: SKYVIEW_CACHE=/tmp/svcache .venv/bin/python benchmarks/real_photographs_calibrated.py
@@ -13,7 +13,7 @@ Run: SKYVIEW_CACHE=/tmp/svcache .venv/bin/python benchmarks/real_photographs_cal
 
 from __future__ import annotations
 
-from skyview.compare import run_real
+from skyview.bench.compare import run_real
 
 
 def main() -> None:

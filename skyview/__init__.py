@@ -26,15 +26,15 @@ from typing import TYPE_CHECKING, Any
 # formats whose size skyview cannot read from the header are still bounded by OpenCV's own limit
 _os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(100_000_000))
 
-from skyview.errors import SkyviewError, BadInput  # noqa: E402
+from skyview.core.errors import BadInput, SkyviewError  # noqa: E402
 
 if TYPE_CHECKING:  # the API module is imported on first use: `import skyview` (and the CLI) stay fast
     from pathlib import Path
 
     import numpy as np
 
-    from skyview.api import Match, NotSolvedError, Solution, Solver, solve
-    from skyview.pipeline import SolveResult
+    from skyview.solver.api import Match, NotSolvedError, Solution, Solver, solve
+    from skyview.solver.pipeline import SolveResult
 
 __all__ = ["solve", "Solver", "Solution", "Match", "NotSolvedError", "SkyviewError", "BadInput", "solve_image",
            "__version__"]
@@ -44,8 +44,7 @@ _API_NAMES = ("solve", "Solver", "Solution", "Match", "NotSolvedError")
 
 def __getattr__(name: str) -> Any:
     if name in _API_NAMES:
-        from skyview import api
-
+        from skyview.solver import api
         value = getattr(api, name)
         globals()[name] = value
         return value
@@ -58,9 +57,9 @@ def __dir__() -> list[str]:
 
 def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, method: str | None = None,
                 **kwargs: Any) -> SolveResult:
-    """Image to attitude, as the pipeline's ``SolveResult``; see :func:`skyview.pipeline.solve_image`.
+    """Image to attitude, as the pipeline's ``SolveResult``; see :func:`skyview.solver.pipeline.solve_image`.
 
     The older call, kept as it was; :func:`solve` is the typed API (a :class:`Solution`)."""
-    from skyview.pipeline import solve_image as _solve
+    from skyview.solver.pipeline import solve_image as _solve
 
     return _solve(image, fov_deg, method, **kwargs)

@@ -39,7 +39,7 @@ def cache() -> Path:
 @pytest.fixture(scope="session")
 def catalog():
     """The whole guide catalog, at the default epoch."""
-    from skyview.catalog import load_guide_catalog
+    from skyview.core.catalog import load_guide_catalog
 
     return load_guide_catalog()
 
@@ -53,6 +53,6 @@ def cat(catalog):
 @pytest.fixture(scope="session")
 def cam():
     """An 8 deg (horizontal), 1024 x 1024 pinhole camera."""
-    from skyview.camera import Camera
+    from skyview.core.camera import Camera
 
     return Camera.from_fov(8.0, 1024)

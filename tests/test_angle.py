@@ -4,11 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from skyview.attitude import attitude_error_arcsec, random_attitudes
-from skyview.camera import Camera
-from skyview.errors import BadInput
-from skyview.identify import FAILED, IDENTIFIED, METHODS, make_identifier
-from skyview.identify import database
+from skyview.core.attitude import attitude_error_arcsec, random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.errors import BadInput
+from skyview.identify import FAILED, IDENTIFIED, METHODS, database, make_identifier
 from skyview.identify.angle import AngleMethod, _close, _join, _Ranges
 from skyview.identify.base import Observation
 from skyview.identify.pivot import Restarts

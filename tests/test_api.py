@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import skyview
-from skyview.pipeline import SolveResult
+from skyview.solver.pipeline import SolveResult
 
 REAL = Path(__file__).parent / "data" / "real-images"
 REFERENCE = json.loads((REAL / "reference.json").read_text())
@@ -67,7 +67,7 @@ def test_to_json_round_trip(photo, failed):
 
 
 def test_skycoord_wcs_and_rotation_agree_with_R(photo):
-    from skyview.attitude import R_from_quat
+    from skyview.core.attitude import R_from_quat
 
     R = photo.R
     assert np.allclose(photo.rotation().as_matrix(), R, atol=1e-12)
@@ -92,7 +92,7 @@ def test_skycoord_wcs_and_rotation_agree_with_R(photo):
 
 
 def test_the_matches_carry_their_catalog_rows(photo):
-    from skyview.catalog import load_guide_catalog, vec_to_radec
+    from skyview.core.catalog import load_guide_catalog, vec_to_radec
 
     cat = load_guide_catalog(epoch=photo.epoch)  # opened here only to check what the solution carries
     for m in photo.matches:
@@ -142,10 +142,10 @@ def test_solver_for_many_images(photo):
 
 
 def test_calibrated_method_on_a_simulated_image():
-    from skyview.attitude import R_from_radec_roll
-    from skyview.camera import Camera
-    from skyview.catalog import load_guide_catalog
-    from skyview.simulate import SensorModel, simulate_image
+    from skyview.core.attitude import R_from_radec_roll
+    from skyview.core.camera import Camera
+    from skyview.core.catalog import load_guide_catalog
+    from skyview.simulate.render import SensorModel, simulate_image
 
     camera = Camera.from_fov(8.0, 1024)
     R = R_from_radec_roll(np.radians(83.8), np.radians(-5.4), np.radians(30.0))
@@ -167,6 +167,6 @@ def test_the_old_call_and_the_public_surface():
     for name in skyview.__all__:
         assert getattr(skyview, name) is not None
     assert (Path(skyview.__file__).parent / "py.typed").exists()
-    assert skyview.solve.__doc__ and "ICRS" in inspect.getdoc(skyview.api)
+    assert skyview.solve.__doc__ and "ICRS" in inspect.getdoc(skyview.solver.api)
     res = skyview.solve_image(np.full((64, 64), 3, np.uint8))
     assert isinstance(res, SolveResult) and not res.solved

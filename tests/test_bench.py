@@ -4,9 +4,9 @@ import json
 
 import numpy as np
 
-from skyview.bench import format_markdown, run_bench, score_trial
-from skyview.truth import centroid_truth, wrong_matches
-from skyview.scenarios import SCENARIOS
+from skyview.bench.runner import format_markdown, run_bench, score_trial
+from skyview.simulate.scenarios import SCENARIOS
+from skyview.simulate.truth import centroid_truth, wrong_matches
 
 
 def test_bench_runs_and_scores_against_truth(tmp_path, monkeypatch):
@@ -71,7 +71,7 @@ def _small_blind_solver(monkeypatch, tmp_path):
     """A blind database for 18-36 deg fields only: builds in about a second (the full one takes ~10 s)."""
     import functools
 
-    from skyview import bench
+    from skyview.bench import runner as bench
     from skyview.identify.patterns import PatternParams
 
     monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path / "cache"))
@@ -101,7 +101,7 @@ def test_blind_bench_cli_end_to_end(tmp_path, monkeypatch, capsys):
 
 
 def test_blind_bench_with_jpeg_and_distortion(tmp_path, monkeypatch):
-    from skyview.bench import format_blind_markdown, run_blind_bench
+    from skyview.bench.runner import format_blind_markdown, run_blind_bench
 
     _small_blind_solver(monkeypatch, tmp_path)
     sc = SCENARIOS["blind20"].with_changes(jpeg_quality=80, k1=0.05)

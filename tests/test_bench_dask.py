@@ -1,13 +1,13 @@
-"""`skyview bench --scheduler`: the Monte Carlo bench's trials on Dask (skyview.bench_dask) give the
+"""`skyview bench --scheduler`: the Monte Carlo bench's trials on Dask (skyview.bench.dask_engine) give the
 same trials and summary as the local run."""
 
 import json
 
 import pytest
 
-from skyview.bench import run_bench
+from skyview.bench.runner import run_bench
 from skyview.cli import main
-from skyview.scenarios import get_scenario
+from skyview.simulate.scenarios import get_scenario
 
 SAME = ("trial", "seed", "outcome", "status", "stars_in_fov", "centroids", "matches", "wrong_matches",
         "err_boresight_arcsec", "quaternion_true")

@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, radec_roll_from_R
-from skyview.camera import Camera
-from skyview.camera_fit import fit_camera
-from skyview.centroid import load_image
-from skyview.errors import BadInput
+from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, radec_roll_from_R
+from skyview.core.camera import Camera
+from skyview.core.camera_fit import fit_camera
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import load_image
 from skyview.identify import database
 from skyview.identify import patterns as pdb
 from skyview.identify.blind import fov_ladder
-from skyview.pipeline import BlindSolver, as_image, solve_image
-from skyview.simulate import SensorModel, simulate_image
-from skyview.truth import wrong_matches
+from skyview.simulate.render import SensorModel, simulate_image
+from skyview.simulate.truth import wrong_matches
+from skyview.solver.pipeline import BlindSolver, as_image, solve_image
 
 REAL = Path(__file__).parent / "data" / "real-images"
 REFERENCE = json.loads((REAL / "reference.json").read_text())
@@ -151,7 +151,7 @@ def test_real_photograph_with_a_wrong_fov_estimate_and_a_method(blind):
 
 def test_wcs_round_trip_lands_on_the_centroids(blind, catalog):
     pytest.importorskip("astropy")
-    from skyview.wcs import solution_wcs
+    from skyview.io.wcs import solution_wcs
 
     name = "2019-07-29T204726_Alt40_Azi45_Try1.png"
     res = blind.solve_array(load_image(REAL / name))
@@ -268,7 +268,7 @@ def test_a_roof_a_tree_and_a_gradient_in_the_frame_do_not_stop_a_blind_solve(bli
     """Real photographs have foreground: a lit roof edge, a tree, sky glow. They are not stars."""
     import cv2
 
-    from skyview.centroid import detect_centroids
+    from skyview.detect.centroids import detect_centroids
 
     R = R_from_radec_roll(math.radians(250.0), math.radians(35.0), math.radians(-70.0))
     frame = simulate_image(catalog, Camera.from_fov(15.0, 1024, 768), R, SensorModel(), seed=3, mag_limit=9.0)

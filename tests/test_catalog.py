@@ -3,9 +3,17 @@
 import numpy as np
 import pytest
 
-from skyview.catalog import (ASSET_PATH, FLAG_DOUBLE, build_guide_catalog, chord, load_guide_catalog,
-                             radec_to_vec, save_guide_catalog, vec_to_radec)
-from skyview.errors import BadInput
+from skyview.core.catalog import (
+    ASSET_PATH,
+    FLAG_DOUBLE,
+    build_guide_catalog,
+    chord,
+    load_guide_catalog,
+    radec_to_vec,
+    save_guide_catalog,
+    vec_to_radec,
+)
+from skyview.core.errors import BadInput
 
 ARCSEC = np.radians(1 / 3600)
 
@@ -124,7 +132,7 @@ def _caps(rng, n):
 @pytest.mark.parametrize("run", [True, False], ids=["z-run", "cells"])
 def test_sky_index_gives_the_kd_tree_sets(catalog, monkeypatch, run):
     """within / ball_rows from the sky index (both of its ways of reading a cap) are the k-d tree's sets."""
-    import skyview.catalog as C
+    import skyview.core.catalog as C
 
     monkeypatch.setattr(C, "CAP_RUN", 10 ** 9 if run else -1)
     rng = np.random.default_rng(7)
@@ -168,7 +176,7 @@ def test_sky_index_counts_and_nearest_are_the_kd_tree_answers(catalog):
 def test_sky_index_cap_cosines(catalog, monkeypatch, run):
     """cap_cosines: every star within the angle, ascending, each with its cosine to the centre; nothing
     a dot product puts beyond the angle."""
-    import skyview.catalog as C
+    import skyview.core.catalog as C
 
     monkeypatch.setattr(C, "CAP_RUN", 10 ** 9 if run else -1)
     rng = np.random.default_rng(9)

@@ -9,14 +9,20 @@ import cv2
 import numpy as np
 import pytest
 
-from skyview.attitude import random_attitudes
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
-from skyview.centroid import (DEFAULT_ESTIMATOR, ESTIMATORS, Centroids, detect_centroids, estimate_background,
-                              load_image)
-from skyview.centroid_bench import _match, format_markdown, measure_centroid_accuracy
-from skyview.errors import BadInput
-from skyview.simulate import SensorModel, render_stars, simulate_image
+from skyview.bench.centroids import _match, format_markdown, measure_centroid_accuracy
+from skyview.core.attitude import random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import (
+    DEFAULT_ESTIMATOR,
+    ESTIMATORS,
+    Centroids,
+    detect_centroids,
+    estimate_background,
+    load_image,
+)
+from skyview.simulate.render import SensorModel, render_stars, simulate_image
 
 
 def _star_image(uv, electrons, shape=(128, 128), sigma=1.1, bias=100.0, noise=0.0, seed=0, dtype=np.uint16):
@@ -308,8 +314,9 @@ def test_bench_small_run(cat):
 #   difference of the background levels (+ 0.5 sigma per pixel under a map);
 # - those among the brightest 40 of the reference among the 45 brightest of the fast path (brightness order).
 
-from skyview.centroid import _background_stats, _label_sparse  # noqa: E402
-from skyview.centroid_reference import _detect_centroids_reference, _estimate_background_reference  # noqa: E402
+from oracles.centroid_reference import _detect_centroids_reference, _estimate_background_reference  # noqa: E402
+
+from skyview.detect.centroids import _background_stats, _label_sparse  # noqa: E402
 
 _REAL = sorted((__import__("pathlib").Path(__file__).parent / "data" / "real-images").glob("*.png"))
 
@@ -441,7 +448,7 @@ def test_fast_background_statistics_near_the_reference_ones(cat):
 def test_median_and_mad_from_one_partition():
     """The median and the MAD from one partition each are np.median's values, bit for bit and in the
     same dtype (odd and even counts, ties at the median as on integer images)."""
-    from skyview.centroid import _median_part
+    from skyview.detect.centroids import _median_part
     rng = np.random.default_rng(11)
     for k in range(2000):
         r = rng.normal(0.0, 3.0, int(rng.integers(1, 80))).astype(np.float32)
@@ -476,7 +483,7 @@ def test_band_thresholding_finds_every_pixel_above():
     """_above_idx (4-row band maxima, then the crossing bands compared) = np.flatnonzero(_above(...)),
     on heights that are and are not multiples of the band, every native dtype and float32, few and many
     crossing bands."""
-    from skyview.centroid import _above, _above_idx, _band_max
+    from skyview.detect.centroids import _above, _above_idx, _band_max
     rng = np.random.default_rng(3)
     for H, W in ((64, 50), (67, 31), (5, 9), (3, 3), (130, 64)):
         for dtype in (np.uint8, np.uint16, np.int16, np.float32):
@@ -493,7 +500,7 @@ def test_band_thresholding_finds_every_pixel_above():
 def test_background_map_at_the_noise_samples_is_the_upsampled_map():
     """_upsample_at (cached interpolation weights) gives _upsample's map (cv2.resize) at every
     sample, phase and step, to float32 rounding."""
-    from skyview.centroid import _upsample, _upsample_at
+    from skyview.detect.centroids import _upsample, _upsample_at
     rng = np.random.default_rng(4)
     for gh, gw, by, bx, H, W in ((16, 16, 8, 16, 128, 256), (3, 5, 8, 8, 30, 47), (1, 4, 8, 8, 9, 40),
                                  (2, 1, 4, 4, 11, 5), (4, 3, 5, 7, 23, 22)):
@@ -522,7 +529,7 @@ def test_hot_pixels_and_stars_at_the_side_columns():
 
 def test_label_peaks_are_the_last_of_a_lexsort():
     """Each label's brightest pixel (the last in order among equal values) is what np.lexsort gives."""
-    from skyview.centroid import _label_peaks
+    from skyview.detect.centroids import _label_peaks
     rng = np.random.default_rng(8)
     for _ in range(300):
         n_lab = int(rng.integers(2, 30))
@@ -548,8 +555,9 @@ def test_fast_gauss3_and_axis_ratio_are_the_plain_forms():
     """_gauss3_fast (negated, doubled curvature; no error-state switch) gives _gauss3's numbers, including
     the windows it rejects (non-positive marginals, flat or rising profiles); _axis_ratio_mm (all moments
     from one chain of products) gives _axis_ratio's ratios to ~1e-15."""
-    from skyview.centroid import _axis_ratio_mm, _gauss3_fast
-    from skyview.centroid_reference import _axis_ratio, _gauss3
+    from oracles.centroid_reference import _axis_ratio, _gauss3
+
+    from skyview.detect.centroids import _axis_ratio_mm, _gauss3_fast
     rng = np.random.default_rng(11)
     n_rejected = 0
     for trial in range(300):
@@ -577,7 +585,7 @@ def test_separable_fit_is_the_weighted_form():
     products with the data as (fv, dfv) V (fu, dfu)^T) gives what the weighted products give: the same
     windows fitted in a batch with one star that has a pixel left out (which makes the whole batch take
     the weighted form; each star's steps are its own)."""
-    from skyview.centroid import _psf_fit_sep
+    from skyview.detect.centroids import _psf_fit_sep
     rng = np.random.default_rng(12)
     for trial in range(100):
         n_st, h = int(rng.integers(1, 40)), int(rng.choice([2, 3, 4]))
@@ -601,7 +609,7 @@ def test_a_star_fits_the_same_alone_as_in_any_batch():
     """Each star's PSF fit and iwcog, in either form of the fit, are the numbers it gets fitted alone, bit
     for bit: what lets detect_centroids(max_stars=N) measure a subset and give the whole set's first N
     (a batched 3 x 3 matmul summed differently once a single star was left iterating)."""
-    from skyview.centroid import _cog, _iwcog_sep, _psf_fit_sep
+    from skyview.detect.centroids import _cog, _iwcog_sep, _psf_fit_sep
     rng = np.random.default_rng(21)
     for trial in range(40):
         n_st, h = int(rng.integers(2, 30)), int(rng.choice([2, 3, 4]))
@@ -630,7 +638,7 @@ def test_a_star_fits_the_same_alone_as_in_any_batch():
 def test_median_of_large_quantised_samples():
     """Large samples with few distinct values (the noise of an 8-bit frame: ~1 step) take the sort, the
     others the partition: np.median's value either way, odd and even counts."""
-    from skyview.centroid import _median_part
+    from skyview.detect.centroids import _median_part
     rng = np.random.default_rng(12)
     for sd, n in ((0.5, 16384), (1.0, 16385), (13.0, 16384), (0.3, 5001), (3.0, 9999)):
         r = np.round(rng.normal(0.0, sd, n)).astype(np.float32) - np.float32(0.5)
@@ -643,7 +651,7 @@ def test_median_of_large_quantised_samples():
 def test_eight_bit_frame_finds_the_sixteen_bit_stars():
     """The same field as an 8-bit frame (one step per noise sigma, `simulate.to_uint8`) gives the stars of
     the 16-bit frame above 20 sigma, at the same places to a small fraction of a pixel."""
-    from skyview.simulate import to_uint8
+    from skyview.simulate.render import to_uint8
     rng = np.random.default_rng(3)
     H = W = 512
     img = rng.normal(400.0, 12.0, (H, W))
@@ -679,7 +687,7 @@ def test_hot_pixels_beside_a_blended_pair_match_the_reference():
 
 
 def test_few_values_counts_as_unique():
-    from skyview.centroid import _few_values
+    from skyview.detect.centroids import _few_values
     rng = np.random.default_rng(5)
     for n_vals in (1, 5, 31, 32, 33, 200):
         x = rng.integers(0, n_vals, 256).astype(np.float32) - np.float32(0.3)
@@ -693,7 +701,7 @@ def test_uint8_noise_from_the_histogram_is_the_per_sample_path():
     sample, else from a copy of the samples); the same frame as uint16 takes the per-sample path (the
     bilinear map, the partitions, the clipped sums): the same grid, level, sigma and flat flag, bit for
     bit; on blocks of other sizes (300 x 257: 18 samples a block) the general path is kept."""
-    from skyview.centroid import _background_stats
+    from skyview.detect.centroids import _background_stats
     rng = np.random.default_rng(5)
     shapes = [(1024, 1024), (600, 800), (300, 257), (100, 90), (40, 40), (512, 2048)]
     hist_path = set()
@@ -711,7 +719,7 @@ def test_uint8_noise_from_the_histogram_is_the_per_sample_path():
 
 
 def test_sparse_nonzero_is_flatnonzero():
-    from skyview.centroid import _flatnonzero_sparse
+    from skyview.detect.centroids import _flatnonzero_sparse
     rng = np.random.default_rng(9)
     for shape in ((64, 4096), (33, 4096), (3, 5), (8,), (7, 8), (0, 8), (16, 1024)):  # (>= 128 KiB: the word scan)
         for p in (0.0, 0.001, 0.05, 0.5, 1.0):
@@ -766,8 +774,8 @@ def test_brightest_stars_only_are_the_first_of_the_whole_set(cat):
 def test_solver_measures_only_the_stars_it_identifies_with(cat):
     """The calibrated solver measures its max_stars brightest stars only; the identification is the same
     as with every star measured (what the viewer asks for), and it is right."""
-    from skyview.pipeline import Solver
-    from skyview.scoring import score_trial
+    from skyview.simulate.scoring import score_trial
+    from skyview.solver.pipeline import Solver
     cam = Camera.from_fov(20.0, 1024, 1024)
     frame = simulate_image(cat, cam, random_attitudes(1, np.random.default_rng(4))[0], SensorModel(), seed=2,
                            mag_limit=8.5)
@@ -779,3 +787,23 @@ def test_solver_measures_only_the_stars_it_identifies_with(cat):
     assert score_trial(res, frame.truth)[0] == "correct"
     assert res.matches == res_all.matches and np.array_equal(res.R, res_all.R)
     assert res.to_dict()["n_centroids"] == res.centroids.n_detected
+
+
+def test_time_centroiding_times_the_centroider_it_is_given():
+    """The timing helper docs/benchmarks.md runs: both the package's centroider and the oracle, each
+    call counted, the stars found per frame reported."""
+    from skyview.bench.centroids import time_centroiding
+
+    calls = []
+
+    def counted(image):
+        calls.append(image.shape)
+        return _detect_centroids_reference(image)
+
+    ours = time_centroiding(2)
+    ref = time_centroiding(2, detect=counted)
+    assert set(ours) == set(ref) == {"sim 8-bit 1024x1024", "sim 16-bit 1024x1024"}
+    assert len(calls) == 2 * 3 and all(shape == (1024, 1024) for shape in calls)  # a warm-up + 2 per kind
+    for kind in ours:
+        assert ours[kind]["median_ms"] > 0 and ref[kind]["median_ms"] > 0
+        assert ours[kind]["median_stars"] == ref[kind]["median_stars"] > 5  # the same stars, as test above checks

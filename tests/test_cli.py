@@ -4,6 +4,7 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -210,7 +211,7 @@ def _subcommands(parser, prefix=()):
 def test_every_subcommand_help_lists_the_choices(capsys):
     from skyview.cli import build_parser
     from skyview.identify import METHODS
-    from skyview.scenarios import SCENARIOS
+    from skyview.simulate.scenarios import SCENARIOS
 
     subs = list(_subcommands(build_parser()))
     assert {" ".join(argv) for argv, _ in subs} >= {"demo", "simulate", "solve", "bench", "solve-sequence",
@@ -270,7 +271,8 @@ def test_every_experiment_is_registered_and_listed(capsys):
         parser = argparse.ArgumentParser()
         module.add_arguments(parser)
         assert all(a.help for a in parser._actions), name  # every option says what it is
-        assert callable(module.command) and callable(module.main)
+        assert callable(module.command)
+        assert f'main(["experiment", "{name}"' in Path(module.__file__).read_text()  # python -m ... NAME
 
 
 @pytest.mark.parametrize("argv", [["nope"], ["measure", "--bogus"], ["measure", "--n", "many"],

@@ -1,4 +1,4 @@
-"""skyview bench --compare: every method on the same images, scored alike (skyview.compare)."""
+"""skyview bench --compare: every method on the same images, scored alike (skyview.bench.compare)."""
 
 from __future__ import annotations
 
@@ -6,11 +6,18 @@ import json
 
 import pytest
 
+from skyview.bench.compare import (
+    REAL_IMAGES,
+    STAR_BINS,
+    format_markdown,
+    run_real,
+    run_simulated,
+    save_compare,
+    star_bin,
+)
 from skyview.cli import main
-from skyview.compare import (REAL_IMAGES, STAR_BINS, format_markdown, run_real, run_simulated, save_compare,
-                             star_bin)
-from skyview.errors import BadInput
-from skyview.scenarios import SCENARIOS
+from skyview.core.errors import BadInput
+from skyview.simulate.scenarios import SCENARIOS
 
 
 def test_star_bins_cover_every_count():

@@ -3,12 +3,20 @@
 import numpy as np
 import pytest
 
-from skyview.attitude import (R_from_quat, R_from_radec_roll, attitude_error_arcsec, east_north,
-                              q_method_attitude, quat_from_R, radec_roll_from_R, random_attitudes,
-                              svd_attitude)
-from skyview.camera import Camera, check_fov_deg
-from skyview.catalog import radec_to_vec, vec_to_radec
-from skyview.errors import BadInput
+from skyview.core.attitude import (
+    R_from_quat,
+    R_from_radec_roll,
+    attitude_error_arcsec,
+    east_north,
+    q_method_attitude,
+    quat_from_R,
+    radec_roll_from_R,
+    random_attitudes,
+    svd_attitude,
+)
+from skyview.core.camera import Camera, check_fov_deg
+from skyview.core.catalog import radec_to_vec, vec_to_radec
+from skyview.core.errors import BadInput
 
 RNG = np.random.default_rng(20251125)
 
@@ -173,7 +181,7 @@ def test_attitude_error_components():
 def test_covariance_and_weights_match_the_general_linear_algebra():
     """The closed-form 3x3 inverse, the scalar-sigma weights and the determinant sign give what
     np.linalg.pinv / det / broadcast weights give; all-parallel vectors fall back to the pseudo-inverse."""
-    from skyview.attitude import _weights, attitude_covariance
+    from skyview.core.attitude import _weights, attitude_covariance
     for R in random_attitudes(20, RNG):
         n = int(RNG.integers(2, 12))
         b, r = _noisy_pairs(R, n, 1e-4)

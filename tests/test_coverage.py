@@ -1,4 +1,4 @@
-"""Sky coverage (skyview.coverage): a small sweep on a 2-worker Dask LocalCluster equals the single-process
+"""Sky coverage (skyview.bench.coverage): a small sweep on a 2-worker Dask LocalCluster equals the single-process
 answer; an interrupted sweep resumes; the outputs (map, sphere, table); bad input; the viewer's layer."""
 
 import json
@@ -8,10 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
+from skyview.bench.coverage import SOLVED, WRONG, CoverageConfig, load_results, orientations
+from skyview.bench.coverage_map import mollweide_lonlat, sphere_mesh
+from skyview.bench.coverage_sweep import run_coverage
 from skyview.cli import main
-from skyview.errors import BadInput
-from skyview.coverage import SOLVED, WRONG, CoverageConfig, load_results, orientations, run_coverage
-from skyview.coverage_map import mollweide_lonlat, sphere_mesh
+from skyview.core.errors import BadInput
 
 # 12 directions x 2 rolls of the angle method at 20 deg (a fast method; sub-second per task)
 CFG = CoverageConfig("angle", "improved", fov_deg=20.0, mag_limit=5.0, nside=1, rolls=2, chunk=5)

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from skyview.attitude import attitude_error_arcsec, random_attitudes
-from skyview.catalog import load_guide_catalog
-from skyview.centroid import detect_centroids, load_image
-from skyview.detect import bin_image, detect_stars, psf_sigma_from_moments
-from skyview.errors import BadInput
-from skyview.pipeline import BlindSolver
-from skyview.scenarios import get_scenario
-from skyview.simulate import SensorModel, simulate_image
-from skyview.trails import trail_members
+from skyview.core.attitude import attitude_error_arcsec, random_attitudes
+from skyview.core.catalog import load_guide_catalog
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import detect_centroids, load_image
+from skyview.detect.stars import bin_image, detect_stars, psf_sigma_from_moments
+from skyview.detect.trails import trail_members
+from skyview.simulate.render import SensorModel, simulate_image
+from skyview.simulate.scenarios import get_scenario
+from skyview.solver.pipeline import BlindSolver
 
 REAL = Path(__file__).parent / "data" / "real-images"
 REFERENCE = json.loads((REAL / "reference.json").read_text())

@@ -52,14 +52,14 @@ def test_key_pages_exist(built_site):
 def test_api_reference_is_generated_from_the_docstrings(built_site):
     out, _ = built_site
     api = (out / "reference" / "api.html").read_text(encoding="utf-8")
-    for text in ('id="skyview.api.solve"', 'id="skyview.api.Solution"', 'id="skyview.api.Solver"',
+    for text in ('id="skyview.solver.api.solve"', 'id="skyview.solver.api.Solution"', 'id="skyview.solver.api.Solver"',
                  "Solution", "ra_deg", "dec_deg", "roll_deg", "fov_deg",
                  "Solve one star-field image"):  # the first line of skyview.solve's docstring
         assert text in api, text
     pipeline = (out / "reference" / "pipeline.html").read_text(encoding="utf-8")
-    assert 'id="skyview.pipeline.solve_image"' in pipeline and 'id="skyview.pipeline.SolveResult"' in pipeline
+    assert 'id="skyview.solver.pipeline.solve_image"' in pipeline and 'id="skyview.solver.pipeline.SolveResult"' in pipeline
     cam = (out / "reference" / "camera-attitude.html").read_text(encoding="utf-8")
-    assert 'id="skyview.camera.Camera.from_fov"' in cam and 'id="skyview.attitude.R_from_radec_roll"' in cam
+    assert 'id="skyview.core.camera.Camera.from_fov"' in cam and 'id="skyview.core.attitude.R_from_radec_roll"' in cam
 
 
 def test_peer_comparison_includes_the_benchmarks_readme(built_site):

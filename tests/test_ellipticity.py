@@ -4,20 +4,35 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes
-from skyview.bench import score_trial
-from skyview.camera import Camera
-from skyview.catalog import FLAG_DOUBLE, FLAG_MULTIPLE, FLAG_VARIABLE, GuideCatalog, load_guide_catalog, radec_to_vec
-from skyview.errors import BadInput
+from skyview.bench.runner import score_trial
+from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.catalog import (
+    FLAG_DOUBLE,
+    FLAG_MULTIPLE,
+    FLAG_VARIABLE,
+    GuideCatalog,
+    load_guide_catalog,
+    radec_to_vec,
+)
+from skyview.core.errors import BadInput
+from skyview.experiments.ellipticity_sweep import grid, run_sweep
 from skyview.identify import IDENTIFIED, METHODS, make_identifier
 from skyview.identify.base import Observation
-from skyview.identify.ellipticity import (EllipticityMethod, build_ellipticity_database, ellipticity, eps_sigma,
-                                          guide_rows, nearest_adjacent, pattern_features, singular_vector_attitude)
-from skyview.experiments.ellipticity_sweep import grid, run_sweep
+from skyview.identify.ellipticity import (
+    EllipticityMethod,
+    build_ellipticity_database,
+    ellipticity,
+    eps_sigma,
+    guide_rows,
+    nearest_adjacent,
+    pattern_features,
+    singular_vector_attitude,
+)
 from skyview.identify.synthetic import add_noise, synthetic_frame
 from skyview.identify.verify import angular_distance
-from skyview.pipeline import Solver
-from skyview.simulate import SensorModel, simulate_image
+from skyview.simulate.render import SensorModel, simulate_image
+from skyview.solver.pipeline import Solver
 
 SIGMA = 10e-6
 

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 
-from skyview import bench
+from skyview.bench import runner as bench
 from skyview.cli import main
 
 REAL = Path(__file__).parent / "data" / "real-images"
@@ -98,7 +98,7 @@ def test_float_tiff_with_nan_and_inf(capsys, tmp_path):
 
 def test_odd_arrays_to_the_api():
     import skyview
-    from skyview.errors import BadInput
+    from skyview.core.errors import BadInput
 
     img = cv2.imread(str(REAL / sorted(os.listdir(REAL))[0]), cv2.IMREAD_UNCHANGED)
     assert skyview.solve_image(np.asfortranarray(img)).solved
@@ -203,11 +203,11 @@ def test_a_truncated_cached_database_heals_itself(capsys, tmp_path, monkeypatch,
     dbs = list((tmp_path / "databases").glob("angle-*.npz"))
     assert len(dbs) == 1
     dbs[0].write_bytes(dbs[0].read_bytes()[:1000])
-    import skyview.pipeline
+    import skyview.solver.pipeline
 
     messages = ""
     for _ in range(2):  # healed once, then fine (each run as a new process would: no solver kept)
-        skyview.pipeline._SOLVERS.clear()
+        skyview.solver.pipeline._SOLVERS.clear()
         code, out, err = run(capsys, *args)
         assert code == 0 and json.loads(out)["status"] == "solved"
         messages += err

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skyview.attitude import attitude_error_arcsec
-from skyview.centroid import load_image
-from skyview.errors import BadInput
-from skyview.fits_image import undeclared_row_order
-from skyview.pipeline import solve_image
+from skyview.core.attitude import attitude_error_arcsec
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import load_image
+from skyview.io.fits import undeclared_row_order
+from skyview.solver.pipeline import solve_image
 
 fits = pytest.importorskip("astropy.io.fits")
 
@@ -117,8 +117,8 @@ def test_the_wcs_of_a_fits_file_is_for_its_own_rows(tmp_path, photo):
     """A FITS file stored bottom row first gets a WCS in its own pixel grid (DS9 overlays it)."""
     from astropy.wcs import WCS
 
-    from skyview.catalog import vec_to_radec
-    from skyview.centroid import detect_centroids
+    from skyview.core.catalog import vec_to_radec
+    from skyview.detect.centroids import detect_centroids
 
     good = _write(tmp_path / "sky.fits", np.ascontiguousarray(photo[::-1]))
     wcs_path = tmp_path / "sky.wcs"
@@ -131,7 +131,7 @@ def test_the_wcs_of_a_fits_file_is_for_its_own_rows(tmp_path, photo):
     file_rows = fits.getdata(good)
     c = detect_centroids(file_rows)  # centroids in the file's own (bottom-first) rows
     # each matched star, from its catalog position through the WCS, lands on a centroid of the file's rows
-    from skyview.catalog import load_guide_catalog
+    from skyview.core.catalog import load_guide_catalog
 
     cat = load_guide_catalog()
     rows = {int(h): i for i, h in enumerate(cat.hip)}

@@ -5,18 +5,37 @@ import math
 import numpy as np
 import pytest
 
-from skyview.attitude import R_from_radec_roll, radec_roll_from_R, random_attitudes
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
-from skyview.errors import BadInput
+from skyview.core.attitude import R_from_radec_roll, radec_roll_from_R, random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog
+from skyview.core.errors import BadInput
+from skyview.experiments.genetic_map import MapField, make_map, solve_map
 from skyview.identify import IDENTIFIED, METHODS, make_identifier
+from skyview.identify.genetic import (
+    IMPROVED_PARAMS,
+    PAPER_FIRST,
+    GeneSpace,
+    GeneticMethod,
+    Sizes,
+    _phi_to_roll,
+    angle_cost,
+    angle_partners,
+    attitude_from_phi,
+    box_vectors,
+    brightness_cut,
+    distance_cost,
+    distance_vector,
+    merged_catalog,
+    noise_floor,
+    position_angles,
+    reference_magnitude,
+    ring_seeds,
+    roll_threshold,
+    run_ga,
+    tangent_basis,
+    wrap_angle,
+)
 from skyview.identify.genetic import inscribed_radius as inscribed
-from skyview.identify.genetic import (IMPROVED_PARAMS, PAPER_FIRST, GeneSpace, GeneticMethod, Sizes, _phi_to_roll,
-                                      angle_cost, angle_partners, attitude_from_phi, box_vectors, brightness_cut,
-                                      distance_cost, distance_vector, merged_catalog, noise_floor, position_angles,
-                                      reference_magnitude, ring_seeds,
-                                      roll_threshold, run_ga, tangent_basis, wrap_angle)
-from skyview.experiments.genetic_map import MapField, make_map, main as map_main, solve_map
 from skyview.identify.layers import Population, SearchRegion
 from skyview.identify.synthetic import synthetic_frame
 from skyview.identify.verify import angular_distance
@@ -167,6 +186,11 @@ def test_map_cost_rotation_invariant_and_kd_equals_exhaustive():
 
 
 def test_map_cli_writes_statistics(tmp_path, capsys):
+    from skyview.cli import main
+
+    def map_main(argv):
+        return main(["experiment", "genetic_map", *argv])
+
     out = tmp_path / "map.json"
     assert map_main(["--runs", "1", "--seed", "3", "--fov-stars", "15", "30", "--quiet", "--json", str(out)]) == 0
     assert "paper mean" in capsys.readouterr().out and out.exists()
@@ -289,10 +313,10 @@ def test_too_few_stars_fail_cleanly(improved20, cat, cam20):
 
 
 def test_end_to_end_simulated_image_identified_means_all_matches_correct(cache, cat):
-    from skyview.bench import score_trial
-    from skyview.pipeline import Solver
-    from skyview.scenarios import Scenario
-    from skyview.simulate import simulate_image
+    from skyview.bench.runner import score_trial
+    from skyview.simulate.render import simulate_image
+    from skyview.simulate.scenarios import Scenario
+    from skyview.solver.pipeline import Solver
 
     full = load_guide_catalog()
     sc = Scenario("sun20", "20 x 20 deg, Hp <= 6", fov_deg=20.0, width=1024, height=1024, mag_limit=6.0,

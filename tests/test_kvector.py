@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from skyview.catalog import load_guide_catalog
+from skyview.core.catalog import load_guide_catalog
 from skyview.identify.kvector import KVector
 from skyview.identify.verify import angular_distance
 

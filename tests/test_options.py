@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skyview.errors import BadInput
-from skyview.pipeline import solve_image
+from skyview.core.errors import BadInput
+from skyview.solver.pipeline import solve_image
 
 PHOTO = sorted((Path(__file__).parent / "data" / "real-images").glob("*.png"))[0]
 

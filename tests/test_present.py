@@ -12,8 +12,8 @@ import pyarrow as pa
 import pytest
 import viser
 
-from skyview import present
-from skyview.record_draw import step_archetypes, step_path
+from skyview.present import drawables as present
+from skyview.record.draw import step_archetypes, step_path
 from skyview.viewer.run import SceneConfig, Solvers, simulate, solve
 from skyview.viewer.scene import NODES, SkyScene
 
@@ -98,7 +98,7 @@ def test_viewer_and_recorder_draw_the_same_drawables(method, variant, cfg, solve
 def test_star_names_that_would_collide_hide_the_fainter(server):
     """Orion's belt (Alnitak 1.7, Alnilam 1.6, Mintaka 2.1, ~1.4 deg apart): all named when zoomed on
     it, only the brightest, Alnilam, in a wide view where the labels would overlap."""
-    from skyview.catalog import load_guide_catalog
+    from skyview.core.catalog import load_guide_catalog
 
     sky = SkyScene(server.scene)
     sky.setup()

@@ -30,16 +30,16 @@ import rerun.blueprint as rrb
 from PIL import Image
 from rerun.chunk import RrdReader
 
-from skyview import record as rec
-from skyview import record_draw as D
 from skyview.cli import main
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
+from skyview.core.sky_geometry import OUTLINE_EDGE_POINTS
 from skyview.identify.base import Step
 from skyview.identify.layers import Hypotheses, Population, Posterior, SearchRegion
-from skyview.present import PALETTE, region_polyline, step_views, unit_of
-from skyview.record_cases import CaseRunner
-from skyview.record_replay import free_port, rerun_binary
-from skyview.sky_geometry import OUTLINE_EDGE_POINTS
+from skyview.present.drawables import PALETTE, region_polyline, step_views, unit_of
+from skyview.record import draw as D
+from skyview.record import recording as rec
+from skyview.record.cases import CaseRunner
+from skyview.record.replay import free_port, rerun_binary
 
 ENV = {**os.environ, "RERUN_ANALYTICS": "0"}
 HAS_LAVAPIPE = bool(glob.glob("/usr/share/vulkan/icd.d/lvp_icd*.json"))
@@ -452,7 +452,7 @@ def test_solve_records_only_when_asked(tmp_path):
                  "--out", str(png)]) == 0
     out = tmp_path / "orion.rrd"
     code = ("import json, sys; from skyview.cli import main; rc = main(sys.argv[1:]); "
-            "print(json.dumps({'rc': rc, 'rerun': 'rerun' in sys.modules, 'rec': 'skyview.record' in sys.modules}),"
+            "print(json.dumps({'rc': rc, 'rerun': 'rerun' in sys.modules, 'rec': 'skyview.record.recording' in sys.modules}),"
             " file=sys.stderr)")
     plain = subprocess.run([sys.executable, "-c", code, "solve", str(png), "--fov-deg", "8", "--json"],
                            capture_output=True, text=True, timeout=120, env=ENV)

@@ -12,11 +12,11 @@ import pytest
 from rerun.chunk import RrdReader
 from test_record import REPO, _open, needs_lavapipe, one_line_error, read, strict_rerun, viewer  # noqa: F401
 
-from skyview import record_examples
-from skyview import record_sequence as rs
 from skyview.cli import main
-from skyview.errors import BadInput
-from skyview.simulate import save_sequence
+from skyview.core.errors import BadInput
+from skyview.record import examples as record_examples
+from skyview.record import sequence as rs
+from skyview.simulate.render import save_sequence
 
 EXAMPLE = REPO / "recordings" / "stochastic-udomkesmalee30.rrd"
 ARCSEC = np.pi / 180 / 3600
@@ -90,7 +90,7 @@ def test_frame_and_step_timelines(paper):
 def test_posterior_series_are_the_results(paper):
     case, _, _, ents = paper
     ids = case.result.identifications
-    scored = case.result.truth_figures()  # the truth, scored by skyview.scoring (not in the method's stats)
+    scored = case.result.truth_figures()  # the truth, scored by skyview.simulate.scoring (not in the method's stats)
     for path_, (key, _, _) in rs.SERIES.items():
         got = last(ents[f"/{path_}"], "Scalars:scalars")
         want = {k: {**r.stats, **scored[k]}[key] for k, r in enumerate(ids)}
@@ -107,8 +107,8 @@ def test_posterior_series_are_the_results(paper):
 
 def test_same_as_run_0_of_the_bench(paper):
     """`skyview record --method stochastic --seed S` is run 0 of `bench-sequence --noise-arcsec 10 --seed S`."""
-    from skyview.scenarios import get_scenario
-    from skyview.sequence_bench import bench_sequence
+    from skyview.bench.sequence import bench_sequence
+    from skyview.simulate.scenarios import get_scenario
 
     case = paper[0]
     b = bench_sequence(get_scenario("udomkesmalee30"), 1, position_noise_rad=10 * ARCSEC, seed=0, progress=False)
@@ -258,12 +258,12 @@ def test_solve_sequence_record(paper, tmp_path, capsys, monkeypatch):
     np.testing.assert_allclose([tp[f][0] for f in sorted(tp)], [f["true_posterior"] for f in result["frames"]])
     assert "/truth/camera" in ents  # the sidecars' truth
     # bad recording paths: one line, exit 2, checked before anything is solved, nothing overwritten
-    import skyview.sequence
+    import skyview.solver.sequence
 
     def boom(*a, **k):
         raise AssertionError("solved before the recording path was checked")
 
-    monkeypatch.setattr(skyview.sequence, "solve_sequence", boom)
+    monkeypatch.setattr(skyview.solver.sequence, "solve_sequence", boom)
     before = out.read_bytes()
     for argv in (["solve-sequence", str(folder), "--record", str(out)],
                  ["solve-sequence", str(folder), "--record", str(tmp_path / "missing" / "x.rrd")],

@@ -1,4 +1,4 @@
-"""`skyview solve-sequence ... --record PATH.rrd` for tracking (skyview.record_track): the recording
+"""`skyview solve-sequence ... --record PATH.rrd` for tracking (skyview.record.track): the recording
 has a `frame` timeline with each frame's entities, and its values are the tracker's, against the truth."""
 
 import json
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from skyview.attitude import R_from_radec_roll
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
 from skyview.cli import main
-from skyview.simulate import SensorModel, save_sequence, simulate_sequence, turn_about_camera_axis
+from skyview.core.attitude import R_from_radec_roll
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog
+from skyview.simulate.render import SensorModel, save_sequence, simulate_sequence, turn_about_camera_axis
 
 CAM = Camera.from_fov(12.0, 1024)
 PER_FRAME = ("/camera", "/camera/image", "/camera/image/centroids", "/camera/image/matches", "/sky/footprint",

@@ -10,16 +10,28 @@ import cv2
 import numpy as np
 import pytest
 
-from skyview.attitude import east_north, radec_roll_from_R, random_attitudes
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
-from skyview.centroid import detect_centroids
-from skyview.errors import BadInput
-from skyview.simulate import (
-    HIP_BETELGEUSE, SensorModel, R_pointing_at, betelgeuse_ra_sequence, jpeg_roundtrip, load_truth, render_stars,
-    save_frame, save_sequence, simulate_image, simulate_sequence, to_uint8, turn_about_camera_axis, turn_along_ra,
+from skyview.core.attitude import east_north, radec_roll_from_R, random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import detect_centroids
+from skyview.simulate.render import (
+    HIP_BETELGEUSE,
+    R_pointing_at,
+    SensorModel,
+    betelgeuse_ra_sequence,
+    jpeg_roundtrip,
+    load_truth,
+    render_stars,
+    save_frame,
+    save_sequence,
+    simulate_image,
+    simulate_sequence,
+    to_uint8,
+    turn_about_camera_axis,
+    turn_along_ra,
 )
-from skyview.truth import wrong_matches
+from skyview.simulate.truth import wrong_matches
 
 # noiseless, linear sensor: 1 e- = 1 ADU, no offset, no background, nothing saturates
 CLEAN = SensorModel(gain_e_per_adu=1.0, bias_e=0.0, sky_background_e_per_px_s=0.0, dark_current_e_per_px_s=0.0,

@@ -3,11 +3,18 @@
 import numpy as np
 import pytest
 
-from skyview.attitude import R_from_radec_roll
-from skyview.camera import Camera
-from skyview.catalog import radec_to_vec
-from skyview.sky_geometry import (arcs_as_segments, great_circle_arc, group_edges, group_segments, radec_grid,
-                                  sensor_footprint, star_radius)
+from skyview.core.attitude import R_from_radec_roll
+from skyview.core.camera import Camera
+from skyview.core.catalog import radec_to_vec
+from skyview.core.sky_geometry import (
+    arcs_as_segments,
+    great_circle_arc,
+    group_edges,
+    group_segments,
+    radec_grid,
+    sensor_footprint,
+    star_radius,
+)
 
 
 def test_arc_is_on_the_sphere_and_the_great_circle():

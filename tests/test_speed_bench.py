@@ -1,4 +1,4 @@
-"""`skyview bench --speed` (skyview.speed_bench): what it scores and reports; the times themselves are
+"""`skyview bench --speed` (skyview.bench.speed): what it scores and reports; the times themselves are
 benchmark figures, not tested."""
 
 import json
@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from skyview.attitude import R_from_radec_roll
-from skyview.centroid import load_image
+from skyview.bench.speed import STAGES, _peer_trials, boresight_error_px, format_markdown, run_speed_bench
 from skyview.cli import main
-from skyview.errors import BadInput
-from skyview.scenarios import get_scenario
-from skyview.speed_bench import STAGES, _peer_trials, boresight_error_px, format_markdown, run_speed_bench
+from skyview.core.attitude import R_from_radec_roll
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import load_image
+from skyview.simulate.scenarios import get_scenario
 
 
 def test_speed_bench_scores_and_times_every_stage(tmp_path):

@@ -6,21 +6,27 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from skyview.attitude import attitude_error_arcsec
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, load_guide_catalog, radec_to_vec
+from skyview.bench.sequence import bench_sequence, format_sequence_markdown
 from skyview.cli import main
-from skyview.errors import BadInput
+from skyview.core.attitude import attitude_error_arcsec
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, load_guide_catalog, radec_to_vec
+from skyview.core.errors import BadInput
 from skyview.identify import IDENTIFIED, METHODS, make_identifier
 from skyview.identify.base import Observation
 from skyview.identify.layers import Posterior
-from skyview.identify.stochastic import (PAPER_Q, StochasticMethod, field_statistics, neighbour_angles,
-                                         observed_basis, position_angles)
-from skyview.scenarios import get_scenario
-from skyview.scoring import sequence_truth
-from skyview.sequence import PAPER_SENSOR, perturb_magnitudes, vector_frame, zero_point
-from skyview.sequence_bench import bench_sequence, format_sequence_markdown
-from skyview.simulate import betelgeuse_ra_sequence, save_sequence, turn_about_camera_axis
+from skyview.identify.stochastic import (
+    PAPER_Q,
+    StochasticMethod,
+    field_statistics,
+    neighbour_angles,
+    observed_basis,
+    position_angles,
+)
+from skyview.simulate.render import betelgeuse_ra_sequence, save_sequence, turn_about_camera_axis
+from skyview.simulate.scenarios import get_scenario
+from skyview.simulate.scoring import sequence_truth
+from skyview.solver.sequence import PAPER_SENSOR, perturb_magnitudes, vector_frame, zero_point
 
 DEG = np.pi / 180
 
@@ -161,8 +167,8 @@ def _check_identifications(results, truths, true_R):
 def test_sequence_end_to_end_images(ident, cat, cam, full_catalog):
     seq = betelgeuse_ra_sequence(full_catalog, cam, n_frames=5, sensor=PAPER_SENSOR, seed=5, mag_limit=4.5,
                                  position_noise_rad=10.0 / 206265.0)
-    from skyview.centroid import detect_centroids
-    from skyview.sequence import observation, truth_rows
+    from skyview.detect.centroids import detect_centroids
+    from skyview.solver.sequence import observation, truth_rows
 
     rng = np.random.default_rng(0)
     obs = [perturb_magnitudes(observation(detect_centroids(f.image), cam, ident.sigma_rad), 0.6, rng)
@@ -205,8 +211,8 @@ def test_random_sequences_never_wrong(ident, cat, cam):
 
 
 def test_single_frame_through_the_solver(cache, full_catalog):
-    from skyview.pipeline import Solver
-    from skyview.simulate import R_pointing_at, simulate_image
+    from skyview.simulate.render import R_pointing_at, simulate_image
+    from skyview.solver.pipeline import Solver
 
     camera = Camera.from_fov(30.0, 1024)
     solver = Solver(camera, "stochastic", mag_limit=4.5, catalog=full_catalog,
@@ -279,7 +285,7 @@ def test_boresight_hypothesis_registers_the_true_sequence_exactly(cache, cat, ca
     """The paper taken literally: row r is "the boresight is on star r", carried by the inertial turn
     (10 deg along RA). Starting on Betelgeuse, the Betelgeuse row's boresight IS the true boresight, so
     its designated star is f(true boresight) at every frame, whatever the noise."""
-    from skyview.simulate import HIP_BETELGEUSE, R_pointing_at, turn_along_ra
+    from skyview.simulate.render import HIP_BETELGEUSE, R_pointing_at, turn_along_ra
 
     m = make_identifier("stochastic", cat, cam, 1.0 * DEG, mag_zero_point=0.0, hypothesis="boresight")
     rng = np.random.default_rng(5)

@@ -4,24 +4,35 @@ from itertools import combinations
 
 import numpy as np
 import pytest
+from oracles.diagnose_svd import bench_trial_hook, diagnose
 from scipy.spatial.transform import Rotation
 
-from skyview.attitude import attitude_error_arcsec, random_attitudes
-from skyview.bench import score_trial
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, load_guide_catalog
-from skyview.errors import BadInput
+from skyview.bench.runner import score_trial
+from skyview.core.attitude import attitude_error_arcsec, random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, load_guide_catalog
+from skyview.core.errors import BadInput
 from skyview.identify import FAILED, METHODS, make_identifier
 from skyview.identify.base import Identification, Observation
-from skyview.diagnose_svd import bench_trial_hook, diagnose
-from skyview.identify.svd import (IMPROVED_PARAMS, SVDMethod, ambiguous_ranks, attitude_eq24,
-                                  bonferroni_bound, build_svd_database, decompose, paper_storage_bytes,
-                                  relative_magnitudes, right_vector_sigma, sign_matrix, singular_value_sigma,
-                                  singular_values)
+from skyview.identify.svd import (
+    IMPROVED_PARAMS,
+    SVDMethod,
+    ambiguous_ranks,
+    attitude_eq24,
+    bonferroni_bound,
+    build_svd_database,
+    decompose,
+    paper_storage_bytes,
+    relative_magnitudes,
+    right_vector_sigma,
+    sign_matrix,
+    singular_value_sigma,
+    singular_values,
+)
 from skyview.identify.synthetic import add_noise, synthetic_frame
-from skyview.pipeline import Solver
-from skyview.scenarios import get_scenario
-from skyview.simulate import SensorModel, simulate_image
+from skyview.simulate.render import SensorModel, simulate_image
+from skyview.simulate.scenarios import get_scenario
+from skyview.solver.pipeline import Solver
 
 SIGMA = 88e-6
 

@@ -17,11 +17,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skyview.errors import BadInput
-from skyview.identify import (FAILED, IDENTIFIED, INCONCLUSIVE, METHODS, Hypothesis, Identifier, Search, Status,
-                              Step, make_identifier, register)
-from skyview.identify import database
-from skyview.identify.base import LazyStep
+from skyview.core.errors import BadInput
+from skyview.identify import (
+    FAILED,
+    IDENTIFIED,
+    INCONCLUSIVE,
+    METHODS,
+    Hypothesis,
+    Identifier,
+    Search,
+    Status,
+    Step,
+    database,
+    make_identifier,
+    register,
+)
+from skyview.identify.steps import LazyStep
 from skyview.identify.layers import Hypotheses
 from skyview.identify.params import MethodParams, at_least, parameter_table, positive
 from skyview.identify.verify import angular_distance
@@ -104,7 +115,7 @@ def toy():
 
 @pytest.fixture(scope="module")
 def frame(cat, cam):
-    from skyview.attitude import random_attitudes
+    from skyview.core.attitude import random_attitudes
     from skyview.identify.synthetic import synthetic_frame
 
     rng = np.random.default_rng(3)
@@ -220,10 +231,10 @@ def test_a_lazy_step_is_the_step_it_stands_for():
 # ---------------------------------------------------------------------- the sinks: CLI, bench, drawables
 
 def test_the_toy_method_in_the_cli_the_bench_and_the_drawables(toy, cat, cam, frame, tmp_path, capsys):
-    from skyview.bench import run_bench
+    from skyview.bench.runner import run_bench
     from skyview.cli import main
-    from skyview.present import step_views
-    from skyview.scenarios import get_scenario
+    from skyview.present.drawables import step_views
+    from skyview.simulate.scenarios import get_scenario
 
     png = tmp_path / "orion.png"
     assert main(["simulate", "--ra", "83.8", "--dec", "-5.4", "--roll", "30", "--fov-deg", "8", "--seed", "1",

@@ -1,4 +1,4 @@
-"""Tracking mode (skyview.track): lost-in-space once, then tracked frames; loss of lock; the CLI; the bench."""
+"""Tracking mode (skyview.solver.track): lost-in-space once, then tracked frames; loss of lock; the CLI; the bench."""
 
 import json
 import math
@@ -6,12 +6,18 @@ import math
 import numpy as np
 import pytest
 
-from skyview.attitude import R_from_radec_roll, attitude_error_arcsec
-from skyview.camera import Camera
 from skyview.cli import main
-from skyview.simulate import SensorModel, save_sequence, simulate_image, simulate_sequence, turn_about_camera_axis
-from skyview.track import LOST_IN_SPACE, TRACKING, Tracker, body_turn_rotvec
-from skyview.truth import wrong_matches
+from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec
+from skyview.core.camera import Camera
+from skyview.simulate.render import (
+    SensorModel,
+    save_sequence,
+    simulate_image,
+    simulate_sequence,
+    turn_about_camera_axis,
+)
+from skyview.simulate.truth import wrong_matches
+from skyview.solver.track import LOST_IN_SPACE, TRACKING, Tracker, body_turn_rotvec
 
 CAM = Camera.from_fov(12.0, 1024)
 STEP = math.radians(2.0)
@@ -145,8 +151,8 @@ def test_cli_bad_inputs_are_one_line(tmp_path, capsys, slew, cache):
 
 
 def test_slew_bench(cache):
-    from skyview.bench import format_markdown, run_bench
-    from skyview.scenarios import get_scenario
+    from skyview.bench.runner import format_markdown, run_bench
+    from skyview.simulate.scenarios import get_scenario
 
     s = run_bench("angle", get_scenario("slew"), 1, variant="improved", progress=False)
     t = s["tracking_with_turns"]
@@ -160,9 +166,9 @@ def test_slew_bench(cache):
 def test_tracked_frames_centroid_only_windows_around_the_predicted_stars(tracker, slew):
     """A tracked frame measures windows around the brightest TRACK_STARS predicted stars (track_window):
     the positions are those of the whole-image centroider, and far fewer pixels are read."""
-    from skyview.centroid import detect_centroids
-    from skyview.track import TRACK_STARS
-    from skyview.track_window import centroid_windows
+    from skyview.detect.centroids import detect_centroids
+    from skyview.detect.windows import centroid_windows
+    from skyview.solver.track import TRACK_STARS
 
     tracker.reset()
     frames = tracker.run([f.image for f in slew.frames[:4]], [slew.dR_cam(k) for k in range(3)])

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
 from skyview.viewer.player import Player
 from skyview.viewer.run import SceneConfig, Solvers
 from skyview.viewer.sequence_run import SequenceConfig, track_sequence_run

@@ -1,20 +1,20 @@
-"""The tracking's windowed centroider (skyview.track_window) and its closed-form geometry
-(skyview.track_verify) against the project's reference tools, on simulated frames with known truth."""
+"""The tracking's windowed centroider (skyview.detect.windows) and its closed-form geometry
+(skyview.solver.track_verify) against the project's reference tools, on simulated frames with known truth."""
 
 import math
 
 import numpy as np
 import pytest
 
-from skyview.attitude import random_attitudes, svd_attitude
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
-from skyview.centroid import detect_centroids
+from skyview.core.attitude import random_attitudes, svd_attitude
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog
+from skyview.detect.centroids import detect_centroids
+from skyview.detect.windows import centroid_windows, measure_windows, window_centers
 from skyview.identify.verify import predicted_sigma, star_radii
-from skyview.simulate import SensorModel, simulate_image
-from skyview.track_verify import match_radii, nearest_one_to_one, rotation_matrix, rotvec, wahba
-from skyview.track_verify import predicted_sigma as predicted_sigma_closed
-from skyview.track_window import centroid_windows, measure_windows, window_centers
+from skyview.simulate.render import SensorModel, simulate_image
+from skyview.solver.track_verify import match_radii, nearest_one_to_one, rotation_matrix, rotvec, wahba
+from skyview.solver.track_verify import predicted_sigma as predicted_sigma_closed
 
 CAM = Camera.from_fov(12.0, 1024)
 

@@ -7,12 +7,11 @@ import pytest
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from skyview.attitude import random_attitudes
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, radec_to_vec
-from skyview.errors import BadInput
-from skyview.identify import FAILED, IDENTIFIED, METHODS, make_identifier
-from skyview.identify import database
+from skyview.core.attitude import random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, radec_to_vec
+from skyview.core.errors import BadInput
+from skyview.identify import FAILED, IDENTIFIED, METHODS, database, make_identifier
 from skyview.identify import spherical as sph
 from skyview.identify.angle import AngleMethod
 from skyview.identify.base import Observation
@@ -21,9 +20,9 @@ from skyview.identify.synthetic import add_noise, synthetic_frame
 from skyview.identify.triangle import IMPROVED_PARAMS, TriangleMethod, join
 from skyview.identify.triangle_database import _triangle_chunks, catalog_triangles, moment_convergence, upper_line
 from skyview.identify.verify import angular_distance
-from skyview.pipeline import Solver
-from skyview.simulate import simulate_image
-from skyview.truth import wrong_matches
+from skyview.simulate.render import simulate_image
+from skyview.simulate.truth import wrong_matches
+from skyview.solver.pipeline import Solver
 
 SIGMA = 87e-6
 RNG_SEED = 31
@@ -499,9 +498,8 @@ def test_consistent_in_plain_floats_matches_the_vectorised_test(improved, region
 
 
 def test_distinct_star_sets_and_lazy_hypotheses_layer():
-    from skyview.identify.triangle_lookup import _distinct_sets
-
     from skyview.identify.triangle import _distinct
+    from skyview.identify.triangle_lookup import _distinct_sets
 
     rng = np.random.default_rng(5)
     H = rng.integers(0, 40, size=(300, 3))

@@ -5,15 +5,24 @@ from math import comb
 
 import numpy as np
 import pytest
-
 from scipy.stats import binom
 
-from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes, svd_attitude
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog, vec_to_radec
+from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes, svd_attitude
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog, vec_to_radec
 from skyview.identify.synthetic import synthetic_frame
-from skyview.identify.verify import (CALIBRATED, DEFAULT_THRESHOLD, TETRA3, angular_distance, match_one_to_one,
-                                     match_radius, p_false_calibrated, p_false_tetra3, poisson_binomial_sf, verify)
+from skyview.identify.verify import (
+    CALIBRATED,
+    DEFAULT_THRESHOLD,
+    TETRA3,
+    angular_distance,
+    match_one_to_one,
+    match_radius,
+    p_false_calibrated,
+    p_false_tetra3,
+    poisson_binomial_sf,
+    verify,
+)
 
 SIGMA = 87e-6
 
@@ -408,7 +417,7 @@ def test_verify_step_shows_the_verification(cat, cam):
 def test_has_neighbour_is_the_kd_tree_count(cat):
     """Remembered nearest-neighbour chords, with chords exactly at (and a hair around) a neighbour's
     distance, answer as the k-d tree's own count."""
-    from skyview.catalog import chord
+    from skyview.core.catalog import chord
     from skyview.identify.verify import _has_neighbour
 
     rng = np.random.default_rng(3)
@@ -452,7 +461,7 @@ def test_stars_apart_only_where_no_ball_holds_two(cat):
     """_stars_apart (from the remembered nearest neighbours) says True only where no two of the stars lie
     within twice the ball's chord, turned by any attitude; it says False next to a close pair, and
     beyond the neighbours' reach it is _apart itself."""
-    from skyview.catalog import chord
+    from skyview.core.catalog import chord
     from skyview.identify.verify import NEAREST_REACH_RAD, _apart, _stars_apart
 
     rng = np.random.default_rng(4)
@@ -476,7 +485,7 @@ def test_stars_apart_only_where_no_ball_holds_two(cat):
 
 
 def test_svd_attitude_one_sigma_is_the_per_pair_path_to_the_bit():
-    from skyview.attitude import q_method_attitude
+    from skyview.core.attitude import q_method_attitude
 
     rng = np.random.default_rng(11)
     for _ in range(200):
@@ -498,7 +507,7 @@ def test_svd_attitude_one_sigma_is_the_per_pair_path_to_the_bit():
 
 def test_svd3_is_numpys_svd_to_the_bit():
     """The LAPACK routine called directly gives np.linalg.svd's U and V^T, rank-deficient matrices too."""
-    from skyview.attitude import _svd3
+    from skyview.core.attitude import _svd3
 
     rng = np.random.default_rng(6)
     for k in range(200):
@@ -523,7 +532,7 @@ def test_svd_attitude_bad_input():
 def test_remembered_estimate_is_the_estimate(cat, cam):
     """The solver's attitude stage reuses the estimate the verification ended in: the same numbers as a
     new svd_attitude, in arrays of its own; anything else is estimated anew."""
-    from skyview.attitude import svd_attitude_remembered
+    from skyview.core.attitude import svd_attitude_remembered
 
     f = frame_with(cat, cam, 6, seed=4)
     v = verify(f.obs.vectors, {i: int(f.truth[i]) for i in range(3)}, cat, cam, SIGMA)
@@ -540,7 +549,7 @@ def test_remembered_estimate_is_the_estimate(cat, cam):
 
 
 def test_result_cross_and_matched_stars(cat):
-    from skyview.result import _cross, matched_stars
+    from skyview.solver.result import _cross, matched_stars
 
     rng = np.random.default_rng(2)
     a, b = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
@@ -561,7 +570,7 @@ def test_result_cross_and_matched_stars(cat):
 def test_local_density_from_the_stars_around_a_frame_is_the_kd_tree_count(cat, cam):
     """The local density from the stars fetched around a frame (dot products, the few near the limit
     measured) counts as the k-d tree does; so does the sky index without them."""
-    from skyview.catalog import chord
+    from skyview.core.catalog import chord
     from skyview.identify.verify import LOCAL_RADIUS_RAD, _half_diagonal_rad, _Near, local_density
 
     rng = np.random.default_rng(8)
@@ -587,7 +596,7 @@ def test_local_density_from_the_stars_around_a_frame_is_the_kd_tree_count(cat, c
 def test_quaternion_and_rotation_vector_are_scipys_to_the_bit():
     from scipy.spatial.transform import Rotation
 
-    from skyview.attitude import quat_from_R, rotvec_from_R
+    from skyview.core.attitude import quat_from_R, rotvec_from_R
 
     rng = np.random.default_rng(4)
     Rs = list(random_attitudes(3000, rng)) + [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]),
@@ -610,9 +619,9 @@ def test_calibrated_verification_imports_no_kd_tree():
     code = """
 import sys
 import numpy as np
-from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, quat_from_R
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
+from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, quat_from_R
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog
 from skyview.identify.synthetic import synthetic_frame
 from skyview.identify.verify import verify
 cat = load_guide_catalog().brighter_than(6.0)

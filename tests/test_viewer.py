@@ -28,25 +28,25 @@ import cv2
 import numpy as np
 import pytest
 
-from skyview import sky_geometry as sg
-from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes
-from skyview.camera import Camera
-from skyview.errors import BadInput
-from skyview.catalog import load_guide_catalog, radec_to_vec
 from skyview.cli import main
+from skyview.core import sky_geometry as sg
+from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog, radec_to_vec
+from skyview.core.errors import BadInput
 from skyview.identify import IDENTIFIED, make_identifier
 from skyview.identify.base import Step
 from skyview.identify.genetic import tangent_basis
-from skyview.identify.synthetic import synthetic_frame
-from skyview import present
 from skyview.identify.layers import HYPOTHESES_SAMPLE, Attitudes, Hypotheses, Population, Posterior, SearchRegion
-from skyview.scoring import centroid_outcomes
+from skyview.identify.synthetic import synthetic_frame
+from skyview.present import drawables as present
+from skyview.simulate.scoring import centroid_outcomes
 from skyview.viewer import picture
+from skyview.viewer.geometry import frustum_scale, local_grid, nearest_star, pose_wxyz, ray_to_sphere
 from skyview.viewer.panel import result_markdown, step_markdown
 from skyview.viewer.run import SceneConfig, Solvers, compare, simulate, solve
-from skyview.viewer.sequence_run import SequenceConfig, solve_sequence_run
-from skyview.viewer.geometry import frustum_scale, local_grid, nearest_star, pose_wxyz, ray_to_sphere
 from skyview.viewer.scene import NODES
+from skyview.viewer.sequence_run import SequenceConfig, solve_sequence_run
 
 REPO = Path(__file__).resolve().parents[1]
 ARTIFACTS = REPO / "test-artifacts"
@@ -184,7 +184,7 @@ def test_a_posterior_over_hypotheses_lights_their_stars_summed_per_star():
     np.testing.assert_allclose(d.drawables["points"].xyz, xyz[[42, 100]], atol=1e-6)
     np.testing.assert_array_equal(d.drawables["points"].colors[0], np.array(present.PALETTE["points_high"]))
     # the scorer (not the method) reads the true star's posterior from the same layer
-    from skyview.scoring import true_posterior
+    from skyview.simulate.scoring import true_posterior
 
     (mass, rank), = true_posterior([Step("update", "p", layers=(layer,))], 42)
     assert abs(mass - 0.9) < 1e-6 and rank == 0
@@ -558,7 +558,7 @@ def test_the_page_stays_responsive_while_a_slow_method_runs(session, monkeypatch
 
 
 def test_compare_and_export(session, tmp_path):
-    pytest.importorskip("skyview.record")
+    pytest.importorskip("skyview.record.recording")
     server, s = session
     s.request_compare(methods=["angle"])
     assert s.wait_idle(60)
@@ -769,7 +769,7 @@ def test_view_bad_arguments_exit_2(tmp_path, capsys):
 
 
 def _start_view(*args) -> tuple[subprocess.Popen, str]:
-    from skyview.pipeline import blind_solver
+    from skyview.solver.pipeline import blind_solver
 
     blind_solver()  # the viewer opens on the blind pipeline: its database built into the test cache first
     exe = Path(sys.executable).with_name("skyview")
@@ -1299,7 +1299,7 @@ def test_an_uploaded_photograph_gets_its_camera_fitted_blind():
     """A user's image needs no exact FOV: the blind front end fits FOV, distortion and depth first."""
     from pathlib import Path
 
-    from skyview.centroid import load_image
+    from skyview.detect.centroids import load_image
     from skyview.viewer.run import Solvers, Source, fit_camera_blind
 
     real = Path(__file__).parent / "data" / "real-images"

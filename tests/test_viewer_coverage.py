@@ -6,8 +6,9 @@ import io
 
 import pytest
 
-from skyview.coverage import CoverageConfig, run_coverage
-from skyview.errors import BadInput
+from skyview.bench.coverage import CoverageConfig
+from skyview.bench.coverage_sweep import run_coverage
+from skyview.core.errors import BadInput
 from skyview.viewer.coverage_layer import CoverageLayer
 
 viser = pytest.importorskip("viser")
@@ -55,8 +56,8 @@ def test_a_folder_that_is_not_a_sweep_is_bad_input(tmp_path):
 
 def test_a_bench_comparison_is_shown_in_every_tab(tmp_path):
     """`skyview view --compare FILE`: the six-method table of `skyview bench --compare` in the Result tab."""
-    from skyview.compare import load_compare, run_simulated, save_compare
-    from skyview.scenarios import SCENARIOS
+    from skyview.bench.compare import load_compare, run_simulated, save_compare
+    from skyview.simulate.scenarios import SCENARIOS
     from skyview.viewer.app import ViewerApp
     from skyview.viewer.session import Session
 

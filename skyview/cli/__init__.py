@@ -16,10 +16,17 @@ import os
 import sys
 
 from skyview.cli import bench, cache, coverage, demo, experiment, sequence, solve, view
-from skyview.cli.common import (EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_NOT_SOLVED, EXIT_SOLVED, Parser, method_names,
-                                scenario_names)
+from skyview.cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_INTERNAL,
+    EXIT_NOT_SOLVED,
+    EXIT_SOLVED,
+    Parser,
+    method_names,
+    scenario_names,
+)
 from skyview.cli.view import resolve_recording
-from skyview.errors import BadInput, SkyviewError
+from skyview.core.errors import BadInput, SkyviewError
 
 GROUPS = (demo, solve, bench, coverage, sequence, view, cache, experiment)  # the order of `skyview --help`
 

@@ -7,9 +7,18 @@ import sys
 import time
 from pathlib import Path
 
-from skyview.cli.common import (EXIT_SOLVED, add_method, add_param, add_scenario, add_statistic, add_variant,
-                                check_out_folder, float_arg, method_params)
-from skyview.errors import BadInput
+from skyview.cli.common import (
+    EXIT_SOLVED,
+    add_method,
+    add_param,
+    add_scenario,
+    add_statistic,
+    add_variant,
+    check_out_folder,
+    float_arg,
+    method_params,
+)
+from skyview.core.errors import BadInput
 
 
 def _interruptible() -> None:
@@ -27,7 +36,7 @@ def _interruptible() -> None:
 
 
 def cmd_bench(a) -> int:
-    from skyview.bench import format_markdown, run_bench, save_results
+    from skyview.bench.runner import format_markdown, run_bench, save_results
 
     _interruptible()
     if a.jpeg_quality is not None and not 1 <= a.jpeg_quality <= 100:
@@ -43,8 +52,8 @@ def cmd_bench(a) -> int:
         return _bench_blind(a)
     if a.fov_error is not None:
         raise BadInput("--fov-error goes with --blind (the calibrated bench gives the exact FOV)")
-    if a.compare:  # every method, both variants, the same images (skyview.compare)
-        from skyview.compare import cli_compare
+    if a.compare:  # every method, both variants, the same images (skyview.bench.compare)
+        from skyview.bench.compare import cli_compare
 
         if a.method or a.param or a.jobs != 1:
             raise BadInput("--compare runs every method with its own parameters: leave out --method, --param, --jobs")
@@ -55,7 +64,8 @@ def cmd_bench(a) -> int:
     a.scenario = a.scenario or "cole8"
     check_out_folder(a.out)  # before the Monte Carlo, not after it
     if a.centroids:
-        from skyview.centroid_bench import format_markdown as fmt_c, measure_centroid_accuracy
+        from skyview.bench.centroids import format_markdown as fmt_c
+        from skyview.bench.centroids import measure_centroid_accuracy
 
         res = measure_centroid_accuracy(n_images=a.n, seed=a.seed,
                                         progress=None if a.quiet else _centroid_progress(a.n))
@@ -81,7 +91,7 @@ def cmd_bench(a) -> int:
         raise BadInput("--record-failures replays the named scenario: leave out --k1/--jpeg-quality/... with it")
     on_trial = None
     if a.record_failures:  # the recorder is imported only when asked: unrecorded benches stay as fast
-        from skyview.record_cases import FailureRecorder
+        from skyview.record.cases import FailureRecorder
 
         on_trial = FailureRecorder(a.record_failures, method=a.method, variant=a.variant, scenario=scenario.name,
                                    seed=a.seed)
@@ -130,8 +140,8 @@ def file_tag(name: str) -> str:
 
 def bench_scenario(a):
     """The --scenario with the effect flags (--k1, --jpeg-quality, ...) applied; one-line errors."""
-    from skyview.scenarios import get_scenario
-    from skyview.simulate import check_jpeg_quality, sky_gradient_factor, vignetting_falloff
+    from skyview.simulate.render import check_jpeg_quality, sky_gradient_factor, vignetting_falloff
+    from skyview.simulate.scenarios import get_scenario
 
     scenario = get_scenario(a.scenario)
     changed = scenario.with_changes(k1=a.k1, k2=a.k2, jpeg_quality=a.jpeg_quality, vignetting=a.vignetting,
@@ -148,8 +158,8 @@ def bench_scenario(a):
 
 def _bench_speed(a) -> int:
     """`bench --speed`: per-stage times of skyview (and tetra3rs when its virtualenv exists), same images."""
-    from skyview.bench import save_results
-    from skyview.speed_bench import DEFAULT_BIT_DEPTH, DEFAULT_METHODS, format_markdown, run_speed_bench
+    from skyview.bench.runner import save_results
+    from skyview.bench.speed import DEFAULT_BIT_DEPTH, DEFAULT_METHODS, format_markdown, run_speed_bench
 
     if a.blind or a.centroids or a.record_failures or a.jobs != 1 or a.fov_error is not None:
         raise BadInput("--speed times one process with the exact FOV: leave out --blind, --centroids, "
@@ -171,7 +181,7 @@ def _bench_speed(a) -> int:
 
 
 def _bench_blind(a) -> int:
-    from skyview.bench import format_blind_markdown, run_blind_bench, save_results
+    from skyview.bench.runner import format_blind_markdown, run_blind_bench, save_results
 
     for flag, given in (("--method", a.method), ("--centroids", a.centroids), ("--param", a.param),
                         ("--record-failures", a.record_failures), ("--statistic", a.statistic),
@@ -182,7 +192,7 @@ def _bench_blind(a) -> int:
     check_out_folder(a.out)
     scenario = bench_scenario(a)
     if a.fov_error is not None:
-        from skyview.pipeline import check_fov_error
+        from skyview.solver.pipeline import check_fov_error
 
         check_fov_error(a.fov_error)
     if a.jobs < 1:
@@ -255,7 +265,7 @@ def add_parsers(sub) -> None:
                    help="measure centroid accuracy (pixels, by SNR) instead, over -n images")
     b.add_argument("--compare", action="store_true",
                    help="every method, both variants, on the same -n simulated images of --scenario (default cole8) "
-                        "and on the real photographs (calibrated mode); tables by stars in the field (skyview.compare)")
+                        "and on the real photographs (calibrated mode); tables by stars in the field (skyview.bench.compare)")
     b.add_argument("--compare-slow-n", type=int, default=30,
                    help="with --compare: images for the genetic method (the first of the -n; default 30)")
     b.add_argument("--no-real", action="store_true", help="with --compare: leave out the real photographs")
@@ -268,7 +278,7 @@ def add_parsers(sub) -> None:
     b.add_argument("--record-failures", default=None, metavar="DIR",
                    help="save a Rerun recording of every trial that is not correct into DIR (created if missing)")
     b.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="run the trials on Dask (skyview.bench_dask): 'local' for a LocalCluster on this machine, "
+                   help="run the trials on Dask (skyview.bench.dask_engine): 'local' for a LocalCluster on this machine, "
                         "or a scheduler's address (tcp://host:8786); same outcomes as the local run")
     b.add_argument("--workers", type=int, default=2, help="with --scheduler local: worker processes (default 2)")
     b.set_defaults(func=cmd_bench)

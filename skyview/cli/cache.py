@@ -7,11 +7,11 @@ import time
 from pathlib import Path
 
 from skyview.cli.common import EXIT_SOLVED, Parser, add_epoch, check_new_file, float_arg, method_names
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
 
 
 def cmd_catalog(a) -> int:
-    from skyview.catalog import ASSET_PATH, build_guide_catalog, load_guide_catalog, save_guide_catalog
+    from skyview.core.catalog import ASSET_PATH, build_guide_catalog, load_guide_catalog, save_guide_catalog
 
     if a.action == "build":
         out = Path(a.out) if a.out else ASSET_PATH
@@ -41,7 +41,7 @@ def cmd_catalog(a) -> int:
 
 
 def cmd_cache(a) -> int:
-    from skyview.catalog import cache_dir
+    from skyview.core.catalog import cache_dir
     from skyview.identify.database import cached_databases, clear_cache
 
     if a.action == "clear":
@@ -59,7 +59,7 @@ def cmd_cache(a) -> int:
 
 
 def add_parsers(sub) -> None:
-    from skyview.catalog import DEFAULT_BUILD_MAG_LIMIT
+    from skyview.core.catalog import DEFAULT_BUILD_MAG_LIMIT
 
     k = sub.add_parser("cache", help="list or clear the cached databases")
     ksub = k.add_subparsers(dest="action", required=True, parser_class=Parser, metavar="ACTION")

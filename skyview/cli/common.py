@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
 
 EXIT_SOLVED, EXIT_NOT_SOLVED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 ARCSEC = np.pi / 180 / 3600
@@ -86,7 +86,7 @@ def check_out_folder(path: str | Path) -> Path:
 def check_recording_path(path: str | None, force: bool) -> None:
     """Before solving: a --record path may be written (the recorder is imported only when asked)."""
     if path:
-        from skyview.record_draw import check_output_path
+        from skyview.record.draw import check_output_path
 
         check_output_path(path, force)
 
@@ -109,7 +109,7 @@ def read_truth(truth_path: Path) -> dict | None:
 
 def wrong_match_count(matches: list[dict], truth: dict) -> int:
     """How many of a result's matches ([{index, u, v, hip, ...}]) the truth sidecar contradicts."""
-    from skyview.truth import wrong_matches
+    from skyview.simulate.truth import wrong_matches
 
     return len(wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in matches], truth))
 
@@ -146,7 +146,7 @@ def method_names() -> tuple[str, ...]:
 
 
 def scenario_names() -> tuple[str, ...]:
-    from skyview.scenarios import SCENARIOS
+    from skyview.simulate.scenarios import SCENARIOS
 
     return tuple(SCENARIOS)
 
@@ -182,11 +182,11 @@ def add_param(parser) -> None:
 def add_scenario(parser, default: str | None, help_default: str) -> None:
     scenarios = ", ".join(scenario_names())
     parser.add_argument("--scenario", choices=scenario_names(), default=default, metavar="SCENARIO",
-                        help=f"scenario (skyview.scenarios): {scenarios} ({help_default})")
+                        help=f"scenario (skyview.simulate.scenarios): {scenarios} ({help_default})")
 
 
 def add_epoch(parser) -> None:
-    from skyview.catalog import DEFAULT_EPOCH
+    from skyview.core.catalog import DEFAULT_EPOCH
 
     parser.add_argument("--epoch", type=float_arg, default=DEFAULT_EPOCH,
                         help=f"epoch of the catalog positions (proper motion applied), Julian year "

@@ -1,15 +1,16 @@
-"""`skyview coverage`: a method's sky coverage map, swept on Dask (skyview.coverage, docs/coverage.md)."""
+"""`skyview coverage`: a method's sky coverage map, swept on Dask (skyview.bench.coverage, docs/coverage.md)."""
 
 from __future__ import annotations
 
 import json
 
 from skyview.cli.common import EXIT_SOLVED, add_method, add_variant, float_arg
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
 
 
 def cmd_coverage(a) -> int:
-    from skyview.coverage import CoverageConfig, run_coverage
+    from skyview.bench.coverage import CoverageConfig
+    from skyview.bench.coverage_sweep import run_coverage
 
     cfg = CoverageConfig(a.method, a.variant, fov_deg=a.fov_deg, mag_limit=a.mag_limit, nside=a.nside,
                          rolls=a.rolls, grid=a.grid, width=a.width, noise_urad=a.noise_urad, seed=a.seed,
@@ -24,7 +25,7 @@ def cmd_coverage(a) -> int:
     if a.json:
         print(json.dumps(s))
     else:
-        from skyview.coverage_map import format_markdown
+        from skyview.bench.coverage_map import format_markdown
 
         print(format_markdown(s), end="")
         print(f"wrote {out}/coverage.json, coverage.md, coverage.png, coverage.rrd")
@@ -32,7 +33,7 @@ def cmd_coverage(a) -> int:
 
 
 def add_parsers(sub) -> None:
-    from skyview.coverage import DEFAULT_CHUNK, DEFAULT_NOISE_PX, GRIDS, SEQUENCE_FRAMES
+    from skyview.bench.coverage import DEFAULT_CHUNK, DEFAULT_NOISE_PX, GRIDS, SEQUENCE_FRAMES
 
     c = sub.add_parser("coverage", help="sky coverage map of a method: sweep boresights on an equal-area grid "
                                         "(Dask; resumable)",

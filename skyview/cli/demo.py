@@ -9,19 +9,34 @@ from pathlib import Path
 
 import numpy as np
 
-from skyview.cli.common import (ARCSEC, EXIT_NOT_SOLVED, EXIT_SOLVED, add_epoch, add_method, add_variant, float_arg,
-                                progress_line)
+from skyview.cli.common import (
+    ARCSEC,
+    EXIT_NOT_SOLVED,
+    EXIT_SOLVED,
+    add_epoch,
+    add_method,
+    add_variant,
+    float_arg,
+    progress_line,
+)
 from skyview.cli.solve import against_truth, print_human
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
 
 
 def cmd_simulate(a) -> int:
-    from skyview.attitude import R_from_radec_roll
-    from skyview.camera import Camera
-    from skyview.catalog import load_guide_catalog
-    from skyview.centroid import max_image_pixels
-    from skyview.simulate import (JPEG_DEFAULT_QUALITY, SensorModel, is_jpeg_path, save_frame, save_sequence,
-                                  simulate_image, simulate_sequence)
+    from skyview.core.attitude import R_from_radec_roll
+    from skyview.core.camera import Camera
+    from skyview.core.catalog import load_guide_catalog
+    from skyview.detect.centroids import max_image_pixels
+    from skyview.simulate.render import (
+        JPEG_DEFAULT_QUALITY,
+        SensorModel,
+        is_jpeg_path,
+        save_frame,
+        save_sequence,
+        simulate_image,
+        simulate_sequence,
+    )
 
     if not -90.0 <= a.dec <= 90.0:
         raise BadInput(f"declination {a.dec} deg is outside [-90, 90]")
@@ -72,18 +87,18 @@ def cmd_simulate(a) -> int:
 
 
 def _turn(a):
-    from skyview.simulate import turn_about_camera_axis
+    from skyview.simulate.render import turn_about_camera_axis
 
     axis = {"x": 0, "y": 1, "z": 2}[a.turn_axis]
     return turn_about_camera_axis(axis, np.radians(a.turn_deg))
 
 
 def cmd_demo(a) -> int:
-    from skyview.attitude import R_from_radec_roll
-    from skyview.camera import Camera
-    from skyview.catalog import REPO_ROOT, load_guide_catalog
-    from skyview.pipeline import Solver, blind_solver
-    from skyview.simulate import SensorModel, simulate_image
+    from skyview.core.attitude import R_from_radec_roll
+    from skyview.core.camera import Camera
+    from skyview.core.catalog import REPO_ROOT, load_guide_catalog
+    from skyview.simulate.render import SensorModel, simulate_image
+    from skyview.solver.pipeline import Solver, blind_solver
 
     t0 = time.perf_counter()
     catalog = load_guide_catalog()
@@ -106,7 +121,7 @@ def cmd_demo(a) -> int:
     out = with_truth(result, R, frame.truth)
     print_human(out)
     if a.record:  # the demo's own recording: an earlier demo's is replaced
-        from skyview.record import record_solve
+        from skyview.record.recording import record_solve
 
         info = record_solve(a.record, result, frame.image, catalog=result.catalog, truth=frame.truth, force=True,
                             meta={"command": "skyview demo", "seed": a.seed})
@@ -118,7 +133,7 @@ def cmd_demo(a) -> int:
     print_human(with_truth(bres, R, frame.truth))
     photos = REPO_ROOT / "tests" / "data" / "real-images"
     if (photos / "reference.json").exists():
-        from skyview.centroid import load_image
+        from skyview.detect.centroids import load_image
 
         ref = json.loads((photos / "reference.json").read_text())
         name = sorted(ref)[0]

@@ -9,16 +9,32 @@ from pathlib import Path
 
 import numpy as np
 
-from skyview.cli.common import (ARCSEC, EXIT_NOT_SOLVED, EXIT_SOLVED, add_detection, add_epoch, add_method, add_outputs,
-                                add_scenario, add_sigma, add_variant, check_new_file, check_out_folder,
-                                check_recording_path, float_arg, progress_line, write_text_new, wrong_match_count)
-from skyview.errors import BadInput
+from skyview.cli.common import (
+    ARCSEC,
+    EXIT_NOT_SOLVED,
+    EXIT_SOLVED,
+    add_detection,
+    add_epoch,
+    add_method,
+    add_outputs,
+    add_scenario,
+    add_sigma,
+    add_variant,
+    check_new_file,
+    check_out_folder,
+    check_recording_path,
+    float_arg,
+    progress_line,
+    write_text_new,
+    wrong_match_count,
+)
+from skyview.core.errors import BadInput
 
 
 def cmd_solve_sequence(a) -> int:
     from skyview.identify import METHODS
     from skyview.identify.base import is_sequence_method
-    from skyview.sequence import DEFAULT_SEQUENCE_METHOD
+    from skyview.solver.sequence import DEFAULT_SEQUENCE_METHOD
 
     if a.sigma_arcsec is not None and a.sigma_arcsec <= 0:
         raise BadInput("--sigma-arcsec must be positive")
@@ -27,7 +43,7 @@ def cmd_solve_sequence(a) -> int:
     paths = list(a.path)
     one = len(paths) == 1 and (Path(paths[0]).is_dir() or Path(paths[0]).suffix.lower() == ".json")
     # no --method on a sequence (folder or sequence.json): the sequence method, as always; image
-    # paths, or a single-frame method: tracking (skyview.track)
+    # paths, or a single-frame method: tracking (skyview.solver.track)
     method = a.method if a.method is not None or not one else DEFAULT_SEQUENCE_METHOD
     if method != "blind" and method is not None and is_sequence_method(METHODS[method]):
         if not one:
@@ -41,7 +57,7 @@ def cmd_solve_sequence(a) -> int:
 
 
 def _solve_sequence_method(a) -> int:
-    from skyview.sequence import solve_sequence
+    from skyview.solver.sequence import solve_sequence
 
     output = check_new_file(a.output, a.force)
     check_recording_path(a.record, a.force)
@@ -80,12 +96,12 @@ def _solve_sequence_method(a) -> int:
 
 
 def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
-    """Tracking (skyview.track): one JSON line per frame with --json, else a line per frame."""
-    from skyview.attitude import attitude_error_arcsec
-    from skyview.camera import Camera
-    from skyview.centroid import load_image
-    from skyview.sequence import load_sequence
-    from skyview.track import Tracker, body_turn_rotvec
+    """Tracking (skyview.solver.track): one JSON line per frame with --json, else a line per frame."""
+    from skyview.core.attitude import attitude_error_arcsec
+    from skyview.core.camera import Camera
+    from skyview.detect.centroids import load_image
+    from skyview.solver.sequence import load_sequence
+    from skyview.solver.track import Tracker, body_turn_rotvec
 
     sequence_only = [o for o, v in (("--p-identify", a.p_identify), ("--mag-zero-point", a.mag_zero_point),
                                     ("--mag-cut", a.mag_cut)) if v is not None]
@@ -93,7 +109,7 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
         raise BadInput(f"{', '.join(sequence_only)} go{'es' if len(sequence_only) == 1 else ''} with the "
                        f"stochastic method, not with tracking")
     output = check_new_file(a.output, a.force)
-    if a.record:  # checked before tracking (skyview.record_track writes it after)
+    if a.record:  # checked before tracking (skyview.record.track writes it after)
         if not str(a.record).lower().endswith(".rrd"):
             raise BadInput(f"{a.record}: a recording's name ends in .rrd")
         check_new_file(a.record, a.force)
@@ -144,7 +160,7 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     if output is not None:
         write_text_new(output, "\n".join(lines) + "\n", a.force)
     if a.record:
-        from skyview.record_track import record_track
+        from skyview.record.track import record_track
 
         info = record_track(a.record, tracked, images, tracker.camera, tracker.catalog, truths=truths,
                             method=a.method or "blind", force=a.force)
@@ -170,8 +186,8 @@ def _track_line(k: int, d: dict, solved: bool) -> str:
 
 
 def _record_sequence(a, res) -> None:
-    from skyview.record_sequence import record_sequence
-    from skyview.sequence import load_sequence
+    from skyview.record.sequence import record_sequence
+    from skyview.solver.sequence import load_sequence
 
     seq = load_sequence(a.path, a.fov_deg)  # the images (solve_sequence read them too) and the turns
     truths = None if a.no_truth else seq.truths
@@ -185,9 +201,9 @@ def _record_sequence(a, res) -> None:
 
 
 def cmd_bench_sequence(a) -> int:
-    from skyview.bench import save_results
-    from skyview.scenarios import get_scenario
-    from skyview.sequence_bench import bench_sequence, format_sequence_markdown
+    from skyview.bench.runner import save_results
+    from skyview.bench.sequence import bench_sequence, format_sequence_markdown
+    from skyview.simulate.scenarios import get_scenario
 
     scenario = get_scenario(a.scenario)
     if a.noise_deg is not None and a.noise_arcsec is not None:
@@ -215,7 +231,7 @@ def cmd_bench_sequence(a) -> int:
 def sequence_note(summary: dict) -> str:
     """What a bench-sequence result means when no sequence was identified at a noise of a degree or so
     (the paper's experiment): that is the expected result (docs/stochastic.md), not a fault."""
-    from skyview.sequence import PAPER_100_RUNS
+    from skyview.solver.sequence import PAPER_100_RUNS
 
     st = summary["setup"]
     counts = summary["outcomes_last_frame"]

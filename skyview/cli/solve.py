@@ -9,16 +9,33 @@ from pathlib import Path
 
 import numpy as np
 
-from skyview.cli.common import (ARCSEC, EXIT_NOT_SOLVED, EXIT_SOLVED, add_detection, add_epoch, add_method, add_outputs,
-                                add_param, add_sigma, add_statistic, add_variant, check_new_file, check_recording_path,
-                                float_arg, method_params, progress_line, read_truth, write_text_new,
-                                wrong_match_count)
-from skyview.errors import BadInput
+from skyview.cli.common import (
+    ARCSEC,
+    EXIT_NOT_SOLVED,
+    EXIT_SOLVED,
+    add_detection,
+    add_epoch,
+    add_method,
+    add_outputs,
+    add_param,
+    add_sigma,
+    add_statistic,
+    add_variant,
+    check_new_file,
+    check_recording_path,
+    float_arg,
+    method_params,
+    progress_line,
+    read_truth,
+    write_text_new,
+    wrong_match_count,
+)
+from skyview.core.errors import BadInput
 
 
 def against_truth(result, R_true: np.ndarray, truth: dict | None) -> dict:
     """The attitude error of a solved result and (with a truth sidecar) how many of its matches are wrong."""
-    from skyview.attitude import attitude_error_arcsec
+    from skyview.core.attitude import attitude_error_arcsec
 
     return {"error_arcsec": attitude_error_arcsec(result.R, R_true),
             "wrong_matches": None if truth is None else wrong_match_count(result.matches, truth)}
@@ -68,9 +85,9 @@ def print_human(out: dict, file=sys.stdout) -> None:
 
 
 def cmd_solve(a) -> int:
-    from skyview.centroid import load_image
-    from skyview.fits_image import row_order
-    from skyview.pipeline import solve_image
+    from skyview.detect.centroids import load_image
+    from skyview.io.fits import row_order
+    from skyview.solver.pipeline import solve_image
 
     path = Path(a.image)
     image = load_image(path)
@@ -108,7 +125,7 @@ def cmd_solve(a) -> int:
     if a.record:
         _record_solve(a, result, image, truth, path)
     if a.wcs and result.solved:
-        from skyview.wcs import write_wcs
+        from skyview.io.wcs import write_wcs
 
         # for the file's own pixel grid: a FITS file read bottom row first, unless solved the other way up
         rows_reversed_on_read = order not in (None, "TOP-DOWN")
@@ -158,7 +175,7 @@ def failure_advice(a, result) -> str:
 
 
 def _record_solve(a, result, image, truth_path: Path | None, image_path: Path) -> None:
-    from skyview.record import record_solve
+    from skyview.record.recording import record_solve
 
     truth = read_truth(truth_path) if truth_path is not None else None
     info = record_solve(a.record, result, image, catalog=result.catalog, truth=truth, force=a.force,

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from skyview.cli.common import EXIT_SOLVED, add_method, add_scenario, add_variant, float_arg
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
 
 
 def cmd_record(a) -> int:
@@ -14,7 +14,7 @@ def cmd_record(a) -> int:
         raise BadInput(f"give the output once: {a.path} or --out {a.out}")
     target = a.path if a.path is not None else a.out
     if a.examples:
-        from skyview.record_examples import MANIFEST, record_examples
+        from skyview.record.examples import MANIFEST, record_examples
 
         out = Path(target) if target else Path("recordings")
         entries = record_examples(out, force=a.force)
@@ -25,7 +25,7 @@ def cmd_record(a) -> int:
 
     if is_sequence_method(METHODS[a.method]):  # a sequence method: the paper's experiment, frame by frame
         return _record_sequence_case(a, target)
-    from skyview.record_cases import record_case
+    from skyview.record.cases import record_case
 
     scenario = a.scenario or "cole8"
     out = Path(target) if target else Path(f"{a.method}-{scenario}-{a.seed}.rrd")
@@ -38,13 +38,13 @@ def cmd_record(a) -> int:
 
 
 def _record_sequence_case(a, target) -> int:
-    from skyview.record_sequence import PAPER_SCENARIO, record_paper_sequence
+    from skyview.record.sequence import PAPER_SCENARIO, record_paper_sequence
 
     scenario = a.scenario or PAPER_SCENARIO
     out = Path(target) if target else Path(f"{a.method}-{scenario}-{a.seed}.rrd")
     info, case = record_paper_sequence(out, a.seed, scenario=scenario, variant=a.variant, force=a.force)
     r = case.result
-    post = [f["true_posterior"] for f in r.truth_figures()]  # scored against the truth (skyview.scoring)
+    post = [f["true_posterior"] for f in r.truth_figures()]  # scored against the truth (skyview.simulate.scoring)
     done = (f"identified at frame{'s' if len(info.identified) > 1 else ''} {', '.join(map(str, info.identified))}"
             if info.identified else f"not identified ({r.identifications[-1].reason})")
     print(f"recorded {info.path}: {a.method} ({a.variant}) on {scenario}, the paper's experiment at 10 arcsec, seed "
@@ -58,7 +58,7 @@ def _record_sequence_case(a, target) -> int:
 def example_recordings() -> dict[str, Path]:
     """The example recordings in the repository's recordings/ by their first name part: 'angle' ->
     recordings/angle-cole8.rrd, 'failure' -> recordings/failure-angle-cole8-false.rrd."""
-    from skyview.catalog import REPO_ROOT
+    from skyview.core.catalog import REPO_ROOT
 
     found: dict[str, Path] = {}
     for p in sorted((REPO_ROOT / "recordings").glob("*-*.rrd")):
@@ -69,7 +69,7 @@ def example_recordings() -> dict[str, Path]:
 def resolve_recording(recording: str | None, example: str | None) -> Path:
     """The .rrd to replay: a path as given; a relative one that does not exist here looked up in skyview's
     own folder (where recordings/ lives); or --example NAME: recordings/NAME-*.rrd."""
-    from skyview.catalog import REPO_ROOT
+    from skyview.core.catalog import REPO_ROOT
 
     if example is not None:
         if recording is not None:
@@ -88,7 +88,7 @@ def resolve_recording(recording: str | None, example: str | None) -> Path:
 
 
 def cmd_replay(a) -> int:
-    from skyview.record_replay import replay
+    from skyview.record.replay import replay
 
     path = resolve_recording(a.recording, a.example)
     return replay(path, web=True if a.web else None, host=a.host, port=a.port, grpc_port=a.grpc_port)

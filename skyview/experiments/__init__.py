@@ -2,15 +2,14 @@
 
 Each module is reachable as `skyview experiment NAME [OPTIONS]` and as `python -m skyview.experiments.NAME`,
 with the same options and one-line errors (exit code 2). A module has `add_arguments(parser)`,
-`command(args) -> int` (the exit code) and `main(argv)`; to add one, write the module and add a line to
-EXPERIMENTS. Experiments may import anything in skyview; nothing in skyview.identify imports them.
+`command(args) -> int` (the exit code) and a `__main__` block that runs `skyview experiment NAME`; to add
+one, write the module and add a line to EXPERIMENTS. Experiments may import anything in skyview; nothing in skyview.identify imports them.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import sys
 import tempfile
 
 EXPERIMENTS = {  # name -> one line for `skyview experiment --help`
@@ -20,13 +19,6 @@ EXPERIMENTS = {  # name -> one line for `skyview experiment --help`
     "measure": "a method on vector-level frames (no images): Cole & Crassidis section IV's quick check",
     "triangle_figures": "Cole & Crassidis' triangle database, polar-moment convergence and sigma bounds (Figs. 7-8)",
 }
-
-
-def run_main(name: str, argv: list[str] | None = None) -> int:
-    """`python -m skyview.experiments.NAME ARGS`: the same as `skyview experiment NAME ARGS`."""
-    from skyview.cli import main
-
-    return main(["experiment", name, *(sys.argv[1:] if argv is None else argv)])
 
 
 @contextlib.contextmanager

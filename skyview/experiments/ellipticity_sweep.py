@@ -47,10 +47,10 @@ from collections import Counter
 
 import numpy as np
 
-from skyview.attitude import R_from_radec_roll
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, load_guide_catalog
-from skyview.errors import BadInput
+from skyview.core.attitude import R_from_radec_roll
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, load_guide_catalog
+from skyview.core.errors import BadInput
 from skyview.identify import make_identifier
 from skyview.identify.ellipticity import MAG_LIMIT, guide_rows
 from skyview.identify.synthetic import synthetic_frame
@@ -281,11 +281,9 @@ def command(a) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    from skyview.experiments import run_main
+if __name__ == "__main__":  # `python -m skyview.experiments.ellipticity_sweep` is `skyview experiment ellipticity_sweep`
+    import sys
 
-    return run_main("ellipticity_sweep", argv)
+    from skyview.cli import main
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(["experiment", "ellipticity_sweep", *sys.argv[1:]]))

@@ -44,11 +44,26 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skyview.errors import BadInput
-from skyview.identify.genetic import (PAPER_BOX_FACTOR, PAPER_DELTAS, PAPER_FIRST, PAPER_M, PAPER_MAX_GENERATIONS,
-                                      PAPER_MUTATION_RATE, PAPER_ROLL, PAPER_SPIRAL, GeneSpace, Sizes, angle_cost,
-                                      angle_partners, distance_cost, distance_vector, roll_threshold, run_ga,
-                                      wrap_angle)
+from skyview.core.errors import BadInput
+from skyview.identify.genetic import (
+    PAPER_BOX_FACTOR,
+    PAPER_DELTAS,
+    PAPER_FIRST,
+    PAPER_M,
+    PAPER_MAX_GENERATIONS,
+    PAPER_MUTATION_RATE,
+    PAPER_ROLL,
+    PAPER_SPIRAL,
+    GeneSpace,
+    Sizes,
+    angle_cost,
+    angle_partners,
+    distance_cost,
+    distance_vector,
+    roll_threshold,
+    run_ga,
+    wrap_angle,
+)
 
 MAP_STARS = 1000
 MAP_HALF = 150.0
@@ -359,9 +374,9 @@ def verify_every_answer(fov_deg: float = 8.0, frames: int = 300, attempts: int =
     verification (until one passes, counting hypotheses as identify does), each scored against the
     truth. Returns the tally: answers, wrong answers, wrong answers that passed, right ones passed and
     rejected."""
-    from skyview.attitude import random_attitudes
-    from skyview.camera import Camera
-    from skyview.catalog import load_guide_catalog
+    from skyview.core.attitude import random_attitudes
+    from skyview.core.camera import Camera
+    from skyview.core.catalog import load_guide_catalog
     from skyview.identify.genetic import IMPROVED_PARAMS, GeneticMethod
     from skyview.identify.synthetic import synthetic_frame
     from skyview.identify.verify import match_radius, verify
@@ -406,11 +421,9 @@ def verify_every_answer(fov_deg: float = 8.0, frames: int = 300, attempts: int =
     return tally
 
 
-def main(argv: list[str] | None = None) -> int:
-    from skyview.experiments import run_main
+if __name__ == "__main__":  # `python -m skyview.experiments.genetic_map` is `skyview experiment genetic_map`
+    import sys
 
-    return run_main("genetic_map", argv)
+    from skyview.cli import main
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(["experiment", "genetic_map", *sys.argv[1:]]))

@@ -21,10 +21,10 @@ import time
 
 import numpy as np
 
-from skyview.attitude import random_attitudes
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
-from skyview.errors import BadInput
+from skyview.core.attitude import random_attitudes
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog
+from skyview.core.errors import BadInput
 from skyview.identify import METHODS, make_identifier
 from skyview.identify.synthetic import synthetic_frame
 
@@ -156,11 +156,9 @@ def command(a) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    from skyview.experiments import run_main
+if __name__ == "__main__":  # `python -m skyview.experiments.measure` is `skyview experiment measure`
+    import sys
 
-    return run_main("measure", argv)
+    from skyview.cli import main
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(["experiment", "measure", *sys.argv[1:]]))

@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from skyview.camera import Camera
-from skyview.catalog import load_guide_catalog
-from skyview.errors import BadInput
+from skyview.core.camera import Camera
+from skyview.core.catalog import load_guide_catalog
+from skyview.core.errors import BadInput
 from skyview.experiments import throwaway_cache
 from skyview.identify import spherical as sph
 from skyview.identify.synthetic import add_noise
@@ -89,11 +89,9 @@ def command(a) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    from skyview.experiments import run_main
+if __name__ == "__main__":  # `python -m skyview.experiments.triangle_figures` is `skyview experiment triangle_figures`
+    import sys
 
-    return run_main("triangle_figures", argv)
+    from skyview.cli import main
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(["experiment", "triangle_figures", *sys.argv[1:]]))

@@ -12,11 +12,24 @@ from __future__ import annotations
 import importlib
 from collections.abc import Mapping
 
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog
-from skyview.errors import BadInput
-from skyview.identify.base import (FAILED, IDENTIFIED, INCONCLUSIVE, Hypothesis, Identification, Identifier,
-                                   Observation, Search, SequenceIdentifier, Status, Step, is_sequence_method)
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog
+from skyview.core.errors import BadInput
+from skyview.identify.base import (
+    FAILED,
+    IDENTIFIED,
+    INCONCLUSIVE,
+    Hypothesis,
+    Identification,
+    Identifier,
+    Observation,
+    Search,
+    SequenceIdentifier,
+    Status,
+    Step,
+    is_sequence_method,
+)
+
 
 class _Registry(Mapping):
     """Method name -> identifier class, each module imported on first use (a `skyview solve` that

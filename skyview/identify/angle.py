@@ -78,15 +78,15 @@ from functools import lru_cache, partial
 
 import numpy as np
 
-from skyview.attitude import RAD_TO_ARCSEC
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog
+from skyview.core.attitude import RAD_TO_ARCSEC
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog
 from skyview.identify import database
-from skyview.identify.base import LazyStep, Search, Step
+from skyview.identify.base import Search
 from skyview.identify.kvector import KVector
 from skyview.identify.layers import Hypotheses
-from skyview.identify.pivot import (Chain, PivotMethod, PivotParams, by_star, pair_indices,
-                                   take_pattern, uses_any)
+from skyview.identify.pivot import Chain, PivotMethod, PivotParams, by_star, pair_indices, take_pattern, uses_any
+from skyview.identify.steps import LazyStep, Step
 from skyview.identify.verify import angular_distance
 
 CAP = 200  # catalog rows / groups kept in one step

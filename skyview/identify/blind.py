@@ -20,7 +20,7 @@ is `skyview.identify.patterns`):
    centroids used (so the depth follows the image: a narrow deep field and a wide shallow one both
    get the stars they show), are projected; centroids within `quick_radius_px` of one count. The
    chance of that many by accident (catalog density x pi r^2, binomial, times the hypotheses
-   checked so far) must be below 1e-3; then the camera is fitted (`skyview.camera_fit`: attitude,
+   checked so far) must be below 1e-3; then the camera is fitted (`skyview.core.camera_fit`: attitude,
    focal length, k1 and k2 where the stars support them) and the stars re-matched, twice.
 5. The shared verification (`skyview.identify.verify`) with the fitted camera, the catalog to the
    magnitude of the frame's depth and the measured residual noise; only a verified hypothesis is
@@ -39,9 +39,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import bdtrc
 
-from skyview.camera import Camera
-from skyview.camera_fit import CameraFit, fit_camera
-from skyview.catalog import GuideCatalog, chord
+from skyview.core.camera import Camera
+from skyview.core.camera_fit import CameraFit, fit_camera
+from skyview.core.catalog import GuideCatalog, chord
 from skyview.identify import database
 from skyview.identify import patterns as pdb
 from skyview.identify.base import FAILED, INCONCLUSIVE, Identification, Step

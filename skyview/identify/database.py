@@ -12,21 +12,21 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
 import os
+import sys
 import tempfile
-import zipfile
 import time
 import warnings
+import zipfile
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, cache_dir
-from skyview.errors import BadInput
-from skyview.jsonable import plain
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, cache_dir
+from skyview.core.errors import BadInput
+from skyview.core.jsonable import plain
 
 FORMAT_VERSION = 1
 _KEY_FIELD = "__key__"

@@ -87,10 +87,10 @@ from itertools import combinations, permutations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skyview.attitude import attitude_error_arcsec, svd_attitude
-from skyview.camera import Camera
-from skyview.catalog import FLAG_MULTIPLE, GuideCatalog, chord
-from skyview.errors import BadInput
+from skyview.core.attitude import attitude_error_arcsec, svd_attitude
+from skyview.core.camera import Camera
+from skyview.core.catalog import FLAG_MULTIPLE, GuideCatalog, chord
+from skyview.core.errors import BadInput
 from skyview.identify import database
 from skyview.identify.base import Hypothesis, Identifier, Search, Step
 from skyview.identify.layers import Attitudes, Hypotheses

@@ -75,7 +75,7 @@ Step record. One step per generation (kind "generation"): numbers best_cost, thr
 generation, evaluations, attempt, box_half_width_deg; layers (skyview.identify.layers): the search box
 as a SearchRegion (kind "sky" | "square" | "roll", center, half_width_rad, corners ((4, 3) ICRS, square
 only), radius_rad (roll only: the circle of the image-up directions, = half_width_rad)), drawn by every
-sink through skyview.present; the population as a Population: (P, 3) ICRS unit vectors (float32, best
+sink through skyview.present.drawables; the population as a Population: (P, 3) ICRS unit vectors (float32, best
 first) with their costs — for the roll GA the direction of image-up at half the circle radius from the
 boresight, one per roll chromosome, with roll_rad the rolls (skyview's convention). To keep
 a failing 600-generation stage small, the population is attached to generations 0-20, every 10th,
@@ -102,10 +102,10 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from skyview.attitude import east_north, radec_roll_from_R, svd_attitude
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, chord, radec_to_vec, vec_to_radec
-from skyview.errors import BadInput
+from skyview.core.attitude import east_north, radec_roll_from_R, svd_attitude
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, chord, radec_to_vec, vec_to_radec
+from skyview.core.errors import BadInput
 from skyview.identify import database
 from skyview.identify.base import Hypothesis, Identifier, Search, Step
 from skyview.identify.genetic_engine import GAResult, GeneSpace, Sizes, run_ga

@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Typed layers of a step: what a method knows after one step, in data the sinks can draw.
 
 A `Step` (skyview.identify.base) carries a tuple of these frozen records instead of a free-form dict.
-Each says one kind of thing in the method's own terms; `skyview.present` is the one module that turns
+Each says one kind of thing in the method's own terms; `skyview.present.drawables` is the one module that turns
 them into drawables, so the viewer and the recorder show a new layer in the same way or not at all.
 
     Hypotheses      the correspondence hypotheses that survive: observed stars used and, per
@@ -183,6 +183,23 @@ class StarSets:
     @classmethod
     def of(cls, **sets) -> StarSets:
         return cls({k: tuple(int(i) for i in v) for k, v in sets.items()})
+
+
+def posterior_figures(steps, n_hypotheses_floor: int = 1) -> dict | None:
+    """What a posterior step says, read from its layer (no method's own figures): the designated star
+    (the observed star the step updates on), the leading stars and their probability, how many stars
+    are above the prior 1/H (H hypotheses). None when no step carries a `Posterior`."""
+    st = next((s for s in reversed(list(steps)) if s.layer(Posterior) is not None), None)
+    if st is None:
+        return None
+    p = st.layer(Posterior)
+    H = max(len(p.weights), n_hypotheses_floor)
+    star = np.bincount(np.asarray(p.rows, dtype=np.int64),
+                       weights=np.nan_to_num(np.asarray(p.weights, dtype=np.float64)))
+    return {"designated": int(st.observed[0]) if st.observed else None,
+            "top_rows": np.asarray(p.top_rows, dtype=np.int64), "top_mass": np.asarray(p.top_mass, dtype=np.float64),
+            "top_posterior": float(p.top_mass[0]) if len(p.top_mass) else None,
+            "above_prior": int(np.sum(star > 1.0 / H))}
 
 
 Layer = Hypotheses | Population | Posterior | Attitudes | SearchRegion | StarSets

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from skyview.errors import BadInput
+from skyview.core.errors import BadInput
 from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, STATISTICS
 
 
@@ -108,12 +108,7 @@ def _shown(value) -> str:
     return repr(value)
 
 
-def main() -> None:
-    """Print the parameter table (`python -m skyview.identify.params`: paste it into docs/methods.md)."""
+if __name__ == "__main__":  # `python -m skyview.identify.params`: the table to paste into docs/methods.md
     from skyview.identify import METHODS
 
     print(parameter_table(METHODS))
-
-
-if __name__ == "__main__":
-    main()

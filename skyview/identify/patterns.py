@@ -40,8 +40,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from skyview.catalog import GuideCatalog, chord
-from skyview.errors import BadInput
+from skyview.core.catalog import GuideCatalog, chord
+from skyview.core.errors import BadInput
 
 FORMAT_VERSION = 2
 N_RATIOS = 5

@@ -23,8 +23,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from skyview.attitude import svd_attitude
-from skyview.errors import BadInput
+from skyview.core.attitude import svd_attitude
+from skyview.core.errors import BadInput
 from skyview.identify.base import Hypothesis, Identifier, Search, Step
 from skyview.identify.params import MethodParams
 from skyview.identify.verify import angular_distance

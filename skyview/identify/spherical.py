@@ -45,7 +45,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from skyview.catalog import einsum_c as _einsum
+from skyview.core.catalog import einsum_c as _einsum
 
 MOMENT_DEPTH = 3  # the paper's recursion depth: 4^3 = 64 pieces
 _CHUNK = 1024  # triangles per vectorised block in polar_moment (~1 MB per array: stays in cache)

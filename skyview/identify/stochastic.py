@@ -67,7 +67,7 @@ are tried (each counts in the Bonferroni factor). Only a verified answer is repo
 
 Magnitudes. The paper's mu_m is an absolute magnitude. Observed magnitudes are
 m = mag_zero_point - 2.5 log10(brightness): the instrument's photometric zero point (for the
-simulator it follows from its sensor model, see `skyview.sequence.zero_point`). Without a zero point
+simulator it follows from its sensor model, see `skyview.solver.sequence.zero_point`). Without a zero point
 (mag_zero_point=None) mu_m is used relative to the designated star (mean(m) - m_designated, against
 xi_mu_m - mag(s) of each hypothesis): the zero point cancels, sigma_m needs none. mag_cut (needs a
 zero point) leaves the observed stars fainter than the catalog out of the statistics.
@@ -85,7 +85,7 @@ fitted; a row gets a roll (the vote) only when it goes to verification.
 
 Length (~890 lines): the statistics, the roll vote, the prediction with the known turn, the
 registration and the recursion are one method over a sequence; scoring against the truth (the true
-star's posterior) is `skyview.scoring.sequence_truth`, never here.
+star's posterior) is `skyview.simulate.scoring.sequence_truth`, never here.
 """
 
 from __future__ import annotations
@@ -98,13 +98,20 @@ from scipy.spatial import cKDTree
 from scipy.special import logsumexp
 from scipy.stats import chi2
 
-from skyview.attitude import RAD_TO_ARCSEC, svd_attitude
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, chord
-from skyview.errors import BadInput
+from skyview.core.attitude import RAD_TO_ARCSEC, svd_attitude
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, chord
+from skyview.core.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import (INCONCLUSIVE, Hypothesis, Identification, Observation, Search,
-                                   SequenceIdentifier, Step)
+from skyview.identify.base import (
+    INCONCLUSIVE,
+    Hypothesis,
+    Identification,
+    Observation,
+    Search,
+    SequenceIdentifier,
+    Step,
+)
 from skyview.identify.layers import Posterior
 from skyview.identify.params import MethodParams, one_of
 from skyview.identify.verify import angular_distance, frame_stars, match_one_to_one, match_radius
@@ -410,7 +417,7 @@ class StochasticMethod(SequenceIdentifier):
         designated (optional): per frame, the observed index to use as the designated star instead of
         the one nearest the boresight (None: the rule f). Returns one Identification per frame; frame
         k's steps cover that frame (its 'update' step carries the posterior as a `Posterior` layer:
-        `skyview.scoring.sequence_truth` scores it against the truth), its stats hold the posterior
+        `skyview.simulate.scoring.sequence_truth` scores it against the truth), its stats hold the posterior
         summary.
         """
         observations = list(observations)

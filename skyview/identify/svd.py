@@ -89,7 +89,7 @@ stats: "failure_causes" counts the outcome of every attempt, "cause" is the fram
 any attempt got: ambiguous > rejected > ranking > missing_set > too_few_stars), "attempts" lists
 them, "first_chain" the paper's answer before verification (the first boresight whose set survived
 the singular-vector filter, when unique). Without the truth "missing set" cannot be told from a
-ranking error; `skyview.diagnose_svd.diagnose` does it with the truth of a simulated frame (truth never
+ranking error; `diagnose` in tests/oracles/diagnose_svd.py does it with the truth of a simulated frame (truth never
 enters the method), in the paper's words:
 ranking error, missing boresight set (lack of boresight directions, Fig. 5: the boresight's catalog
 set reaches off the sensor, or the boresight is no reference star), too few stars.
@@ -117,7 +117,7 @@ Measured: docs/methods.md and docs/benchmarks.md (`skyview bench --compare` and
 
 Length (~850 lines, 120 of them this description): the mission catalog, the first-order bounds on
 singular values and vectors and the recognition are one paper's method; the failure causes against the
-truth are `skyview.diagnose_svd`, the common path the template of `skyview.identify.base`.
+truth are in tests/oracles/diagnose_svd.py, the common path the template of `skyview.identify.base`.
 """
 
 from __future__ import annotations
@@ -129,10 +129,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import norm
 
-from skyview.attitude import RAD_TO_ARCSEC
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, chord
-from skyview.errors import BadInput
+from skyview.core.attitude import RAD_TO_ARCSEC
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, chord
+from skyview.core.errors import BadInput
 from skyview.identify import database
 from skyview.identify.base import Hypothesis, Identifier, Observation, Search, Step
 from skyview.identify.kvector import KVector

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog
 from skyview.identify.base import Observation
 
 

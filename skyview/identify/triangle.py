@@ -91,18 +91,32 @@ from math import comb, sqrt
 
 import numpy as np
 
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog
-from skyview.errors import BadInput
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog
+from skyview.core.errors import BadInput
 from skyview.identify import database as database_module
 from skyview.identify import spherical as sph
 from skyview.identify.angle import load_pair_database
-from skyview.identify.base import LazyStep, Search, Step
+from skyview.identify.base import Search
 from skyview.identify.layers import Hypotheses
-from skyview.identify.pivot import (MAX_EQUIVALENT, Chain, PivotMethod, PivotParams, next_by_priority, take_pattern,
-                                   pair_indices, uses_any)
-from skyview.identify.triangle_database import (MOMENT_PARAMS, MOMENT_SAMPLE_TRIANGLES, MOMENT_SIGMA_VERSION,
-                                                build_moment_sigma, load_triangle_database)
+from skyview.identify.pivot import (
+    MAX_EQUIVALENT,
+    Chain,
+    PivotMethod,
+    PivotParams,
+    next_by_priority,
+    pair_indices,
+    take_pattern,
+    uses_any,
+)
+from skyview.identify.steps import LazyStep, Step
+from skyview.identify.triangle_database import (
+    MOMENT_PARAMS,
+    MOMENT_SAMPLE_TRIANGLES,
+    MOMENT_SIGMA_VERSION,
+    build_moment_sigma,
+    load_triangle_database,
+)
 from skyview.identify.triangle_lookup import _PERMS, CAP, SMALL, SQ2, TriangleLookup, _groups, _n_sets
 from skyview.identify.verify import angular_distance
 

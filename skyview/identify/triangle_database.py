@@ -52,8 +52,8 @@ import time
 
 import numpy as np
 
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog
 from skyview.identify import database as database_module
 from skyview.identify import spherical as sph
 from skyview.identify.kvector import KVector

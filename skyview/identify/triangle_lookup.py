@@ -19,7 +19,7 @@ from functools import lru_cache, partial
 
 import numpy as np
 
-from skyview.catalog import einsum_c
+from skyview.core.catalog import einsum_c
 from skyview.identify import spherical as sph
 from skyview.identify.pivot import by_star
 from skyview.identify.triangle_database import BLOCK, _block_search

@@ -93,10 +93,11 @@ from functools import lru_cache
 import numpy as np
 from scipy.special import bdtr, bdtrc
 
-from skyview.attitude import RAD_TO_ARCSEC, remember_svd, svd_attitude
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, chord, einsum_c as _einsum
-from skyview.identify.base import LazyStep
+from skyview.core.attitude import RAD_TO_ARCSEC, remember_svd, svd_attitude
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, chord
+from skyview.core.catalog import einsum_c as _einsum
+from skyview.identify.steps import LazyStep
 
 _min, _max = np.minimum.reduce, np.maximum.reduce  # what ndarray.min() / .max() call, without their Python wrappers
 

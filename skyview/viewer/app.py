@@ -19,13 +19,12 @@ from typing import Callable
 
 import viser
 
-from skyview.camera import Camera
-from skyview.centroid import load_image
-from skyview.errors import BadInput
+from skyview.core.camera import Camera
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import load_image
 from skyview.viewer.picture import MAX_UPLOAD_BYTES
 from skyview.viewer.run import SceneConfig, Solvers, Source, check_fov
 from skyview.viewer.session import Session
-
 
 UNKNOWN_FOV_GUESS_DEG = 10.0  # an image given without its FOV: the camera is fitted blind; this is only the
 # starting value shown (and used if the blind search fails)
@@ -156,7 +155,7 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
         layer = CoverageLayer.from_folder(coverage)
     report = None
     if compare is not None:
-        from skyview.compare import load_compare
+        from skyview.bench.compare import load_compare
 
         report = load_compare(compare)
     if config is None:

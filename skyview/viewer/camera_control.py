@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from skyview.camera import Camera
+from skyview.core.camera import Camera
 from skyview.viewer.run import Run
 
 WIDE_FOV_DEG = 70.0

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from skyview.coverage import CoverageConfig
-from skyview.coverage_map import colours, load_map, map_nside, sphere_mesh
+from skyview.bench.coverage import CoverageConfig
+from skyview.bench.coverage_map import colours, load_map, map_nside, sphere_mesh
 
 NODE = "/coverage"
 BANDS = 8

@@ -13,9 +13,9 @@ import math
 import numpy as np
 import viser.transforms as vtf
 
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, radec_to_vec, vec_to_radec
-from skyview.sky_geometry import polylines_as_segments
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, radec_to_vec, vec_to_radec
+from skyview.core.sky_geometry import polylines_as_segments
 
 # Proper names of the brightest stars (HIP -> name), for the sky labels.
 STAR_NAMES = {

@@ -10,15 +10,26 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from viser import (GuiButtonHandle, GuiCheckboxHandle, GuiDropdownHandle, GuiFolderHandle, GuiImageHandle,
-                   GuiMarkdownHandle, GuiNumberHandle, GuiSliderHandle, GuiTabGroupHandle, GuiUploadButtonHandle,
-                   GuiUplotHandle)
+from viser import (
+    GuiButtonHandle,
+    GuiCheckboxHandle,
+    GuiDropdownHandle,
+    GuiFolderHandle,
+    GuiImageHandle,
+    GuiMarkdownHandle,
+    GuiNumberHandle,
+    GuiSliderHandle,
+    GuiTabGroupHandle,
+    GuiUploadButtonHandle,
+    GuiUplotHandle,
+)
 
-from skyview.attitude import radec_roll_from_R
-from skyview.present import LEGEND, OUTCOME_RGB, PALETTE, StepView, format_number, step_summary, why_not
+from skyview.core.attitude import radec_roll_from_R
+from skyview.present.drawables import LEGEND, OUTCOME_RGB, PALETTE, StepView
+from skyview.present.text import format_number, step_summary, why_not
+from skyview.viewer.geometry import STAR_NAMES
 from skyview.viewer.plot_control import add_frame_plot, add_step_plot
 from skyview.viewer.run import FOV_RANGE_DEG, RESOLUTIONS, SEQUENCE_NOTE, Run, SceneConfig, needs_sequence
-from skyview.viewer.geometry import STAR_NAMES
 from skyview.viewer.sequence_run import FRAMES_RANGE, STEP_RANGE_DEG, TURNS, SequenceConfig, SequenceRun
 
 PAPER_CAMERA = {"fov_deg": 30.0, "resolution": "1024x1024", "mag_limit": 4.5}  # Udomkesmalee et al.'s camera
@@ -137,7 +148,7 @@ def _rgb(c) -> str:
 
 
 def legend_markdown() -> str:
-    """Every colour on screen: the centroid outcomes (at the last step) and the step roles (skyview.present)."""
+    """Every colour on screen: the centroid outcomes (at the last step) and the step roles (skyview.present.drawables)."""
     items = [f"<span style='color:{_rgb(c)}'>◯</span> {name}" for name, c in OUTCOME_RGB.items()]
     items += [f"<span style='color:{_rgb(PALETTE[k])}'>■</span> {text}" for k, text in LEGEND.items()]
     return "<small>" + " &nbsp; ".join(items) + "</small>"
@@ -194,7 +205,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
                                    hint="the paper's parameters, or the method's improvements")
         track = gui.add_checkbox("Track a sequence", initial_value=False,
                                  hint="any single-frame method: frame 0 lost-in-space, then tracking "
-                                      "(skyview.track); the sequence is set below")
+                                      "(skyview.solver.track); the sequence is set below")
         seq_controls = gui.add_folder("Sequence", visible=needs_sequence(methods[0]))
         with seq_controls:
             gui.add_markdown("<small>This method identifies over a <b>sequence</b> of frames with a known turn "
@@ -372,7 +383,7 @@ def star_markdown(hip: int, mag: float, ra_deg: float, dec_deg: float, name: str
 
 def bench_markdown(report: dict) -> str:
     """A `skyview bench --compare` report under this image's result (`skyview view --compare FILE`)."""
-    from skyview.compare import format_markdown
+    from skyview.bench.compare import format_markdown
 
     return "---\n\n## Every method on the same images (`skyview bench --compare`)\n\n" + format_markdown(report)
 
@@ -451,7 +462,7 @@ def frame_markdown(seq: SequenceRun, k: int) -> str:
         parts.append(f"{int(st['above_prior'])} of {len(seq.result.catalog)} stars above the prior")
     if st.get("top_hips"):
         parts.append(f"leading {_hip_name(st['top_hips'][0])} at {format_number(float(st['top_posterior']))}")
-    truth = seq.result.truth_figures()[k]  # scored against the truth (skyview.scoring), not by the method
+    truth = seq.result.truth_figures()[k]  # scored against the truth (skyview.simulate.scoring), not by the method
     if truth["true_row"] is not None:
         hip = int(seq.result.catalog.hip[truth["true_row"]])
         parts.append(f"true star {_hip_name(hip)} at {format_number(float(truth['true_posterior']))}")

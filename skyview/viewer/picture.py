@@ -1,6 +1,6 @@
 """The sensor image for display: stretched to 8 bit, centroids marked, numbered and coloured.
 
-The stretch and the colours are `skyview.present`'s (the recorder uses the same). Pure OpenCV / numpy: the viewer puts the result in its side panel and on the camera frustum.
+The stretch and the colours are `skyview.present.drawables`'s (the recorder uses the same). Pure OpenCV / numpy: the viewer puts the result in its side panel and on the camera frustum.
 """
 
 from __future__ import annotations
@@ -10,10 +10,9 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from skyview.centroid import check_pixel_count, to_gray
-from skyview.errors import BadInput
-from skyview.present import OUTCOME_RGB, PALETTE, TEXTURE_FLOOR_SIGMAS, stretch  # noqa: F401  (one palette, one stretch)
-from skyview.present import place_labels
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import check_pixel_count, to_gray
+from skyview.present.drawables import OUTCOME_RGB, PALETTE, TEXTURE_FLOOR_SIGMAS, place_labels, stretch  # noqa: F401  (one palette, one stretch)
 
 HIGHLIGHT_RGB = PALETTE["observed"]
 MAX_UPLOAD_BYTES = 64 * 1024 * 1024

@@ -13,7 +13,7 @@ import math
 import numpy as np
 from viser import uplot
 
-from skyview.present import default_plot_key, numeric_keys, series
+from skyview.present.drawables import default_plot_key, numeric_keys, series
 
 PLOT_COLORS = ("#e848d2", "#ffd23c")
 # The plot across frames: stars above the prior, the leading star's and the true star's posterior, now.

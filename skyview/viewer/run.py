@@ -1,7 +1,7 @@
 """What the viewer runs: a scenario or an image, solved by the same `Solver` as the CLI.
 
 No identification logic here: a `Run` is the simulator's image and truth, the pipeline's
-`SolveResult`, and what `skyview.present` derives from them for drawing. Solvers (catalog + method database)
+`SolveResult`, and what `skyview.present.drawables` derives from them for drawing. Solvers (catalog + method database)
 are cached and shared by every browser tab; one solve at a time per solver.
 """
 
@@ -17,16 +17,16 @@ from pathlib import Path
 
 import numpy as np
 
-from skyview.attitude import R_from_radec_roll, attitude_error_arcsec, radec_roll_from_R, random_attitudes
-from skyview.camera import Camera, check_fov_deg
-from skyview.catalog import GuideCatalog, load_guide_catalog
-from skyview.errors import BadInput
+from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, radec_roll_from_R, random_attitudes
+from skyview.core.camera import Camera, check_fov_deg
+from skyview.core.catalog import GuideCatalog, load_guide_catalog
+from skyview.core.errors import BadInput
 from skyview.identify import METHODS, VARIANTS
 from skyview.identify.base import is_sequence_method
-from skyview.pipeline import BlindSolver, DEFAULT_CENTROID_SIGMA_PX, SolveResult, Solver
-from skyview.present import StepView, match_groups, step_views
-from skyview.scoring import centroid_outcomes
-from skyview.simulate import SensorModel, simulate_image
+from skyview.present.drawables import StepView, match_groups, step_views
+from skyview.simulate.render import SensorModel, simulate_image
+from skyview.simulate.scoring import centroid_outcomes
+from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, BlindSolver, Solver, SolveResult
 
 ARCSEC = math.pi / 180.0 / 3600.0
 RESOLUTIONS = ("512x512", "1024x1024", "1280x1024", "2048x2048")
@@ -158,7 +158,7 @@ class Run:
     catalog: GuideCatalog  # the solver's guide catalog: step rows index it
     n_used: int  # centroids given to the identifier (the brightest max_stars)
     outcomes: list[str]
-    drawables: list[StepView]  # one per step (skyview.present)
+    drawables: list[StepView]  # one per step (skyview.present.drawables)
     matches: dict[int, int]  # observed index -> catalog row
     match_groups: list[tuple[int, ...]]
     error_arcsec: dict | None = None
@@ -365,9 +365,9 @@ def compare(source: Source, mag_limit: float, solvers: Solvers, progress=None, m
 
 
 def record_run(run: Run, path) -> Path:
-    """Write a run as a Rerun recording (skyview.record): the viewer's Export button."""
+    """Write a run as a Rerun recording (skyview.record.recording): the viewer's Export button."""
     try:
-        from skyview.record import record_solve
+        from skyview.record.recording import record_solve
     except ImportError as exc:
         raise BadInput(f"the Rerun recorder is not available here ({exc})") from None
     info = record_solve(path, run.result, run.source.image, catalog=run.catalog, truth=run.source.truth,

@@ -3,7 +3,7 @@
 `SkyScene` takes a viser `SceneApi` (a server's or one browser tab's) and draws `Run` objects; it
 holds no identification logic and no GUI. The celestial sphere has radius 1 and is seen from its
 centre: ICRS unit vectors are the world coordinates, with +z (north) up. Geometry comes from
-`skyview.sky_geometry`; a step is drawn from its `skyview.present.StepView` (the drawables the Rerun
+`skyview.core.sky_geometry`; a step is drawn from its `skyview.present.drawables.StepView` (the drawables the Rerun
 recorder renders too): one node per role, `NODES[role]`, in the palette's colours. The identification
 (matched stars, their mesh, the green rings) shows only at the last step or when no step is selected:
 a step shows what the method knows at that step.
@@ -15,14 +15,37 @@ import math
 
 import numpy as np
 
-from skyview.camera import Camera
-from skyview.catalog import GuideCatalog, radec_to_vec, vec_to_radec
-from skyview.sky_geometry import (group_segments, magnitude_bins, polylines_as_segments, radec_grid,
-                                  sensor_footprint, star_color, star_radius)
-from skyview.present import (ARC_POINTS, IMAGE_ROLES, OUTCOME_RGB, PALETTE, SKY_ROLES, SkyLines, SkyPoints, StepView,
-                             place_labels)
-from skyview.viewer.geometry import (STAR_NAMES, frustum_scale, local_grid, nice_step, pose_wxyz, ring_segments,
-                                     sky_grid_labels)
+from skyview.core.camera import Camera
+from skyview.core.catalog import GuideCatalog, radec_to_vec, vec_to_radec
+from skyview.core.sky_geometry import (
+    group_segments,
+    magnitude_bins,
+    polylines_as_segments,
+    radec_grid,
+    sensor_footprint,
+    star_color,
+    star_radius,
+)
+from skyview.present.drawables import (
+    ARC_POINTS,
+    IMAGE_ROLES,
+    OUTCOME_RGB,
+    PALETTE,
+    SKY_ROLES,
+    SkyLines,
+    SkyPoints,
+    StepView,
+    place_labels,
+)
+from skyview.viewer.geometry import (
+    STAR_NAMES,
+    frustum_scale,
+    local_grid,
+    nice_step,
+    pose_wxyz,
+    ring_segments,
+    sky_grid_labels,
+)
 from skyview.viewer.run import Run
 
 NAME_MAG_LIMIT = 1.7  # stars at least this bright get a name label (named ones down to mag 2.4 too)
@@ -66,7 +89,7 @@ NODES = {
     "true_camera": "/camera/true",
     "true_frustum": "/camera/true/frustum",
     "true_footprint": "/footprint/true",
-    "candidates": "/steps/candidates",  # the step roles of skyview.present, one node each
+    "candidates": "/steps/candidates",  # the step roles of skyview.present.drawables, one node each
     "candidate_stars": "/steps/candidate_stars",
     "points": "/steps/points",
     "attitudes": "/steps/attitudes",
@@ -342,7 +365,7 @@ class SkyScene:
 
     # ------------------------------------------------------------------ steps
     def _ensure_step_nodes(self) -> None:
-        """One node per step role of skyview.present (hidden until a step draws it)."""
+        """One node per step role of skyview.present.drawables (hidden until a step draws it)."""
         s = self.scene
         empty_seg = np.zeros((1, 2, 3), dtype=np.float32)
         if "candidates" not in self.h:

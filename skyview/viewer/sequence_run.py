@@ -1,7 +1,7 @@
 """Sequences in the viewer: the stochastic method's multi-frame identification, and tracking for any method.
 
 Tracking (`track_sequence_run`, `TrackedSequenceRun`): for a single-image method the same simulated
-frames are solved by `skyview.track.Tracker` (the code of `skyview solve-sequence --method M`): frame
+frames are solved by `skyview.solver.track.Tracker` (the code of `skyview solve-sequence --method M`): frame
 0 lost-in-space, then tracked frames, back to lost-in-space when lock is lost. Every frame becomes a
 `Run` (its centroids: the windows' when tracked), and `TrackedSequenceRun.show(scene, k)` draws on a
 viser scene the footprints along the path coloured by each frame's mode (lost-in-space orange,
@@ -30,15 +30,26 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from skyview.catalog import GuideCatalog
-from skyview.errors import BadInput
+from skyview.core.catalog import GuideCatalog
+from skyview.core.errors import BadInput
+from skyview.core.sky_geometry import polylines_as_segments, sensor_footprint
 from skyview.identify.base import FAILED, IDENTIFIED, Identification
-from skyview.pipeline import NOT_SOLVED, SOLVED, SolveResult, result_from_identification
-from skyview.sequence import SequenceResult, SequenceSolver, zero_point
-from skyview.sky_geometry import polylines_as_segments, sensor_footprint
-from skyview.simulate import SensorModel, Turn, simulate_sequence, turn_about_camera_axis, turn_along_ra
-from skyview.viewer.run import (ARCSEC, MAG_RANGE, Run, SceneConfig, Solvers, Source, _num, check_method,
-                                make_run, needs_sequence, sigma_for)
+from skyview.simulate.render import SensorModel, Turn, simulate_sequence, turn_about_camera_axis, turn_along_ra
+from skyview.solver.pipeline import NOT_SOLVED, SOLVED, SolveResult, result_from_identification
+from skyview.solver.sequence import SequenceResult, SequenceSolver, zero_point
+from skyview.viewer.run import (
+    ARCSEC,
+    MAG_RANGE,
+    Run,
+    SceneConfig,
+    Solvers,
+    Source,
+    _num,
+    check_method,
+    make_run,
+    needs_sequence,
+    sigma_for,
+)
 
 # Turn kinds, as the panel names them -> how the camera turns between frames.
 TURNS = ("pan about camera y", "along RA")
@@ -232,7 +243,7 @@ class TrackedSequenceRun:
     """A tracked sequence: one `Run` per frame and the tracker's `TrackFrame` of each."""
 
     frames: list[Run]
-    tracked: list  # skyview.track.TrackFrame, one per frame
+    tracked: list  # skyview.solver.track.TrackFrame, one per frame
     scene: SceneConfig
     config: SequenceConfig
     method: str
@@ -356,7 +367,7 @@ class TrackedSequenceRun:
 
 def _track_result(fr, tracker, method: str, variant: str, camera) -> SolveResult:
     """A tracked frame as the `SolveResult` the viewer draws (matches as an identification)."""
-    from skyview.centroid import Centroids
+    from skyview.detect.centroids import Centroids
 
     cat = tracker.catalog
     rows = {}
@@ -380,10 +391,10 @@ def _track_result(fr, tracker, method: str, variant: str, camera) -> SolveResult
 
 def track_sequence_run(scene: SceneConfig, config: SequenceConfig, method: str, variant: str, solvers: Solvers,
                        gyros: bool = True, label=None) -> TrackedSequenceRun:
-    """Simulate the sequence the controls describe and track it with `method` (`skyview.track.Tracker`):
+    """Simulate the sequence the controls describe and track it with `method` (`skyview.solver.track.Tracker`):
     frame 0 lost-in-space, then tracking; gyros: give the tracker the known turns (else it predicts
     from the rate of its last attitudes). Every frame becomes a `Run`."""
-    from skyview.track import Tracker
+    from skyview.solver.track import Tracker
 
     say = label or (lambda _text: None)
     method, variant = check_method(method, variant)

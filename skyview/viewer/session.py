@@ -23,8 +23,8 @@ from typing import Callable
 import numpy as np
 import viser
 
-from skyview.camera import Camera
-from skyview.errors import BadInput
+from skyview.core.camera import Camera
+from skyview.core.errors import BadInput
 from skyview.identify import VARIANTS
 from skyview.viewer import panel as P
 from skyview.viewer.camera_control import CameraControl
@@ -32,8 +32,21 @@ from skyview.viewer.geometry import nearest_star, ray_to_sphere
 from skyview.viewer.picture import annotate, decode_image_bytes, panel_base, stretch, texture
 from skyview.viewer.player import Player
 from skyview.viewer.plot_control import FramePlot, StepPlot
-from skyview.viewer.run import (Run, SceneConfig, Solvers, Source, check_fov, check_method, compare,
-                                needs_sequence, random_pointing, record_run, simulate, solve, viewer_methods)
+from skyview.viewer.run import (
+    Run,
+    SceneConfig,
+    Solvers,
+    Source,
+    check_fov,
+    check_method,
+    compare,
+    needs_sequence,
+    random_pointing,
+    record_run,
+    simulate,
+    solve,
+    viewer_methods,
+)
 from skyview.viewer.scene import SkyScene
 from skyview.viewer.sequence_run import SequenceRun, TrackedSequenceRun, solve_sequence_run, track_sequence_run
 from skyview.viewer.state import Quiet, ViewState
@@ -477,7 +490,7 @@ class Session:
 
     # ------------------------------------------------------------------ export
     def export_rrd(self, path: str | Path) -> Path:
-        """Write the run on screen as a Rerun recording (skyview.record)."""
+        """Write the run on screen as a Rerun recording (skyview.record.recording)."""
         if self.state.run is None:
             raise BadInput("nothing to export yet: solve an image first")
         return record_run(self.state.run, path)

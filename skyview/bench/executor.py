@@ -1,0 +1,50 @@
+"""The one executor of the benches and sweeps: tasks on Dask (a LocalCluster on this machine, or a cluster
+at an address) or in this process, each result handed back as it completes."""
+
+from __future__ import annotations
+
+from typing import Callable, Iterable
+
+from skyview.core.errors import SkyviewError
+
+INLINE = "inline"  # scheduler: run the tasks in this process, in order
+
+
+def run_tasks(fn: Callable, args: Iterable[tuple], *, scheduler: str | None = None, n_workers: int = 2,
+              processes: bool = True, on_result: Callable | None = None) -> None:
+    """The engine: fn(*a) for every a in args, on Dask (a LocalCluster of n_workers when scheduler is
+    None, the cluster at `scheduler` otherwise) or in this process (scheduler="inline");
+    on_result(a, result) in this process as each completes (any order). Shared by the coverage sweep
+    and `skyview bench --scheduler`."""
+    args = list(args)
+    if not args:
+        return
+    if scheduler == INLINE:
+        for a in args:
+            r = fn(*a)
+            if on_result:
+                on_result(a, r)
+        return
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    try:
+        if scheduler is None:
+            where = {"host": "127.0.0.1"} if processes else {}  # thread workers talk in-process
+            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
+                                   dashboard_address=None, **where)
+            client = Client(cluster)
+        else:
+            try:
+                client = Client(scheduler, timeout="10s")
+            except (OSError, TimeoutError) as exc:
+                raise SkyviewError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+        with client:
+            futures = {client.submit(fn, *a, pure=False): a for a in args}
+            for fut in as_completed(futures):
+                r = fut.result()
+                if on_result:
+                    on_result(futures[fut], r)
+    finally:
+        if cluster is not None:
+            cluster.close()

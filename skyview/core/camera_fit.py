@@ -1,0 +1,196 @@
+"""Fit the camera to identified stars: attitude, focal length (so the FOV) and radial distortion.
+
+`fit_camera(uv, xyz, camera, R)` moves the attitude R, the focal length f (square pixels, principal
+point kept at the camera's) and the radial distortion (k1, and k2 when asked) of OpenCV's model on
+normalised coordinates (see `skyview.core.camera`) to minimise the pixel distance between the observed
+centroids uv and the projected catalog directions xyz (ICRS). Robust least squares: the soft-L1
+loss with a 1-pixel scale, so that one bad match does not drag the fit (`robust_gauss_newton`: the
+loss of scipy's least_squares(loss="soft_l1"), minimised by reweighted Gauss-Newton, ten times
+faster for these few parameters). Pure function of arrays, no state.
+
+How much can be fitted: f needs two stars; k1 needs stars at different distances from the centre
+(`min_stars_k1` = 6 and a spread of at least a fifth of the half-diagonal); k2 needs more
+(`min_stars_k2` = 12, a spread of at least a third). With fewer the term stays at its given value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from skyview.core.camera import Camera
+
+MIN_STARS_K1 = 6
+MIN_STARS_K2 = 12
+MAX_STRETCH = 0.25  # |k1 rc^2|, |k2 rc^4|: a radial stretch beyond 25 % at the corner is not this model's lens
+
+
+@dataclass(frozen=True)
+class CameraFit:
+    camera: Camera
+    R: np.ndarray
+    residuals_px: np.ndarray  # (N,) distance of each star from its fitted projection
+    rms_px: float  # per-axis RMS of the residuals
+    fitted: tuple[str, ...]  # the terms that were free ("attitude", "f", "k1", "k2")
+
+
+def _radial_spread(uv: np.ndarray, camera: Camera) -> float:
+    r = np.hypot(uv[:, 0] - camera.cx, uv[:, 1] - camera.cy)
+    half_diag = np.hypot(camera.width, camera.height) / 2.0
+    return float((r.max() - r.min()) / half_diag) if len(r) else 0.0
+
+
+def fit_camera(uv: np.ndarray, xyz: np.ndarray, camera: Camera, R: np.ndarray, *, fit_focal: bool = True,
+               fit_k1: bool | None = None, fit_k2: bool | None = None) -> CameraFit:
+    """Refine (R, f, k1, k2) from matched centroids uv (N, 2) and catalog directions xyz (N, 3).
+
+    fit_k1 / fit_k2: True frees the term, False keeps the camera's value, None (default) frees it
+    when the stars allow it (module docstring) and keeps it only when it lowers the squared residuals
+    by more than chance would (a chi-square test with one degree of freedom at 0.1 %, the residual
+    noise estimated from the larger model).
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    n = len(uv)
+    spread = _radial_spread(uv, camera)
+    auto_k1, auto_k2 = fit_k1 is None, fit_k2 is None
+    if auto_k1:  # the models compared start from no distortion
+        camera = Camera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+    if auto_k1:
+        fit_k1 = n >= MIN_STARS_K1 and spread >= 0.2
+    if auto_k2:
+        fit_k2 = bool(fit_k1) and n >= MIN_STARS_K2 and spread >= 0.33
+    best = _fit(uv, xyz, camera, R, fit_focal and n >= 3, False, False) if (auto_k1 and fit_k1) else None
+    if fit_k1:
+        with_k1 = _fit(uv, xyz, camera, R, fit_focal and n >= 3, True, False)
+        best = with_k1 if best is None or _better(with_k1, best) else best
+        if fit_k2 and "k1" in best.fitted:
+            with_k2 = _fit(uv, xyz, best.camera, best.R, fit_focal and n >= 3, True, True)
+            if not auto_k2 or _better(with_k2, best):
+                best = with_k2
+    if best is None:
+        best = _fit(uv, xyz, camera, R, fit_focal and n >= 3, False, False)
+    return best
+
+
+CHI2_1DOF_0P1 = 10.83  # chi-square with one degree of freedom: P(> 10.83) = 0.001
+
+
+def _better(big: CameraFit, small: CameraFit) -> bool:
+    """Does the model with one more term fit significantly better?"""
+    n = len(big.residuals_px)
+    dof = 2 * n - (len(big.fitted) + 2 + ("f" in big.fitted) + ("k1" in big.fitted) + ("k2" in big.fitted) - 1)
+    rss_big = float(np.sum(big.residuals_px ** 2))
+    rss_small = float(np.sum(small.residuals_px ** 2))
+    if dof <= 0 or rss_big <= 0:
+        return False
+    return (rss_small - rss_big) / (rss_big / dof) > CHI2_1DOF_0P1
+
+
+def _rotvec_matrix(v: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (Rodrigues), without scipy's per-call overhead."""
+    th = float(np.sqrt(v @ v))
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th ** 2 * (K @ K)
+
+
+def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, f_scale: float = 1.0,
+                        max_iter: int = 30, tol: float = 1e-12) -> np.ndarray:
+    """Minimise sum rho(fun(p)^2 / f_scale^2) with rho the soft-L1 loss 2 (sqrt(1 + z) - 1) (what
+    scipy's least_squares(loss="soft_l1") minimises), p within [lo, hi]: iteratively reweighted
+    Gauss-Newton with a forward-difference Jacobian and step halving. A handful of parameters and
+    a few dozen stars: each iteration is a few small numpy calls (scipy's trust-region solver spends
+    ten times as long in its own bookkeeping here)."""
+    p = np.clip(np.asarray(p0, dtype=np.float64), lo, hi)
+
+    def cost(r):
+        return float(np.sum(2.0 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)))
+
+    r = fun(p)
+    c = cost(r)
+    for _ in range(max_iter):
+        w = 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)  # soft-L1 weights
+        h = 1e-7 * np.maximum(1.0, np.abs(p))
+        J = np.empty((len(r), len(p)))
+        for j in range(len(p)):
+            q = p.copy()
+            q[j] += h[j]
+            J[:, j] = (fun(q) - r) / h[j]
+        sw = np.sqrt(w)
+        step = -np.linalg.lstsq(J * sw[:, None], r * sw, rcond=None)[0]
+        t = 1.0
+        for _halve in range(8):
+            q = np.clip(p + t * step, lo, hi)
+            rq = fun(q)
+            cq = cost(rq)
+            if cq <= c:
+                break
+            t *= 0.5
+        else:
+            break  # no step lowers the cost: at the minimum
+        moved = float(np.max(np.abs(q - p)))
+        p, r, c = q, rq, cq
+        if moved < tol:
+            break
+    return p
+
+
+def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool) -> CameraFit:
+    """One least-squares fit with the given terms free. Distortion is fitted as the fractional stretch
+    at the image corner (k1 rc^2, k2 rc^4 with rc the corner's normalised radius): well scaled for
+    narrow and wide fields alike, and bounded by MAX_STRETCH."""
+    n = len(uv)
+    R0 = np.asarray(R, dtype=np.float64)
+    f0 = camera.fx
+    rc2 = (np.hypot(camera.width, camera.height) / 2.0 / f0) ** 2
+    names = ("attitude",) + (("f",) if fit_focal else ()) + (("k1",) if fit_k1 else ()) + (("k2",) if fit_k2 else ())
+
+    def unpack(p):
+        Rk = _rotvec_matrix(p[:3]) @ R0
+        i = 3
+        f = f0
+        if fit_focal:
+            f = f0 * np.exp(p[i])
+            i += 1
+        k1, k2 = camera.k1, camera.k2
+        if fit_k1:
+            k1 = p[i] / rc2
+            i += 1
+        if fit_k2:
+            k2 = p[i] / rc2 ** 2
+        return Rk, f, k1, k2
+
+    def project(p):
+        Rk, f, k1, k2 = unpack(p)
+        v = xyz @ Rk.T
+        z = np.maximum(v[:, 2], 1e-9)
+        x, y = v[:, 0] / z, v[:, 1] / z
+        r2 = x * x + y * y
+        s = 1.0 + k1 * r2 + k2 * r2 * r2
+        return np.stack([f * x * s + camera.cx, f * y * s + camera.cy], axis=1)
+
+    p0 = np.zeros(3 + len(names) - 1)
+    i = 3 + int(fit_focal)
+    if fit_k1:
+        p0[i] = camera.k1 * rc2
+        i += 1
+    if fit_k2:
+        p0[i] = camera.k2 * rc2 ** 2
+    lo = np.full(len(p0), -np.inf)
+    hi = np.full(len(p0), np.inf)
+    lo[3:], hi[3:] = -MAX_STRETCH, MAX_STRETCH
+    if fit_focal:
+        lo[3], hi[3] = -1.0, 1.0
+    p0 = np.clip(p0, lo + 1e-12, hi - 1e-12)
+    if 2 * n <= len(p0):
+        d = project(p0) - uv
+        return CameraFit(camera, R0, np.hypot(d[:, 0], d[:, 1]), float("nan"), ())
+    x = robust_gauss_newton(lambda p: (project(p) - uv).ravel(), p0, lo, hi)
+    Rk, f, k1, k2 = unpack(x)
+    cam = Camera(camera.width, camera.height, float(f), float(f), camera.cx, camera.cy, float(k1), float(k2))
+    d = project(x) - uv
+    rms = float(np.sqrt(np.sum(d * d) / max(2 * n - len(p0), 1)))
+    return CameraFit(cam, Rk, np.hypot(d[:, 0], d[:, 1]), rms, names)

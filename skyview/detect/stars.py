@@ -1,0 +1,197 @@
+"""Stars of any image: the centroider at the scale of the image's stars, with trails taken out.
+
+`skyview.detect.centroids.detect_centroids` measures stars whose PSF is a few pixels wide, as a star
+tracker's optics make them. Photographs from other cameras are not always so: a 24-megapixel
+camera, a slightly defocused lens or an image upscaled on export spreads each star over tens of
+pixels, and bright stars saturate into flat disks. The centroider's measurement window (at most 17
+px) then sees only a flat core: every saturated star gets the same brightness, the brightest-first
+order that every pattern search starts from is lost, and the positions are biased.
+
+`detect_stars` runs the centroider once, and when the stars it found are wide it bins the image
+(integer factor, pixel average: `cv2.resize` INTER_AREA) until they are about a pixel
+in sigma, detects again on the binned image and maps the positions back to the full image's pixels.
+Stars so wide that few of them clear the threshold pixel by pixel (a defocused lens) are found the
+same way: when the first pass finds fewer than a dozen, the image binned 2, 4 and 8 times is tried,
+and a binning that finds at least twice as many is kept.
+Then `skyview.detect.trails.trail_members` takes out satellite, aircraft and meteor trails broken into
+rows of fragments. Star trackers' own images (compact PSF, no trails) pass through unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import Centroids, detect_centroids, to_gray
+from skyview.detect.trails import trail_members
+
+TARGET_SIGMA_PX = 1.1  # the PSF sigma the centroider is made for: bin by floor(sigma / this)
+MAX_BINNING = 16
+FEW_STARS = 12  # fewer detections than this: try the image binned, in case its stars are too wide to detect
+MIN_BINNED_SIDE = 64  # never bin an image below this many pixels a side
+# A star is measured on its pixels above this fraction of its peak (so that the background's structure
+# and its neighbours stay out); the RMS radius of a Gaussian cut there is this fraction of sigma:
+PEAK_FRACTION = 0.1
+TRUNCATED_MOMENT = math.sqrt(1.0 - math.log(1.0 / PEAK_FRACTION) * PEAK_FRACTION / (1.0 - PEAK_FRACTION))
+
+
+def star_moments(image: np.ndarray, c: Centroids, idx: np.ndarray, radius: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """(sigma, flux) of detections `idx` of `c`, measured in the image around their centroids.
+
+    Each star is measured on its pixels above the detection threshold and above a tenth of its peak
+    (the width of a Gaussian so cut is corrected for), within an aperture that grows
+    with its measured width (3 sigma + 2 px, from 4 px up to `radius`): sigma^2 = <r^2> / 2 and flux
+    the background-subtracted sum. A saturated star is measured as the disk it is: its width is an
+    upper bound on the PSF (as wide as that on the sensor) and its flux grows with the disk, where the
+    centroider's window sees only the flat core. NaN for a star too near the border or with no pixel
+    above the threshold.
+    """
+    img = to_gray(image)
+    H, W = img.shape
+    idx = np.asarray(idx, dtype=np.int64)
+    sigma, flux = np.full(len(idx), np.nan), np.full(len(idx), np.nan)
+    if len(idx) == 0 or not c.threshold > 0:
+        return sigma, flux
+    uv = c.uv[idx]
+    inside = ((uv[:, 0] >= radius) & (uv[:, 0] < W - radius - 1) & (uv[:, 1] >= radius)
+              & (uv[:, 1] < H - radius - 1))
+    uv = uv[inside]
+    if len(uv) == 0:
+        return sigma, flux
+    d = np.arange(-radius, radius + 1, dtype=np.float64)
+    rows = np.rint(uv[:, 1]).astype(np.int64)[:, None, None] + d.astype(np.int64)[None, :, None]
+    cols = np.rint(uv[:, 0]).astype(np.int64)[:, None, None] + d.astype(np.int64)[None, None, :]
+    win = img[rows, cols].astype(np.float64)
+    border = np.concatenate([win[:, [0, -1], :].reshape(len(uv), -1), win[:, 1:-1, [0, -1]].reshape(len(uv), -1)],
+                            axis=1)
+    win -= np.median(border, axis=1)[:, None, None]  # the local background (vignetting, glow)
+    peak = win[:, radius - 1: radius + 2, radius - 1: radius + 2].max(axis=(1, 2))
+    floor = np.maximum(c.threshold, PEAK_FRACTION * peak)[:, None, None]
+    above = np.where(win > floor, win, 0.0)
+    dx = d[None, None, :] - (uv[:, 0] - np.rint(uv[:, 0]))[:, None, None]
+    dy = d[None, :, None] - (uv[:, 1] - np.rint(uv[:, 1]))[:, None, None]
+    r2 = dx ** 2 + dy ** 2
+    aperture = np.full(len(uv), 4.0)
+    s_in, f_in = np.full(len(uv), np.nan), np.zeros(len(uv))
+    for _ in range(5):
+        w = np.where(r2 <= aperture[:, None, None] ** 2, above, 0.0)
+        f_in = w.sum(axis=(1, 2))
+        s_in = np.sqrt((w * r2).sum(axis=(1, 2)) / (2.0 * np.maximum(f_in, 1e-300))) / TRUNCATED_MOMENT
+        s_in[f_in <= 0] = np.nan
+        aperture = np.clip(3.0 * np.nan_to_num(s_in, nan=1.0) + 2.0, 4.0, float(radius))
+    sigma[inside], flux[inside] = s_in, np.where(f_in > 0, f_in, np.nan)
+    return sigma, flux
+
+
+def psf_sigma_from_moments(image: np.ndarray, c: Centroids, brightest: int = 15) -> float:
+    """The PSF sigma (pixels) of the image's stars: the median `star_moments` width of the brightest
+    detections; NaN when fewer than three could be measured."""
+    sigma = star_moments(image, c, np.arange(min(brightest, len(c))))[0]
+    sigma = sigma[np.isfinite(sigma)]
+    return float(np.median(sigma)) if len(sigma) >= 3 else math.nan
+
+
+def binning_for(sigma: float) -> int:
+    """The integer binning that brings stars of PSF sigma `sigma` (pixels) near TARGET_SIGMA_PX
+    (1 = leave the image; also when sigma is unknown)."""
+    if not math.isfinite(sigma):
+        return 1
+    return int(min(MAX_BINNING, max(1, math.floor(sigma / TARGET_SIGMA_PX))))
+
+
+def bin_image(image: np.ndarray, b: int) -> np.ndarray:
+    """The image averaged over b x b pixel blocks (float32; a ragged right / bottom edge cropped)."""
+    img = to_gray(image)
+    H, W = img.shape
+    h, w = H // b, W // b
+    return cv2.resize(img[: h * b, : w * b].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+
+
+def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None = None,
+                 reject_trails: bool = True, **kwargs) -> Centroids:
+    """Centroids of the stars in `image`, brightest first, in the full image's pixels.
+
+    binning: None measures the stars and bins when they are wide (see the module docstring); 1
+    never bins; an integer >= 2 bins by that factor. reject_trails: take out rows of trail
+    fragments. Other keyword arguments go to `detect_centroids`. The binning used and the number
+    of trail fragments taken out are in `params["binning"]` and `params["n_trail_rejected"]`.
+    """
+    if binning is not None and (int(binning) != binning or binning < 1):
+        raise BadInput(f"binning={binning} must be a positive integer")
+    c = detect_centroids(image, k_sigma=k_sigma, **kwargs)
+    H, W = np.shape(image)[:2]
+    b, cb, binned = (1 if binning is None else int(binning)), None, None
+    if binning is None:
+        # the centroider measured its stars' width from the unsaturated bright ones: when they are
+        # compact, none of the brightest is saturated and there are enough, there is nothing to bin
+        compact = math.isfinite(c.psf_sigma_px) and c.psf_sigma_px < 1.5 and not c.saturated[:15].any()
+        if not compact or len(c) < FEW_STARS:
+            sigma = psf_sigma_from_moments(image, c)
+            b = binning_for(sigma)
+            if b == 1 and len(c) < FEW_STARS and not sigma < 1.5:
+                # so wide that few stars clear the threshold pixel by pixel: binning gathers their light
+                for trial in (2, 4, 8):
+                    if min(H, W) // trial < MIN_BINNED_SIDE:
+                        break
+                    bt = bin_image(image, trial)
+                    ct = detect_centroids(bt, k_sigma=k_sigma, **_binned_kwargs(kwargs, trial))
+                    if len(ct) >= max(FEW_STARS, 2 * len(c)):
+                        b, cb, binned = trial, ct, bt
+                        break
+    if b > 1 and min(H, W) // b >= MIN_BINNED_SIDE:
+        if cb is None:
+            binned = bin_image(image, b)
+            cb = detect_centroids(binned, k_sigma=k_sigma, **_binned_kwargs(kwargs, b))
+        # pixel centre (j) of a binned image <- pixels b*j .. b*j + b - 1 of the full image
+        c = dataclasses.replace(
+            cb, uv=cb.uv * b + (b - 1) / 2.0, brightness=cb.brightness * b * b, n_pixels=cb.n_pixels * b * b,
+            psf_sigma_px=cb.psf_sigma_px * b, threshold=cb.threshold, image_shape=(H, W),
+            params={**cb.params, "binning": b})
+    else:
+        b, binned = 1, image
+        c = dataclasses.replace(c, params={**c.params, "binning": 1})
+    c = _saturated_by_aperture(binned, c, b)
+    n_trail = 0
+    if reject_trails and len(c):
+        width = max(1.5, 0.75 * c.psf_sigma_px) if math.isfinite(c.psf_sigma_px) else 1.5
+        trail = trail_members(c.uv, max_width_px=width)
+        n_trail = int(trail.sum())
+        if n_trail:
+            c = take(c, ~trail)
+    c.params["n_trail_rejected"] = n_trail
+    return c
+
+
+def _binned_kwargs(kwargs: dict, b: int) -> dict:
+    """The centroider's options for an image binned b times: the background keeps its size on the sky."""
+    block = int(kwargs.get("background_block", 64))
+    return {**kwargs, "background_block": max(8, block // b)}
+
+
+def take(c: Centroids, keep: np.ndarray) -> Centroids:
+    """The centroids selected by a boolean mask or index array, order kept."""
+    per_star = {f.name: getattr(c, f.name)[keep] for f in dataclasses.fields(c)
+                if isinstance(getattr(c, f.name), np.ndarray) and np.shape(getattr(c, f.name))[:1] == (len(c),)}
+    return dataclasses.replace(c, **per_star, params=dict(c.params))
+
+
+def _saturated_by_aperture(image: np.ndarray, c: Centroids, b: int) -> Centroids:
+    """Saturated stars' brightness from their whole disk (`star_moments`), brightest first again.
+
+    The centroider sums a window around the peak, which for a saturated star holds only its flat
+    core: every saturated star would seem equally bright. `image` is the image the centroids were
+    measured on (binned by b; c's positions are in full-image pixels)."""
+    sat = np.flatnonzero(c.saturated)
+    if len(sat) == 0:
+        return c
+    scaled = dataclasses.replace(c, uv=(c.uv - (b - 1) / 2.0) / b) if b > 1 else c
+    flux = star_moments(image, scaled, sat)[1] * b * b
+    brightness = c.brightness.copy()
+    brightness[sat] = np.fmax(brightness[sat], flux)
+    order = np.argsort(-brightness, kind="stable")
+    out = take(dataclasses.replace(c, brightness=brightness), order)
+    return out

@@ -1,0 +1,123 @@
+"""A result and a step in words: the one place a result becomes text (`skyview.present.drawables`'s text half).
+
+`result_lines` (status, why not, attitude, sigma, verification, time), `why_not` (why a solve failed, in
+one sentence a student understands, and what to try), `step_summary`, `format_number`. The viewer's
+panel and the recording's result document both use them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from skyview.present.drawables import StepView
+
+def format_number(v: float) -> str:
+    """Compact, readable figure: integers as such, small probabilities in scientific notation."""
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    if math.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    if float(v).is_integer() and abs(v) < 1e9:
+        return f"{int(v):d}"
+    a = abs(v)
+    if a != 0 and (a < 1e-3 or a >= 1e6):
+        return f"{v:.3g}"
+    if a < 1:
+        return f"{v:.4f}"
+    if a < 100:
+        return f"{v:.3f}"
+    return f"{v:.1f}"
+
+
+def step_summary(v: StepView) -> str:
+    """One line: what the step shows, with the surviving count (never the sample size alone)."""
+    parts = [f"observed: {', '.join(map(str, v.observed.tolist())) or '-'}"]
+    if v.surviving is not None:
+        parts.append(f"{v.surviving} surviving hypotheses ({v.drawn} drawn)")
+    elif v.drawn:
+        parts.append(f"{v.drawn} candidate groups drawn")
+    return " · ".join(parts)
+
+
+def result_lines(result) -> list[tuple[str, str]]:
+    """The result of a solve as (label, value) rows: the one place a result becomes text.
+
+    result: a `pipeline.SolveResult`. Status and the reason when not solved (with `why_not`), the
+    attitude and its 1-sigma, the matches and the verification, the time per stage."""
+    from skyview.core.attitude import radec_roll_from_R
+
+    rows = [("status", f"{'solved' if result.solved else 'not solved'} by {result.method} ({result.variant})")]
+    if not result.solved:
+        rows.append(("why", why_not(result)))
+    c = result.centroids
+    rows.append(("centroids / matched", f"{len(c)} / {len(result.matches)}"
+                 + (f" (of {c.n_detected} detected, the brightest measured)" if c.n_unmeasured else "")))
+    if result.R is not None:
+        ra, dec, roll = (math.degrees(x) for x in radec_roll_from_R(result.R))
+        rows += [("RA / Dec / roll", f"{ra:.5f}° / {dec:+.5f}° / {roll:+.4f}°")]
+        if result.sigma_boresight_arcsec is not None:
+            rows.append(("1σ boresight / roll", f"{result.sigma_boresight_arcsec:.2f}\" / "
+                                               f"{result.sigma_roll_arcsec:.1f}\""))
+    ident = result.identification
+    ver = ident.verification if ident is not None else {}
+    if ver.get("n_tested"):
+        rows.append(("verification", f"{int(ver.get('n_agree', 0))} of {int(ver['n_tested'])} stars agree, "
+                                     f"P(false) {format_number(float(ver.get('p_false', float('nan'))))}"))
+    if result.time_ms:
+        rows.append(("time", ", ".join(f"{k} {v:.1f} ms" for k, v in result.time_ms.items())))
+    return rows
+
+
+def why_not(result) -> str:
+    """Why a solve failed, in one sentence a student understands, and what to try."""
+    ident = result.identification
+    n = len(result.centroids)
+    reason = (result.reason or (ident.reason if ident is not None else "")).strip()
+    paper = _paper_conditions(result)
+    if ident is None or n < 3:
+        return (f"Only {n} star{'s' if n != 1 else ''} found in the image: too few to form a pattern. "
+                f"Try a wider field of view, a deeper magnitude limit or a longer exposure.")
+    ver = ident.verification or {}
+    low = reason.lower()
+    if "no catalog" in low or "no hypothesis survives" in low or "no pattern matches" in low or "none within" in low:
+        text = ("No catalog pattern matches the measured one within the noise bound: a false star or a star "
+                "missing from the catalog may be in it. Try a larger noise bound (--sigma), the improved variant "
+                "or another method.")
+    elif ver.get("n_tested") and not ident.identified:
+        text = (f"The best guess was checked against the whole image and only {int(ver.get('n_agree', 0))} of "
+                f"{int(ver['n_tested'])} stars landed on a catalog star, which chance could explain. Try the "
+                f"improved variant or the default pipeline.")
+    elif "hypotheses left" in low or "ambiguous" in low or "several" in low:
+        text = ("Several catalog patterns fit the measured one equally well and no further star told them apart. "
+                "Try a deeper magnitude limit (more stars) or the improved variant.")
+    else:
+        text = (reason[0].upper() + reason[1:] + ".") if reason else "The method found no verified answer."
+        text += " Try the improved variant or the default pipeline."
+    return (paper + " " + text) if paper else text
+
+
+def _paper_conditions(result) -> str:
+    """A sentence when the scene is outside the conditions of the method's paper (its scenario)."""
+    from skyview.simulate.scenarios import SCENARIOS
+
+    name = PAPER_SCENARIOS.get(result.method)
+    sc = SCENARIOS.get(name) if name else None
+    if sc is None or result.variant != "paper":
+        return ""
+    fov = result.camera.fov_deg
+    cam = sc.camera()
+    far = abs(fov - cam.fov_deg) > 0.25 * cam.fov_deg
+    mag = result.mag_limit
+    shallow = mag is not None and mag < sc.mag_limit - 0.5
+    if not (far or shallow):
+        return ""
+    here = f"{fov:.0f}° field" + (f", stars to Hp {mag:.1f}" if mag is not None else "")
+    return (f"This scene ({here}) is outside the conditions of {result.method}'s paper "
+            f"({cam.fov_deg:.0f}° field, stars to Hp {sc.mag_limit:g}).")
+
+
+# The scenario of each method's paper (its conditions; `skyview.simulate.scenarios`).
+PAPER_SCENARIOS = {"angle": "cole8", "triangle": "cole8", "svd": "juang8", "ellipticity": "sun20", "genetic": "sun20",
+                   "stochastic": "udomkesmalee30"}

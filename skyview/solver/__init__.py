@@ -1,0 +1,4 @@
+"""Image to attitude: the pipeline (`pipeline`), its result (`result`), the typed API (`api`: `skyview.solve`,
+`Solver`, `Solution`), sequences of frames (`sequence`) and tracking (`track`, `track_verify`).
+
+What the CLI, the viewer and the recorder call."""

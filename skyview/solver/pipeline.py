@@ -1,0 +1,389 @@
+"""Image -> centroids -> unit vectors -> identification -> verified attitude.
+
+`Solver` holds what is slow to make (guide catalog, camera, the method's database) and solves many
+images of one camera with one method (the calibrated mode of the papers' benches). `BlindSolver`
+solves images of any camera with no field of view given: scale-free patterns, then the camera
+(FOV, k1, k2) fitted and the shared verification (`skyview.identify.blind`). `solve_image` is the
+one-call API: with no method it runs the default pipeline, the strongest one skyview has (blind,
+then, when an FOV estimate is given and the blind search fails, the improved angle method at that
+FOV); with a method it runs that method, on the camera that the blind front end fitted when the
+FOV is only an estimate (fov_error > 0). The CLI (`skyview solve`) and the bench go through these
+classes, so what is measured is what users run. What every solver shares around its identifier (the
+observation it is given, the `SolveResult` with the catalog rows of its matches) is `skyview.solver.result`.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from skyview.core.attitude import ESTIMATORS
+from skyview.core.camera import Camera
+from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
+from skyview.core.errors import BadInput
+from skyview.detect.centroids import Centroids, detect_centroids, finite_image, load_image, to_gray
+from skyview.detect.stars import detect_stars
+from skyview.identify import make_identifier
+from skyview.io.fits import undeclared_row_order
+from skyview.solver.result import NOT_SOLVED, SOLVED, SolveResult, observation, result_from_identification
+
+__all__ = ["Solver", "BlindSolver", "SolveResult", "solve_image", "blind_solver", "result_from_identification",
+           "observation", "SOLVED", "NOT_SOLVED", "check_fov_error", "check_solve_options", "as_image"]
+DEFAULT_CENTROID_SIGMA_PX = 0.5
+DEFAULT_FOV_ERROR = 0.1  # an FOV given without a tolerance is taken as good to +-10 %
+BLIND = "blind"
+MAX_CACHED_SOLVERS = 8
+PAPER_MAG_LIMIT = 6.0
+# methods whose database stays small when the catalog deepens (pairs): their improved variant takes
+# the depth from the image; paper variants (the papers' conditions) and the others keep Hp 6 unless
+# a limit is given (the triangle database grows with the cube of
+# the stars in a field and has no memory budget yet)
+AUTO_DEPTH_METHODS = ("angle",)
+
+
+class Solver:
+    """A configured solver: catalog + camera + method database, ready for many images."""
+
+    def __init__(self, camera: Camera, method: str = "angle", *, mag_limit: float = 6.0,
+                 sigma_rad: float | None = None, epoch: float = DEFAULT_EPOCH,
+                 catalog: GuideCatalog | None = None, estimator: str = "svd", max_stars: int = 40,
+                 k_sigma: float = 5.0, method_params: dict | None = None, variant: str = "paper"):
+        if estimator not in ESTIMATORS:
+            raise BadInput(f"unknown estimator {estimator!r}: choose from {', '.join(ESTIMATORS)}")
+        if sigma_rad is not None and not (np.isfinite(sigma_rad) and sigma_rad > 0):
+            raise BadInput("the measurement sigma must be a positive number")
+        if max_stars < 2:
+            raise BadInput("max_stars must be at least 2")
+        reserved = sorted({"catalog", "camera", "sigma_rad", "variant"} & set(method_params or {}))
+        if reserved:
+            raise BadInput(f"{', '.join(reserved)} cannot be a method parameter: use the solver's own options "
+                           f"(--sigma-arcsec, --variant, --fov-deg, --mag-limit)")
+        t0 = time.perf_counter()
+        base = catalog if catalog is not None else load_guide_catalog(epoch=epoch)
+        self.mag_limit = float(mag_limit)
+        self.catalog = base.brighter_than(mag_limit)
+        if len(self.catalog) < 10:
+            raise BadInput(f"only {len(self.catalog)} catalog stars are brighter than mag {mag_limit}")
+        t1 = time.perf_counter()
+        self.camera = camera
+        self.method = method
+        self.estimator = estimator
+        self.max_stars = int(max_stars)
+        self.k_sigma = float(k_sigma)
+        self.sigma_rad = float(sigma_rad) if sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
+        self.variant = variant
+        self.method_params = dict(method_params or {})
+        self.identifier = make_identifier(method, self.catalog, camera, self.sigma_rad, variant=variant,
+                                          **(method_params or {}))
+        t2 = time.perf_counter()
+        self.setup_ms = {"catalog_load": (t1 - t0) * 1e3, "database_load": (t2 - t1) * 1e3}
+
+    def solve_array(self, image: np.ndarray, *, measure_all: bool = False) -> SolveResult:
+        """Centroid and identify one grey image of the camera's size. Only the max_stars brightest stars,
+        the ones the identification uses, are measured (as a star tracker does; the others are counted in
+        `centroids.n_unmeasured`); measure_all measures every detected star (to draw them all)."""
+        if image.ndim != 2:
+            raise BadInput(f"expected a single-channel image, got shape {image.shape}")
+        if image.shape != (self.camera.height, self.camera.width):
+            raise BadInput(f"image is {image.shape[1]}x{image.shape[0]} but the camera is "
+                           f"{self.camera.width}x{self.camera.height}")
+        t0 = time.perf_counter()
+        centroids = detect_centroids(image, k_sigma=self.k_sigma, max_stars=None if measure_all else self.max_stars)
+        t1 = time.perf_counter()
+        result = self.solve_centroids(centroids)
+        result.time_ms = {"centroid": (t1 - t0) * 1e3, **result.time_ms}
+        result.time_ms["total"] = result.time_ms["centroid"] + result.time_ms["solve"]
+        return result
+
+    def solve_centroids(self, centroids: Centroids) -> SolveResult:
+        t0 = time.perf_counter()
+        obs = observation(centroids, self.camera, self.sigma_rad, self.max_stars)
+        ident = self.identifier.identify(obs) if len(centroids) else None
+        result = result_from_identification(
+            centroids, obs, ident, camera=self.camera, catalog=self.catalog, method=self.method,
+            variant=self.variant, sigma_rad=self.sigma_rad, estimator=self.estimator,
+            database_key=self.identifier.database_key, identify_ms=(time.perf_counter() - t0) * 1e3)
+        result.mag_limit = self.mag_limit
+        return result
+
+    def solve_path(self, path: str | Path) -> SolveResult:
+        return self.solve_array(load_image(path))
+
+
+def as_image(image) -> np.ndarray:
+    """A 2-D numeric array from a path or an array of any layout: colour (BGR/BGRA, OpenCV's order)
+    converted to grey, any memory order made C-contiguous. Anything else is BadInput."""
+    if isinstance(image, (str, Path)):
+        return load_image(image)
+    if not isinstance(image, np.ndarray):
+        raise BadInput(f"an image must be a path or a numpy array, not {type(image).__name__}")
+    if image.dtype.kind not in "uif" or image.dtype.itemsize > 8:
+        raise BadInput(f"image dtype {image.dtype} is not a real number type")
+    img = np.ascontiguousarray(image)
+    if img.dtype.kind == "f" and img.dtype != np.float32:
+        img = img.astype(np.float32)
+    if img.dtype.kind in "ui" and img.dtype.itemsize > 2:
+        img = img.astype(np.float32)
+    if img.dtype.kind == "i" and img.dtype.itemsize <= 2:
+        img = img.astype(np.float32)
+    img = to_gray(img)
+    if img.ndim != 2:
+        raise BadInput(f"expected a grey (H, W) or colour (H, W, 3|4) image, got shape {image.shape}")
+    if min(img.shape) < 16:
+        raise BadInput(f"image of shape {img.shape} is too small (at least 16 x 16 pixels)")
+    return np.ascontiguousarray(finite_image(img))
+
+
+def auto_mag_limit(catalog: GuideCatalog, camera: Camera, n_stars: int, *, per_star: float = 1.2,
+                   lo: float = 5.0, hi: float = 7.5) -> float:
+    """Depth from the image: the magnitude at which a field of this camera holds, on average over
+    the sky, per_star catalog stars for each star the image shows (clipped to [lo, hi], rounded up
+    to a quarter magnitude)."""
+    frac = camera.solid_angle_sr / (4.0 * np.pi)
+    want = max(per_star * max(int(n_stars), 1), 8.0) / frac
+    mags = np.sort(catalog.mag)
+    m = float(mags[min(int(want), len(mags) - 1)])
+    return float(np.clip(np.ceil(m * 4.0) / 4.0, lo, hi))
+
+
+class BlindSolver:
+    """Solves images of any camera with no FOV given (`skyview.identify.blind`): one pattern
+    database for the whole sky, the camera fitted to every image.
+
+    The database is built once (~15 s, ~330 MB on disk, a progress line on stderr) and memory-mapped
+    from the cache afterwards (milliseconds)."""
+
+    def __init__(self, *, epoch: float = DEFAULT_EPOCH, catalog: GuideCatalog | None = None,
+                 max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd",
+                 memory_mb: float | None = None, progress=None, params=None, pattern_params=None):
+        from skyview.identify.blind import BlindIdentifier
+        from skyview.identify.patterns import DEFAULT_BUDGET_MB
+
+        if estimator not in ESTIMATORS:
+            raise BadInput(f"unknown estimator {estimator!r}: choose from {', '.join(ESTIMATORS)}")
+        t0 = time.perf_counter()
+        self.catalog = catalog if catalog is not None else load_guide_catalog(epoch=epoch)
+        t1 = time.perf_counter()
+        self.identifier = BlindIdentifier(self.catalog, params=params, pattern_params=pattern_params,
+                                          memory_mb=memory_mb or DEFAULT_BUDGET_MB, progress=progress)
+        self.max_stars = int(max_stars)
+        self.k_sigma = float(k_sigma)
+        self.estimator = estimator
+        self.setup_ms = {"catalog_load": (t1 - t0) * 1e3, "database_load": (time.perf_counter() - t1) * 1e3}
+
+    @property
+    def fov_range_deg(self) -> tuple[float, float]:
+        return self.identifier.fov_range_deg
+
+    def solve_array(self, image: np.ndarray, *, fov_deg: float | None = None,
+                    fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
+        img = as_image(image)
+        t0 = time.perf_counter()
+        centroids = detect_stars(img, k_sigma=self.k_sigma)
+        t1 = time.perf_counter()
+        result = self.solve_centroids(centroids, img.shape[1], img.shape[0], fov_deg=fov_deg, fov_error=fov_error)
+        result.time_ms = {"centroid": (t1 - t0) * 1e3, **result.time_ms}
+        result.time_ms["total"] = result.time_ms["centroid"] + result.time_ms["solve"]
+        return result
+
+    def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
+                        fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
+        check_fov_error(fov_error)
+        if fov_deg is not None:
+            Camera.from_fov(fov_deg, width, height)  # a one-line error for an impossible FOV
+        t0 = time.perf_counter()
+        n = min(len(centroids), self.max_stars)
+        br = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error)
+        ident = br.identification
+        identify_ms = (time.perf_counter() - t0) * 1e3
+        guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(self.fov_range_deg)))
+        camera = br.camera if br.camera is not None else Camera.from_fov(guess, width, height)
+        sigma = br.sigma_rad if br.sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
+        obs = observation(centroids, camera, sigma, n)
+        result = result_from_identification(
+            centroids, obs, ident if n else None, camera=camera, catalog=self.catalog, method=BLIND,
+            variant="improved", sigma_rad=sigma, estimator=self.estimator,
+            database_key=self.identifier.database_key, identify_ms=identify_ms)
+        result.mag_limit = br.mag_limit
+        result.camera_fitted = br.camera is not None
+        if not result.solved and n:
+            result.reason = explain_failure(result.reason, len(centroids), fov_deg, fov_error, self.fov_range_deg)
+        return result
+
+
+def check_solve_options(*, max_stars: int, mag_limit: float | None, distortion: tuple[float, float], epoch: float,
+                        memory_mb: float | None) -> None:
+    """One-line BadInput for a solve option no camera or sky can have (before any work)."""
+    def number(name, v):
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            raise BadInput(f"{name} {v!r} is not a number") from None
+        if not np.isfinite(x):
+            raise BadInput(f"{name} {v} is not a finite number")
+        return x
+
+    if number("max_stars", max_stars) < 3 or int(max_stars) != max_stars:
+        raise BadInput(f"max_stars={max_stars}: at least 3 stars must enter the identification (a whole number)")
+    if mag_limit is not None and not (MAG_LIMIT_RANGE[0] <= number("mag_limit", mag_limit) <= MAG_LIMIT_RANGE[1]):
+        raise BadInput(f"magnitude limit {mag_limit} is outside the sky's stars (Hp {MAG_LIMIT_RANGE[0]:g} to "
+                       f"{MAG_LIMIT_RANGE[1]:g}; the guide catalog holds stars to Hp 9)")
+    for name, k in zip(("k1", "k2"), distortion):
+        if abs(number(f"distortion {name}", k)) > 1.0:
+            raise BadInput(f"distortion {name}={k} is beyond any lens skyview models (|k| <= 1; a few percent at the "
+                           "corner is k ~ 0.05)")
+    if not (EPOCH_RANGE[0] <= number("epoch", epoch) <= EPOCH_RANGE[1]):
+        raise BadInput(f"epoch {epoch} is outside {EPOCH_RANGE[0]}-{EPOCH_RANGE[1]} (Julian year of the image; proper "
+                       "motions are not extrapolated further)")
+    if memory_mb is not None and not number("memory budget", memory_mb) > 0:
+        raise BadInput(f"memory budget {memory_mb} MB must be positive")
+
+
+MAG_LIMIT_RANGE = (-1.5, 12.0)
+EPOCH_RANGE = (1000.0, 3000.0)
+
+
+def check_fov_error(fov_error: float) -> None:
+    try:
+        e = float(fov_error)
+    except (TypeError, ValueError):
+        raise BadInput(f"FOV error {fov_error!r} is not a number") from None
+    if not (np.isfinite(e) and 0.0 <= e < 1.0):
+        raise BadInput(f"FOV error {fov_error} must be a fraction in [0, 1) (0.1 = +-10 %)")
+
+
+def explain_failure(reason: str, n_stars: int, fov_deg, fov_error, fov_range) -> str:
+    """The reason a blind solve failed, with the likely cause and the next thing to try."""
+    if n_stars < 4:
+        return f"{reason}; the image shows too few stars: a longer exposure or a lower --k-sigma may find more"
+    if fov_deg is None:
+        return (f"{reason}; searched FOVs {fov_range[0]:.1f}-{fov_range[1]:.1f} deg: if the field is outside that "
+                f"range or the brightest detections are not stars (hot pixels, a roof, a planet), try --fov-deg "
+                f"with the camera's FOV")
+    return (f"{reason}; searched FOV {fov_deg * (1 - fov_error):.2f}-{fov_deg * (1 + fov_error):.2f} deg: if the "
+            f"FOV is not that, leave out --fov-deg or widen --fov-error")
+
+
+class _LRU(dict):
+    """A small least-recently-used cache of solvers (each holds a database)."""
+
+    def get_or_make(self, key, make):
+        if key in self:
+            value = self.pop(key)
+        else:
+            value = make()
+            while len(self) >= MAX_CACHED_SOLVERS:
+                self.pop(next(iter(self)))
+        self[key] = value
+        return value
+
+
+_SOLVERS = _LRU()
+
+
+def blind_solver(epoch: float = DEFAULT_EPOCH, **kwargs) -> BlindSolver:
+    """The process's blind solver for these settings (built or loaded once)."""
+    return _SOLVERS.get_or_make((BLIND, epoch, repr(sorted(kwargs.items()))),
+                                lambda: BlindSolver(epoch=epoch, **kwargs))
+
+
+def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, method: str | None = None, *,
+                fov_error: float = DEFAULT_FOV_ERROR, mag_limit: float | None = None,
+                distortion: tuple[float, float] = (0.0, 0.0), variant: str = "paper", epoch: float = DEFAULT_EPOCH,
+                max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd", memory_mb: float | None = None,
+                progress=None, try_flipped_rows: bool | None = None, **kwargs) -> SolveResult:
+    """Solve one image: a path, or a 2-D (grey) or 3-D (BGR/BGRA) numpy array of any layout.
+
+    fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
+    0 means exact: the papers' calibrated mode). method=None runs the default pipeline (blind
+    patterns, camera fitted; then, given an FOV, the improved angle method at it); method="angle",
+    "triangle", ... runs that method (`variant` "paper" or "improved"), on the camera the blind
+    front end fitted when fov_error > 0. mag_limit=None takes the depth from the image. Other
+    keyword arguments go to `Solver` (sigma_rad, method_params). Solvers are cached (the 8 most
+    recently used configurations), so a second call reuses the loaded database. try_flipped_rows:
+    when the image does not solve, solve it upside down (rows reversed) once more; None does so for a
+    FITS file that does not declare its row order (see `skyview.io.fits`).
+    """
+    check_fov_error(fov_error)
+    check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
+                        memory_mb=memory_mb)
+    img = as_image(image)
+    H, W = img.shape
+    k1, k2 = distortion
+    if fov_deg is not None:
+        Camera.from_fov(fov_deg, W, H)  # one-line error for an impossible FOV before any work
+    common = dict(max_stars=max_stars, k_sigma=k_sigma, estimator=estimator)
+
+    def calibrated(method_name: str, camera: Camera, var: str, centroids: Centroids) -> SolveResult:
+        depth = mag_limit
+        if depth is None and (method_name not in AUTO_DEPTH_METHODS or var == "paper"):
+            depth = PAPER_MAG_LIMIT
+        if depth is None:
+            depth = (min(float(np.ceil(blind_depth * 4) / 4), 7.5) if blind_depth is not None else
+                     auto_mag_limit(_base_catalog(epoch), camera, min(len(centroids), max_stars)))
+        key = (method_name, var, camera, depth, epoch, repr(sorted(kwargs.items())), repr(sorted(common.items())))
+        solver = _SOLVERS.get_or_make(key, lambda: Solver(camera, method_name, mag_limit=depth, epoch=epoch,
+                                                          catalog=_base_catalog(epoch), variant=var,
+                                                          **common, **kwargs))
+        res = solver.solve_centroids(centroids)
+        res.mag_limit = depth
+        return res
+
+    t0 = time.perf_counter()
+    centroids = detect_stars(img, k_sigma=k_sigma)
+    t_cent = (time.perf_counter() - t0) * 1e3
+    exact = fov_deg is not None and fov_error == 0.0
+    result = None
+    fitted = None
+    blind_depth = None
+    if not exact:
+        blind = blind_solver(epoch, memory_mb=memory_mb, progress=progress, **common)
+        result = blind.solve_centroids(centroids, W, H, fov_deg=fov_deg, fov_error=fov_error)
+        if result.solved:
+            fitted = result.camera
+            blind_depth = result.mag_limit
+    if method is None:
+        if result is None or (not result.solved and fov_deg is not None):
+            first = result
+            camera = Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2)
+            result = calibrated("angle", camera, "improved", centroids)
+            if not result.solved and first is not None:
+                result.reason = f"{first.reason}; then the improved angle method at {fov_deg:g} deg: {result.reason}"
+    else:
+        if fov_deg is None and fitted is None:
+            raise BadInput(f"the {method} method needs the field of view: give --fov-deg (an estimate will do), "
+                           f"or leave out --method to solve blind" + (f" (the blind search failed: {result.reason})"
+                                                                      if result is not None else ""))
+        camera = fitted if fitted is not None else Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2)
+        mres = calibrated(method, camera, variant, centroids)
+        mres.camera_fitted = fitted is not None
+        result = mres
+    if try_flipped_rows is None:
+        try_flipped_rows = isinstance(image, (str, Path)) and undeclared_row_order(image)
+    if not result.solved and try_flipped_rows:
+        # a FITS file that does not say which way up its rows are: read bottom-first (the standard),
+        # it did not solve; a mirror image never solves, so the other way up is tried once
+        other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error,
+                            mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
+                            max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
+                            progress=progress, try_flipped_rows=False, **kwargs)
+        if other.solved:
+            other.rows_reversed = True
+            other.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel "
+                               "rows as stored; v = 0 is the file's first row)")
+            result = other
+    result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
+    result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return result
+
+
+_CATALOGS: dict[float, GuideCatalog] = {}
+
+
+def _base_catalog(epoch: float) -> GuideCatalog:
+    cat = _CATALOGS.get(epoch)
+    if cat is None:
+        cat = _CATALOGS[epoch] = load_guide_catalog(epoch=epoch)
+    return cat
