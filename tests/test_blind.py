@@ -343,3 +343,72 @@ def test_lookup_drops_only_patterns_of_sizes_it_cannot_use(blind, monkeypatch):
         assert np.array_equal(every[k], filtered[k]), k
     kept = np.concatenate(kept)
     assert 0 < kept.sum() < 0.8 * len(kept)
+
+
+# ---------------------------------------------------------------------------------- FOV given: fast path first
+
+def _frame(catalog, fov, seed):
+    """A frame of the blind8 scenario's kind (field stars to Hp 9, vignetting, a sky gradient) at `fov`."""
+    from dataclasses import replace
+
+    from skyview.simulate.scenarios import SCENARIOS
+
+    sc = replace(SCENARIOS["blind8"], fov_deg=fov)
+    cam = sc.camera()
+    R = R_from_radec_roll(np.radians(83.8 + 7 * seed), np.radians(-5.4 + 3 * seed), np.radians(30.0))
+    return cam, R, simulate_image(catalog, cam, R, SensorModel(), seed=seed, **sc.render_kwargs())
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_right_fov_is_solved_by_the_fast_path_and_a_wrong_one_by_the_blind_search(catalog, seed):
+    """`skyview solve IMG --fov-deg F`: at the right FOV the improved angle method answers (no pattern
+    search); 6 % off, it does not verify and the blind search over F +- 10 % solves and fits the camera.
+    Both right, star by star."""
+    cam, R, frame = _frame(catalog, 12.0, seed)
+    fast = solve_image(frame.image, fov_deg=12.0)
+    assert fast.solved and fast.method == "angle" and fast.variant == "improved" and not fast.camera_fitted
+    assert attitude_error_arcsec(fast.R, R)["boresight"] < 5.0
+    widened = solve_image(frame.image, fov_deg=12.0 * 1.06)
+    assert widened.solved and widened.method == "blind" and widened.camera_fitted
+    assert widened.camera.fov_deg == pytest.approx(12.0, rel=2e-3)
+    assert any("did not verify" in n for n in widened.notes)  # the first try is reported
+    assert widened.time_ms["identify"] > 0
+    for res in (fast, widened):
+        assert not wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in res.matches], frame.truth)
+
+
+def test_the_calibrated_mode_never_widens(catalog):
+    _, _, frame = _frame(catalog, 12.0, 1)
+    res = solve_image(frame.image, fov_deg=12.0 * 1.06, fov_error=0.0)
+    assert not res.solved and res.method == "angle"  # exact FOV asked for: no blind search behind it
+
+
+def test_blend_table_is_the_ball_query_it_replaces(catalog):
+    """resolved_matches reads one table: each star's chord to its nearest companion that could blend with
+    it. On 3,000 random stars it must give what the k-d tree's ball query gives at every blend radius."""
+    from skyview.core.catalog import chord
+    from skyview.identify.verify import BLEND_DELTA_MAG, BLEND_REACH_RAD, blend_table
+
+    table = blend_table(catalog)
+    rows = np.random.default_rng(4).choice(len(catalog), 3000, replace=False)
+    for radius_deg in (0.005, 0.05, 0.5, math.degrees(BLEND_REACH_RAD) * 0.99):
+        lim = float(chord(math.radians(radius_deg)))
+        near = catalog.tree.query_ball_point(catalog.xyz[rows], lim)
+        expect = np.array([any(k != r and catalog.mag[k] <= catalog.mag[r] + BLEND_DELTA_MAG for k in nb)
+                           for r, nb in zip(rows, near)])
+        assert np.array_equal(table[rows] <= lim, expect), radius_deg
+        assert expect.any() or radius_deg < 0.01
+
+
+def test_resolved_matches_leaves_out_a_blended_pair(catalog):
+    from skyview.identify.verify import BLEND_RADIUS_PX, blend_table, resolved_matches
+
+    table = blend_table(catalog)
+    bright = np.flatnonzero(catalog.mag < 7.0)
+    pair = int(bright[np.argmin(table[bright])])  # the closest blend among stars to Hp 7
+    alone = [int(r) for r in bright[np.argsort(table[bright])[::-1][:5]]]
+    scale = 1.2 * table[pair] / BLEND_RADIUS_PX  # a pixel scale at which the pair is within the radius
+    matches = {0: pair, **{k + 1: r for k, r in enumerate(alone)}}
+    kept = resolved_matches(matches, catalog, scale)
+    assert 0 not in kept and all(k + 1 in kept for k in range(len(alone)))
+    assert resolved_matches(matches, catalog, 0.5 * table[pair] / BLEND_RADIUS_PX) == matches  # resolved there

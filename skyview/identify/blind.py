@@ -29,23 +29,19 @@ is `skyview.identify.patterns`):
 
 from __future__ import annotations
 
-import copy
 import itertools
-import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.special import bdtrc
 
 from skyview.core.camera import Camera
-from skyview.core.camera_fit import CameraFit, fit_camera
-from skyview.core.catalog import GuideCatalog, chord
+from skyview.core.catalog import GuideCatalog
 from skyview.identify import database
 from skyview.identify import patterns as pdb
-from skyview.identify.base import FAILED, INCONCLUSIVE, Identification, Step
-from skyview.identify.verify import BLEND_RADIUS_PX, verification_step, verify
+from skyview.identify.base import FAILED, INCONCLUSIVE, Step
+from skyview.identify.camera_refit import CAP, BlindParams, BlindResult, CameraRefit
 
 PERMUTATIONS = np.array(list(itertools.permutations(range(4))))
 # the pair index (in PAIRS_OF_FOUR order) of each ordered pair of the four stars
@@ -53,36 +49,7 @@ _PAIR_INDEX = {(int(a), int(b)): k for k, (a, b) in enumerate(pdb.PAIRS_OF_FOUR)
 _PAIR_INDEX.update({(b, a): k for (a, b), k in list(_PAIR_INDEX.items())})
 # for each permutation p, the catalog edge that lands on each image edge
 PERM_EDGES = np.array([[_PAIR_INDEX[(int(p[a]), int(p[b]))] for a, b in pdb.PAIRS_OF_FOUR] for p in PERMUTATIONS])
-CAP = 200
 WIDE_FROM_DEG = 54.0  # FOVs above this are searched after the narrower ones (see BlindIdentifier.identify)
-BLEND_DELTA_MAG = 2.5  # a companion this much fainter moves a blended centroid by < 10 % of the separation
-
-
-@dataclass(frozen=True)
-class BlindParams:
-    """The blind search (angles in degrees)."""
-
-    fov_min_deg: float = 5.0  # horizontal FOV searched when none is given
-    fov_max_deg: float = 40.0
-    pattern_stars: int = 16  # brightest centroids combined four at a time (in batches, brightest first)
-    verify_stars: int = 40  # brightest centroids the frame is checked with
-    ratio_tolerance: float = 0.006  # edge ratios agree within this
-    ladder_deg2: float = 60.0  # an assumed FOV F covers the FOVs within a factor 1 + ladder_deg2 / F^2
-    depth_factor: float = 2.0  # catalog stars projected per centroid used
-    quick_radius_px: float = 4.0
-    quick_threshold: float = 1e-3
-    max_checks: int = 400  # quick checks at most
-    time_budget_s: float = 5.0
-
-
-@dataclass
-class BlindResult:
-    identification: Identification
-    camera: Camera | None = None  # the fitted camera when identified
-    fit: CameraFit | None = None
-    mag_limit: float | None = None  # the depth the verification used
-    sigma_rad: float | None = None
-    info: dict = field(default_factory=dict)
 
 
 def fov_ladder(lo: float, hi: float, ladder_deg2: float) -> list[tuple[float, float]]:
@@ -123,17 +90,15 @@ class _Search:
         self.tree = cKDTree(self.uv[: self.n_obs])
 
 
-class BlindIdentifier:
+class BlindIdentifier(CameraRefit):
     """Blind identification against the sky's pattern database; one instance serves every camera."""
 
     name = "blind"
 
     def __init__(self, catalog: GuideCatalog, *, pattern_params: pdb.PatternParams | None = None,
                  params: BlindParams | None = None, memory_mb: float = pdb.DEFAULT_BUDGET_MB, progress=None):
-        self.catalog = catalog
         self.pattern_params = pattern_params or pdb.PatternParams()
-        self.params = params or BlindParams()
-        self.database_key = pdb.key_dict(catalog, self.pattern_params)
+        super().__init__(catalog, params, database_key=pdb.key_dict(catalog, self.pattern_params))
         arrays, info = database.load_or_build(
             self.database_key, lambda: pdb.build(catalog, self.pattern_params, budget_mb=memory_mb, progress=progress),
             mmap=True)
@@ -149,16 +114,6 @@ class BlindIdentifier:
         edges = self.pattern_params.levels()
         # a field shows patterns up to about its diagonal and down to a quarter of its width
         self.fov_range_deg = (max(edges[-1] / self.pattern_params.step * 1.4, 1.0), min(edges[0] * 1.2, 90.0))
-        self._depth_catalogs: dict[float, GuideCatalog] = {}
-
-    # ------------------------------------------------------------------ depth
-    def catalog_to(self, mag: float) -> GuideCatalog:
-        """The catalog to `mag` (rounded up to a quarter magnitude), cached with its tree."""
-        m = min(math.ceil(mag * 4.0) / 4.0, float(self.catalog.mag.max()))
-        cat = self._depth_catalogs.get(m)
-        if cat is None:
-            cat = self._depth_catalogs[m] = self.catalog.brighter_than(m)
-        return cat
 
     # ------------------------------------------------------------------ main
     def identify(self, uv: np.ndarray, width: int, height: int, *, fov_deg: float | None = None,
@@ -334,116 +289,3 @@ class BlindIdentifier:
                 return res
             state.reason = res.identification.reason
         return None
-
-    def _frame_rows(self, cam: Camera, R: np.ndarray, n_obs: int) -> np.ndarray:
-        """Catalog rows on the sensor for (cam, R), the brightest depth_factor * n_obs of them."""
-        near = self.catalog.within(R[2], cam.half_diagonal_rad * 1.02)
-        if len(near) == 0:
-            return near
-        uv, front = cam.project(self.catalog.xyz[near] @ R.T)
-        near = near[front & cam.in_image(uv)]
-        keep = max(int(self.params.depth_factor * n_obs), 8)
-        return near[np.argsort(self.catalog.mag[near], kind="stable")[:keep]]
-
-    def _match(self, uv, n_obs, obs_tree, cam, R, radius_px):
-        rows = self._frame_rows(cam, R, n_obs)
-        if len(rows) == 0:
-            return {}, rows
-        puv, _ = cam.project(self.catalog.xyz[rows] @ R.T)
-        d, j = obs_tree.query(puv, k=1, distance_upper_bound=radius_px)
-        ok = np.isfinite(d)
-        pairs = {}
-        for ci in np.argsort(d)[: int(ok.sum())]:  # nearest first, each observed star once
-            o = int(j[ci])
-            if o not in pairs:
-                pairs[o] = int(rows[ci])
-        return pairs, rows
-
-    def _quick(self, uv, n_obs, obs_tree, obs4, rows4, cam, R, checks) -> dict:
-        p = self.params
-        pairs, rows = self._match(uv, n_obs, obs_tree, cam, R, p.quick_radius_px)
-        hyp = set(int(i) for i in obs4)
-        agree = {o: c for o, c in pairs.items() if o not in hyp and c not in set(rows4.tolist())}
-        n_tested = n_obs - 4
-        density = len(rows) / (cam.width * cam.height)  # catalog stars per pixel
-        p1 = min(1.0, density * math.pi * p.quick_radius_px ** 2)
-        prob = float(min(1.0, checks * bdtrc(len(agree) - 1, n_tested, p1))) if agree else 1.0
-        passed = prob < p.quick_threshold
-        note = f"{len(agree)} of {n_tested} other stars land on the {len(rows)} brightest catalog stars, " \
-               f"chance {prob:.1e}"
-        return {"passed": passed, "n_agree": len(agree), "n_tested": n_tested, "p": prob, "note": note,
-                "agree": agree, "camera": cam, "R": R}
-
-    def _finish(self, uv, n_obs, obs4, rows4, quick, checks, width, height, steps, t0) -> BlindResult:
-        p = self.params
-        obs_tree = cKDTree(uv[:n_obs])
-        matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **quick["agree"]}
-        cam, R = quick["camera"], quick["R"]
-        fit, fitted_on = None, None
-        # the attitude and the scale first, then the distortion too, each followed by matching again
-        for radius, distortion in ((p.quick_radius_px, False), (max(1.5, 0.5 * p.quick_radius_px), None)):
-            idx = np.array(sorted(matches))
-            fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R,
-                             fit_k1=distortion, fit_k2=distortion)
-            cam, R, fitted_on = fit.camera, fit.R, dict(matches)
-            pairs, _ = self._match(uv, n_obs, obs_tree, cam, R, max(radius, 3.0 * fit.rms_px))
-            matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **pairs}
-        idx = np.array(sorted(matches))
-        if matches != fitted_on:  # the last matching changed the stars: fit once more
-            fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R)
-            cam, R = fit.camera, fit.R
-        steps.append(Step("fit", f"camera fitted to {len(idx)} stars: FOV {cam.fov_deg:.3f} deg, "
-                                 f"k1 {cam.k1:+.4f}, k2 {cam.k2:+.4f}, residual {fit.rms_px:.2f} px per axis",
-                          observed=[int(i) for i in idx], catalog=[int(matches[i]) for i in idx][:CAP],
-                          numbers={"fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2, "rms_px": fit.rms_px,
-                                   "stars": len(idx)}))
-        # the shared verification: the fitted camera, the catalog to the frame's depth, measured noise
-        frame = self._frame_rows(cam, R, n_obs)
-        mag_limit = float(self.catalog.mag[frame].max()) if len(frame) else float(self.catalog.mag.max())
-        cat = self.catalog_to(mag_limit)
-        sigma_px = max(fit.rms_px if np.isfinite(fit.rms_px) else 0.5, 0.25)
-        sigma_rad = sigma_px * cam.pixel_scale_rad
-        vectors = cam.unproject(uv[:n_obs])
-        hyp = {int(o): int(cat.index_of(self.catalog.hip[c])) for o, c in zip(obs4, rows4)
-               if self.catalog.mag[c] <= cat.mag.max()}
-        ver = verify(vectors, hyp, cat, cam, sigma_rad, n_hypotheses=checks)
-        # the steps and the result refer to rows of the full catalog, the verification to the depth's
-        to_full = {int(c): int(self.catalog.index_of(cat.hip[c])) for c in set(hyp.values()) | set(ver.matches.values())}
-        shown = copy.copy(ver)
-        shown.matches = {o: to_full[c] for o, c in ver.matches.items()}
-        steps.append(verification_step(shown, {o: to_full[c] for o, c in hyp.items()},
-                                       numbers={"fov_deg": cam.fov_deg, "mag_limit": mag_limit}))
-        ident = Identification(method=self.name, status=INCONCLUSIVE, matches={}, steps=steps,
-                               reason=ver.reason, verification=ver.to_dict(),
-                               stats={"checks": checks, "fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2,
-                                      "mag_limit": mag_limit, "fit_rms_px": fit.rms_px},
-                               database_key=database.key_string(self.database_key))
-        if ver.passed:
-            ident.accept(ver)
-            ident.matches = self._resolved(dict(shown.matches), cam)
-            ident.stats["unresolved_pairs_left_out"] = len(shown.matches) - len(ident.matches)
-        ident.stats["time_ms"] = (time.perf_counter() - t0) * 1e3
-        return BlindResult(ident, camera=cam if ver.passed else None, fit=fit, mag_limit=mag_limit,
-                           sigma_rad=sigma_rad, info={"checks": checks})
-
-    def _resolved(self, matches: dict[int, int], cam: Camera) -> dict[int, int]:
-        """Matches without the stars that have a companion in the FULL catalog close enough to blend
-        (within BLEND_RADIUS_PX pixels) and bright enough to move the centroid (at most BLEND_DELTA_MAG
-        fainter): the verification only sees its depth catalog, whose faint companions are left out."""
-        if not matches:
-            return matches
-        obs = np.array(sorted(matches))
-        rows = np.array([matches[o] for o in obs])
-        radius = BLEND_RADIUS_PX * cam.pixel_scale_rad
-        near = self.catalog.tree.query_ball_point(self.catalog.xyz[rows], float(chord(radius)))
-        keep = {}
-        for o, c, nb in zip(obs.tolist(), rows.tolist(), near):
-            rivals = [k for k in nb if k != c and self.catalog.mag[k] <= self.catalog.mag[c] + BLEND_DELTA_MAG]
-            if not rivals:
-                keep[o] = c
-        return keep if len(keep) >= 2 else matches
-
-    def _fail(self, status, reason, steps, stats=None) -> BlindResult:
-        ident = Identification(method=self.name, status=status, matches={}, steps=steps, reason=reason,
-                               stats=stats or {}, database_key=database.key_string(self.database_key))
-        return BlindResult(ident)

@@ -115,6 +115,68 @@ LOCAL_MIN_COUNT = 3  # fewer stars than this in the neighbourhood: too few to es
 BLEND_RADIUS_PX = 5.0
 
 
+BLEND_DELTA_MAG = 2.5  # a companion this much fainter moves a blended centroid by < 10 % of the separation
+
+
+def resolved_matches(matches: dict[int, int], catalog: GuideCatalog, pixel_scale_rad: float) -> dict[int, int]:
+    """The matches (observed index -> row of `catalog`, the FULL guide catalog) without the stars that
+    have a companion close enough to blend with them (within BLEND_RADIUS_PX pixels) and bright enough
+    to move the centroid (at most BLEND_DELTA_MAG fainter): such a centroid is the pair's, and naming
+    one star of it is a guess. A verification at a catalog depth leaves the fainter companions out, so
+    every answer reported to a user goes through this. Fewer than two left: the matches unchanged."""
+    if not matches:
+        return matches
+    obs = np.array(sorted(matches))
+    rows = np.array([matches[o] for o in obs], dtype=np.int64)
+    radius = BLEND_RADIUS_PX * pixel_scale_rad
+    lim = float(chord(radius))
+    if radius <= BLEND_REACH_RAD:  # the table holds every companion that near
+        table = _BLEND.get(catalog)
+        if table is None:
+            table = _BLEND[catalog] = blend_table(catalog)
+        blended = table[rows] <= lim
+    else:  # a camera of over 0.4 deg a pixel: the stars near each match, asked for
+        ci, near = catalog.ball_pairs(catalog.xyz[rows], lim)
+        rival = (near != rows[ci]) & (catalog.mag[near] <= catalog.mag[rows[ci]] + BLEND_DELTA_MAG)
+        blended = np.zeros(len(obs), dtype=bool)
+        blended[ci[rival]] = True
+    keep = {int(o): int(c) for o, c, b in zip(obs.tolist(), rows.tolist(), blended.tolist()) if not b}
+    return keep if len(keep) >= 2 else matches
+
+
+BLEND_REACH_RAD = math.radians(2.0)
+_BLEND: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def blend_table(catalog: GuideCatalog) -> np.ndarray:
+    """The chord from every catalog star to its nearest companion that could blend with it (any star
+    at most BLEND_DELTA_MAG fainter than it, or brighter), inf where none lies within BLEND_REACH_RAD:
+    built once per catalog from the k-d tree's pairs and cached on disk as a database (8 bytes a star:
+    0.6 MB for the full catalog), so that `resolved_matches` is one look-up per match."""
+    from skyview.identify import database
+
+    def build() -> dict:
+        pairs = catalog.tree.query_pairs(float(chord(BLEND_REACH_RAD)), output_type="ndarray")
+        i, j = pairs[:, 0], pairs[:, 1]
+        d = np.sqrt(squared_chords_rows(catalog.xyz[i], catalog.xyz[j]))
+        out = np.full(len(catalog.xyz), np.inf)
+        mag = catalog.mag
+        for a, b in ((i, j), (j, i)):  # b can blend with a when it is at most BLEND_DELTA_MAG fainter
+            ok = mag[b] <= mag[a] + BLEND_DELTA_MAG
+            np.minimum.at(out, a[ok], d[ok])
+        return {"chord": out}
+
+    key = database.make_key("blend", {"reach_rad": BLEND_REACH_RAD, "delta_mag": BLEND_DELTA_MAG}, catalog, None)
+    arrays, _ = database.load_or_build(key, build)
+    return np.asarray(arrays["chord"], dtype=np.float64)
+
+
+def squared_chords_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a_k - b_k|^2 row by row."""
+    diff = a - b
+    return np.einsum("ij,ij->i", diff, diff)
+
+
 def local_density(catalog: GuideCatalog, directions_icrs: np.ndarray, leave_out: np.ndarray | None = None,
                   radius_rad: float = LOCAL_RADIUS_RAD, min_count: int = LOCAL_MIN_COUNT,
                   among: np.ndarray | None = None, among_xyz: np.ndarray | None = None) -> np.ndarray:
