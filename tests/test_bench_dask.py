@@ -13,6 +13,7 @@ SAME = ("trial", "seed", "outcome", "status", "stars_in_fov", "centroids", "matc
         "err_boresight_arcsec", "quaternion_true")
 
 
+@pytest.mark.slow
 def test_a_two_worker_local_cluster_gives_the_local_summary():
     pytest.importorskip("dask.distributed")
     sc = get_scenario("cole8")
@@ -26,6 +27,7 @@ def test_a_two_worker_local_cluster_gives_the_local_summary():
     assert sum(local["counts"].values()) == 6 and local["counts"]["correct"] >= 4
 
 
+@pytest.mark.slow
 def test_cli_scheduler_inline_and_bad_combinations(tmp_path, capsys):
     rc = main(["bench", "--method", "angle", "-n", "2", "--scheduler", "inline", "--quiet", "--out", str(tmp_path)])
     assert rc == 0

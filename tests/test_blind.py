@@ -137,6 +137,7 @@ def test_real_photograph_solves_blind(blind, name):
     json.dumps(d, allow_nan=False)
 
 
+@pytest.mark.slow
 def test_real_photograph_with_a_wrong_fov_estimate_and_a_method(blind):
     name = sorted(REFERENCE)[0]
     ref = REFERENCE[name]
@@ -302,6 +303,7 @@ def test_a_colour_jpeg_of_a_real_photograph_solves_blind(blind):
     assert res.camera.fov_deg == pytest.approx(REFERENCE[name]["fov_deg"], rel=0.005)
 
 
+@pytest.mark.slow
 def test_mirrored_photographs_are_never_solved(blind):
     """A mirror image has the same edge ratios as the sky but the wrong handedness: no rotation fits it,
     so it must fail, never verify a wrong attitude."""

@@ -789,6 +789,7 @@ def test_solver_measures_only_the_stars_it_identifies_with(cat):
     assert res.to_dict()["n_centroids"] == res.centroids.n_detected
 
 
+@pytest.mark.slow
 def test_time_centroiding_times_the_centroider_it_is_given():
     """The timing helper docs/benchmarks.md runs: both the package's centroider and the oracle, each
     call counted, the stars found per frame reported."""

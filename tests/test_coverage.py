@@ -162,6 +162,7 @@ def test_a_sample_of_suns_grid_is_a_seeded_subset_in_grid_order():
     assert "a random 500 of them" in cfg.describe()
 
 
+@pytest.mark.slow
 def test_the_stochastic_method_is_swept_with_its_own_sequences(tmp_path):
     """A single frame never solves for the stochastic method; each orientation is a 5-frame sequence
     (FOV/3 per frame about the camera y axis, the turn given), identified together against the truth."""

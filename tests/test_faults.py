@@ -195,6 +195,7 @@ def test_damaged_recordings_are_refused(capsys, tmp_path):
 
 # ------------------------------------------------------------------------------------------ cache
 
+@pytest.mark.slow
 def test_a_truncated_cached_database_heals_itself(capsys, tmp_path, monkeypatch, sky):
     monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
     args = ["solve", sky, "--method", "angle", "--variant", "improved", "--fov-deg", "12", "--fov-error", "0", "--json"]
@@ -239,6 +240,7 @@ def test_a_killed_worker_loses_no_trial(tmp_path):
     assert trials[7]["outcome"] == "correct"
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_a_bench_at_once_and_saves_what_finished(tmp_path):
     out = tmp_path / "res"
     p = subprocess.Popen([sys.executable, "-m", "skyview", "bench", "-n", "2000", "--jobs", "2", "--quiet",

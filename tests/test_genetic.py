@@ -278,6 +278,7 @@ def test_registered_and_parameters_checked(cache, cat, cam20):
             make_identifier("genetic", cat, cam20, SIGMA, **bad)
 
 
+@pytest.mark.slow
 def test_identifies_a_synthetic_frame_and_records_its_steps(improved20, cat, cam20):
     rng = np.random.default_rng(42)
     f = synthetic_frame(cat, cam20, random_attitudes(1, rng)[0], SIGMA, rng)
@@ -312,6 +313,7 @@ def test_too_few_stars_fail_cleanly(improved20, cat, cam20):
     assert r.status == "failed" and "at least" in r.reason and not r.matches
 
 
+@pytest.mark.slow
 def test_end_to_end_simulated_image_identified_means_all_matches_correct(cache, cat):
     from skyview.bench.runner import score_trial
     from skyview.simulate.render import simulate_image

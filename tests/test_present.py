@@ -47,7 +47,8 @@ def server():
 
 @pytest.mark.parametrize("method, variant, cfg", [
     ("triangle", "improved", SceneConfig()),
-    ("genetic", "improved", SceneConfig(ra_deg=107.9, dec_deg=-8.9, roll_deg=-170.0, fov_deg=20.0)),
+    pytest.param("genetic", "improved", SceneConfig(ra_deg=107.9, dec_deg=-8.9, roll_deg=-170.0, fov_deg=20.0),
+                 marks=pytest.mark.slow),
 ])
 def test_viewer_and_recorder_draw_the_same_drawables(method, variant, cfg, solvers, server):
     run = solve(simulate(cfg, solvers.base_catalog), method, variant, cfg.mag_limit, solvers)

@@ -43,8 +43,13 @@ from skyview.record.replay import free_port, rerun_binary
 
 ENV = {**os.environ, "RERUN_ANALYTICS": "0"}
 HAS_LAVAPIPE = bool(glob.glob("/usr/share/vulkan/icd.d/lvp_icd*.json"))
-needs_lavapipe = pytest.mark.skipif(not HAS_LAVAPIPE, reason="Rerun's headless viewer needs Mesa's software "
-                                    "Vulkan driver: apt-get install mesa-vulkan-drivers")
+_lavapipe = pytest.mark.skipif(not HAS_LAVAPIPE, reason="Rerun's headless viewer needs Mesa's software "
+                               "Vulkan driver: apt-get install mesa-vulkan-drivers")
+
+
+def needs_lavapipe(test):
+    """A test that renders in Rerun's own (headless) viewer: marked `browser`, skipped without Mesa's Vulkan."""
+    return pytest.mark.browser(_lavapipe(test))
 REPO = Path(__file__).resolve().parents[1]
 
 

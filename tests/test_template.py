@@ -32,9 +32,9 @@ from skyview.identify import (
     make_identifier,
     register,
 )
-from skyview.identify.steps import LazyStep
 from skyview.identify.layers import Hypotheses
 from skyview.identify.params import MethodParams, at_least, parameter_table, positive
+from skyview.identify.steps import LazyStep
 from skyview.identify.verify import angular_distance
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

@@ -88,6 +88,7 @@ def _serve_until_url(cmd: str, cwd: Path, timeout: float = 30.0) -> str:
         proc.stdout.close()
 
 
+@pytest.mark.slow
 def test_the_readme_tour_runs(tmp_path):
     t0 = time.perf_counter()
     for line in tour_lines():

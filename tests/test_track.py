@@ -141,13 +141,43 @@ def test_cli_bad_inputs_are_one_line(tmp_path, capsys, slew, cache):
     save_sequence(slew, tmp_path)
     png = str(tmp_path / "frame_000.png")
     for argv in (["solve-sequence", png, "--method", "angle"],  # a method needs the FOV
-                 ["solve-sequence", png, str(tmp_path / "missing.png"), "--fov-deg", "12", "--method", "angle"],
+                 ["solve-sequence", str(tmp_path / "missing.png"), "--fov-deg", "12", "--method", "angle"],
                  ["solve-sequence", str(tmp_path), "--method", "angle", "--p-identify", "0.9"],
                  ["solve-sequence", png, "--method", "stochastic"],
                  ["solve-sequence", str(tmp_path), png, "--method", "angle"]):
         rc = main(argv)
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1, (argv, err)
+
+
+def test_a_sequence_goes_on_past_frames_it_cannot_read(slew, tmp_path, capsys, cache):
+    """A corrupt frame, a dropped one and one of another camera are each that frame's error (its JSON line,
+    exit code 1); every good frame around them is solved, the tracker predicting across the gaps."""
+    import cv2
+
+    save_sequence(slew, tmp_path)
+    paths = [str(tmp_path / f"frame_{k:03d}.png") for k in range(10)]
+    (tmp_path / "frame_004.png").write_bytes(b"\x89PNG but not really")
+    paths.insert(7, str(tmp_path / "dropped.png"))
+    cv2.imwrite(str(tmp_path / "other.png"), np.zeros((64, 80), np.uint16))
+    paths.append(str(tmp_path / "other.png"))
+    rc = main(["solve-sequence", *paths, "--method", "angle", "--variant", "improved", "--fov-deg", "12", "--json"])
+    out, err = capsys.readouterr()
+    rows = [json.loads(x) for x in out.strip().splitlines()]
+    assert rc == 1 and [r["frame"] for r in rows] == list(range(len(paths)))
+    assert [r["frame"] for r in rows if r["status"] == "error"] == [4, 7, 11]
+    assert all(r["error"] and "\n" not in r["error"] for r in rows if r["status"] == "error")
+    good = [r for r in rows if r["status"] != "error"]
+    assert len(good) == 9 and all(r["status"] == "solved" for r in good)
+    for r in good:  # one JSON shape: the rotation matrix beside the quaternion, as `skyview solve --json`
+        assert len(r["R"]) == 3 and {"quaternion", "ra_deg", "dec_deg", "roll_deg"} <= set(r)
+    truth = {k: f for k, f in zip([0, 1, 2, 3, 5, 6, 8, 9, 10], [0, 1, 2, 3, 5, 6, 7, 8, 9])}
+    for r in good:
+        R_true = slew.frames[truth[r["frame"]]].R
+        assert np.degrees(np.arccos(np.clip(np.asarray(r["R"])[2] @ R_true[2], -1, 1))) * 3600 < 10
+    assert "3 of 12 frames could not be solved at all" in err and "Traceback" not in err
+    none = main(["solve-sequence", str(tmp_path / "frame_004.png"), str(tmp_path / "dropped.png"), "--fov-deg", "12"])
+    assert none == 2 and "none of the 2 frames could be read" in capsys.readouterr().err
 
 
 def test_slew_bench(cache):

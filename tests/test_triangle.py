@@ -635,6 +635,7 @@ def test_rotation_invariance_of_the_identification(improved, region, cam):
         assert improved.identify(obs).stats["first_chain"] == first
 
 
+@pytest.mark.slow
 def test_end_to_end_on_simulated_images(cache, region, cam):
     rng = np.random.default_rng(11)
     sigma = float(np.hypot(SIGMA, 0.1 * cam.pixel_scale_rad))  # the cole8 scenario's identifier sigma

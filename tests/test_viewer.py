@@ -535,6 +535,7 @@ def test_labels_in_the_field_never_overlap_and_all_show_when_zoomed_in(session):
         s.sky.set_zoom(1.0)
 
 
+@pytest.mark.slow
 def test_the_page_stays_responsive_while_a_slow_method_runs(session, monkeypatch):
     import skyview.viewer.session as session_mod
 
@@ -910,6 +911,7 @@ def _not_blank(png: Path, panel_from_x: int) -> float:
     return float((gray > 110).mean())
 
 
+@pytest.mark.browser
 @pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no chromium at {CHROMIUM} (apt-get install chromium)")
 def test_browser_renders_the_viewer_and_steps_through(tmp_path):
     pw = pytest.importorskip("playwright.sync_api")
@@ -971,7 +973,7 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                 png = tmp_path / "mine.png"
                 cv2.imwrite(str(png), frame.image)
                 pg.get_by_role("tab", name="Scenario").click()
-                fov_box = pg.locator("label", has_text="Image FOV").first.locator(
+                fov_box = pg.locator("label", has_text="FOV hint").first.locator(
                     "xpath=ancestor::div[contains(@class,'Flex-root')][1]").locator("input").first
                 fov_box.fill("12")
                 fov_box.press("Enter")
@@ -1128,6 +1130,7 @@ JS_SCROLL = """() => { const e = document.querySelector('.mantine-ScrollArea-vie
   const m = window.__minHeight; window.__minHeight = 1e9; return [e.scrollTop, e.scrollHeight, m]; }"""
 
 
+@pytest.mark.browser
 @pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no chromium at {CHROMIUM} (apt-get install chromium)")
 def test_browser_panel_keeps_its_scroll_when_a_run_is_redrawn():
     """A panel scrolled down (to the plot) stays where it is while a new run and its steps are drawn:
@@ -1186,6 +1189,7 @@ def _scene_of(values: dict) -> SceneConfig:
                        mag_limit=v["Mag limit (Hp)"])
 
 
+@pytest.mark.browser
 @pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no chromium at {CHROMIUM} (apt-get install chromium)")
 def test_browser_tells_each_methods_story_step_by_step(tmp_path):
     """A step is a state of knowledge: at step 0 no identification is drawn, the candidate arcs thin as

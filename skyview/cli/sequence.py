@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -28,7 +29,7 @@ from skyview.cli.common import (
     write_text_new,
     wrong_match_count,
 )
-from skyview.core.errors import BadInput
+from skyview.core.errors import BadInput, SkyviewError
 
 
 def cmd_solve_sequence(a) -> int:
@@ -99,7 +100,6 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     """Tracking (skyview.solver.track): one JSON line per frame with --json, else a line per frame."""
     from skyview.core.attitude import attitude_error_arcsec
     from skyview.core.camera import Camera
-    from skyview.detect.centroids import load_image
     from skyview.solver.sequence import load_sequence
     from skyview.solver.track import Tracker, body_turn_rotvec
 
@@ -122,12 +122,19 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
         for p in paths:
             if Path(p).is_dir() or Path(p).suffix.lower() == ".json":
                 raise BadInput(f"{p}: give one sequence (a folder or sequence.json) or image paths, not both")
-        images = [load_image(p) for p in paths]
-        shapes = {im.shape for im in images}
-        if len(shapes) != 1:
-            raise BadInput(f"the images differ in size: {sorted(shapes)}")
-        H, W = images[0].shape
-        camera = Camera.from_fov(a.fov_deg, W, H) if a.fov_deg is not None else None
+        # read one at a time (memory flat over a long run): a frame that cannot be read is that frame's
+        # error; the first frame read gives the sequence's size (and the camera, when the FOV is given)
+        frames, head = _frames(paths), []
+        for item in frames:
+            head.append(item)
+            if isinstance(item, np.ndarray):
+                break
+        images = itertools.chain(head, frames)
+        first = head[-1] if head and isinstance(head[-1], np.ndarray) else None
+        if first is None:
+            raise BadInput(f"none of the {len(paths)} frames could be read ({head[0] if head else 'no paths'})")
+        camera = (Camera.from_fov(a.fov_deg, first.shape[1], first.shape[0])
+                  if (a.fov_deg is not None and first is not None) else None)
         turns, names = None, list(paths)
     if a.no_turns:
         turns = None
@@ -135,12 +142,38 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     tracker = Tracker(camera, method, mag_limit=a.mag_limit, variant=a.variant, epoch=a.epoch,
                       sigma_rad=None if a.sigma_arcsec is None else a.sigma_arcsec * ARCSEC,
                       max_stars=a.max_stars, k_sigma=a.k_sigma, progress=progress_line)
-    lines, failed, tracked = [], [], []
+    lines, failed, tracked, recorded, errors = [], [], [], [], []
+    shape = None
     for k, img in enumerate(images):
-        fr = tracker.process(img, None if (k == 0 or turns is None) else turns[k - 1])
+        turn = None if (k == 0 or turns is None) else turns[k - 1]
+        if isinstance(img, np.ndarray) and shape is None:
+            shape = img.shape
+        if isinstance(img, np.ndarray) and img.shape != shape:
+            img = BadInput(f"{names[k]} is {img.shape[1]}x{img.shape[0]}, the sequence's frames are "
+                           f"{shape[1]}x{shape[0]}")
+        if not isinstance(img, np.ndarray):  # this frame's error; the run goes on
+            tracker.skip(turn)
+            errors.append(k)
+            d = {"frame": k, "image": names[k], "status": "error", "error": str(img), "method": a.method or "blind"}
+            text = json.dumps(d, allow_nan=False)
+            lines.append(text)
+            print(text if a.json else f"frame {k}: error: {img}", flush=True)
+            continue
+        try:
+            fr = tracker.process(img, turn)
+        except (BadInput, SkyviewError) as exc:
+            tracker.skip(None)
+            errors.append(k)
+            d = {"frame": k, "image": names[k], "status": "error", "error": str(exc), "method": a.method or "blind"}
+            text = json.dumps(d, allow_nan=False)
+            lines.append(text)
+            print(text if a.json else f"frame {k}: error: {exc}", flush=True)
+            continue
         tracked.append(fr)
+        if a.record:
+            recorded.append((k, img))
         d = fr.to_dict()
-        d = {"frame": k, "image": names[k], **{key: v for key, v in d.items() if key not in ("frame", "R")}}
+        d = {"frame": k, "image": names[k], **{key: v for key, v in d.items() if key != "frame"}}
         d["method"] = a.method or "blind"
         if truths is not None and fr.solved:
             R_true = np.asarray(truths[k]["R"], dtype=np.float64)
@@ -159,17 +192,36 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
             print(_track_line(k, d, fr.solved), flush=True)
     if output is not None:
         write_text_new(output, "\n".join(lines) + "\n", a.force)
-    if a.record:
+    if a.record and tracked:
         from skyview.record.track import record_track
 
-        info = record_track(a.record, tracked, images, tracker.camera, tracker.catalog, truths=truths,
+        kept = [k for k, _ in recorded]
+        info = record_track(a.record, tracked, [im for _, im in recorded], tracker.camera, tracker.catalog,
+                            truths=None if truths is None else [truths[k] for k in kept],
                             method=a.method or "blind", force=a.force)
-        print(f"recorded {info.frames} frames into {info.path} ({info.bytes / 1e6:.1f} MB)", file=sys.stderr)
+        print(f"recorded {info.frames} frames into {info.path} ({info.bytes / 1e6:.1f} MB"
+              + (f"; frames {', '.join(map(str, errors))} could not be read" if errors else "") + ")",
+              file=sys.stderr)
+    n = len(names)
+    if errors:
+        print(f"skyview: {len(errors)} of {n} frames could not be solved at all: frame{'s' if len(errors) > 1 else ''} "
+              f"{', '.join(map(str, errors))} (the others were solved as usual)", file=sys.stderr)
     if failed:
-        print(f"skyview: {len(failed)} of {len(images)} frames not solved: frame{'s' if len(failed) > 1 else ''} "
+        print(f"skyview: {len(failed)} of {n} frames not solved: frame{'s' if len(failed) > 1 else ''} "
               f"{', '.join(map(str, failed))}", file=sys.stderr)
-        return EXIT_NOT_SOLVED
-    return EXIT_SOLVED
+    return EXIT_NOT_SOLVED if (failed or errors) else EXIT_SOLVED
+
+
+def _frames(paths: list[str]):
+    """The images of `paths`, read one at a time as the loop asks (memory flat over a long run); a file
+    that cannot be read yields its BadInput instead of an image."""
+    from skyview.detect.centroids import load_image
+
+    for p in paths:
+        try:
+            yield load_image(p)
+        except (BadInput, SkyviewError) as exc:
+            yield exc
 
 
 def _track_line(k: int, d: dict, solved: bool) -> str:

@@ -99,7 +99,9 @@ def cmd_view(a) -> int:
 
     if not 0 <= a.port <= 65535:
         raise BadInput(f"--port {a.port} is not a TCP port (0-65535)")
-    return serve(host=a.host, port=a.port, image=a.image, fov_deg=a.fov_deg, coverage=a.coverage,
+    if a.photo is not None and a.image is not None and a.photo != a.image:
+        raise BadInput("give the photograph once: as PHOTO or as --image")
+    return serve(host=a.host, port=a.port, image=a.photo or a.image, fov_deg=a.fov_deg, coverage=a.coverage,
                  compare=a.compare, say=lambda line: print(line, flush=True))
 
 
@@ -138,6 +140,8 @@ def add_parsers(sub) -> None:
     rp.set_defaults(func=cmd_replay)
 
     w = sub.add_parser("view", help="the browser viewer: sky, field of view, image, identification steps")
+    w.add_argument("photo", nargs="?", default=None, metavar="PHOTO",
+                   help="open on this photograph (PNG / JPEG), solved blind (the same as --image)")
     w.add_argument("--image", default=None, help="start on this image (PNG / JPEG) instead of a simulated sky")
     w.add_argument("--fov-deg", type=float_arg, default=None,
                    help="horizontal full field of view of --image, deg (without --image: of the simulated camera)")

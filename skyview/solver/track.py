@@ -343,6 +343,12 @@ class Tracker:
             return none
         return window_centers(uv, half, width, height)
 
+    def skip(self, turn: np.ndarray | None = None) -> None:
+        """A frame that could not be read (or was of another camera): counted, so that the motion model
+        predicts the next frame across the gap, and not solved. turn: its turn from the frame before,
+        when known."""
+        self._advance(turn)
+
     def _advance(self, turn: np.ndarray | None) -> None:
         self.frame += 1
         if self.frame > 0:

@@ -141,3 +141,30 @@ def nearest_star(catalog: GuideCatalog, direction: np.ndarray, max_angle_rad: fl
     if not np.isfinite(d) or 2.0 * math.asin(min(1.0, d / 2.0)) > max_angle_rad:
         return None
     return int(i)
+
+
+def image_plane_xy(camera: Camera, uv: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) -> where their directions cross the pinhole image plane at unit depth (x/z, y/z):
+    with lens distortion, where the star is on the sky, not where the lens put it on the sensor, so that
+    a ring drawn there sits on the catalog star and on the undistorted texture (`undistorted`)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if not camera.distorted:
+        return (uv - np.array([camera.cx, camera.cy])) / np.array([camera.fx, camera.fy])
+    v = camera.unproject(uv)
+    return v[:, :2] / v[:, 2:]
+
+
+def undistorted(image: np.ndarray, camera: Camera) -> np.ndarray:
+    """The image (of the camera's sensor, or a resized texture of it) as an ideal pinhole of the same focal
+    length and principal point would have taken it (OpenCV's remap with the camera's radial k1, k2): drawn
+    on the frustum, its stars sit where their directions cross the image plane. An undistorted camera's
+    image is returned as it is."""
+    if not camera.distorted:
+        return image
+    import cv2
+
+    h, w = image.shape[:2]
+    sx, sy = w / camera.width, h / camera.height  # a texture: the camera's pixels scaled to its own
+    K = np.array([[camera.fx * sx, 0.0, (camera.cx + 0.5) * sx - 0.5],
+                  [0.0, camera.fy * sy, (camera.cy + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
+    return cv2.undistort(image, K, np.array([camera.k1, camera.k2, 0.0, 0.0]), None, K)

@@ -122,6 +122,25 @@ class Panel:
     def set_pointing(self, ra_deg: float, dec_deg: float, roll_deg: float) -> None:
         self.ra.value, self.dec.value, self.roll.value = ra_deg, dec_deg, roll_deg
 
+    def show_found(self, run) -> None:
+        """A user's image solved: the Scenario tab shows what was found (the pointing, the fitted FOV, the
+        depth the image shows) instead of the simulator's last values, and the method and variant that
+        ran; "Back to the simulation" then renders the sky the photograph shows. Call quietly."""
+        r, src = run.result, run.source
+        if r.method in self.method.options:
+            self.method.value = r.method
+        if r.variant in self.variant.options:
+            self.variant.value = r.variant
+        if not r.solved:
+            return
+        ra, dec, roll = (math.degrees(x) for x in radec_roll_from_R(r.R))
+        self.set_pointing(round(ra % 360.0, 3), round(dec, 3), round((roll + 180.0) % 360.0 - 180.0, 3))
+        fov = round(src.fov_deg, 3)
+        self.fov.value = min(max(fov, self.fov.min), self.fov.max)
+        self.upload_fov.value = fov  # the next photograph of this camera starts from it
+        if src.depth_mag is not None:
+            self.mag.value = min(max(float(src.depth_mag), self.mag.min), self.mag.max)
+
     def sequence_wanted(self) -> bool:
         """A sequence is solved: the method identifies over sequences, or tracking is ticked."""
         return needs_sequence(self.method.value) or bool(self.track.value)
@@ -162,6 +181,13 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
     gui.main_panel.dock_right()
     gui.main_panel.set_width(400)
     gui.add_markdown("**skyview** &nbsp;·&nbsp; where is the camera pointing?")
+    # a user's own photograph first: the upload is the first thing on the page
+    upload = gui.add_upload_button("Upload and solve", icon="upload", mime_type="image/png,image/jpeg",
+                                   hint="your own star photograph (PNG / JPEG): solved blind, no FOV needed")
+    upload_fov = gui.add_number("FOV hint (deg)", initial_value=cfg.fov_deg, min=FOV_RANGE_DEG[0],
+                                max=FOV_RANGE_DEG[1], step=0.1,
+                                hint="a hint only (horizontal field of view): the FOV is fitted to the stars")
+    back = gui.add_button("Back to the simulation", visible=False)
     status = gui.add_markdown("starting…")
     progress = gui.add_progress_bar(100.0, animated=True, visible=False)
     error = gui.add_markdown("", visible=False)
@@ -221,11 +247,6 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
         auto = gui.add_checkbox("Solve on every change", initial_value=True)
         solve = gui.add_button("Solve", icon="target")
         compare = gui.add_button("Compare every method", icon="table")
-        gui.add_markdown("**Your own image** (PNG / JPEG)")
-        upload_fov = gui.add_number("Image FOV (deg)", initial_value=cfg.fov_deg, min=FOV_RANGE_DEG[0],
-                                    max=FOV_RANGE_DEG[1], step=0.1, hint="horizontal full field of view")
-        upload = gui.add_upload_button("Upload and solve", icon="upload", mime_type="image/png,image/jpeg")
-        back = gui.add_button("Back to the simulation", visible=False)
 
     with tabs.add_tab("Result", icon="report-analytics"):
         result = gui.add_markdown("")

@@ -261,7 +261,7 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
         with lock:
             result = blind.solve_array(source.image)
         time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
-        return make_run(source, result, blind.catalog, blind.max_stars, time_ms)
+        return make_run(with_fitted_camera(source, result), result, blind.catalog, blind.max_stars, time_ms)
     source = fit_camera_blind(source, solvers)
     if source.depth_mag is not None:  # a user's image: the depth it shows, not the panel's limit
         mag_limit = source.depth_mag
@@ -294,10 +294,17 @@ def fit_camera_blind(source: Source, solvers: Solvers) -> Source:
     blind, lock = blind_solver_for(solvers)
     with lock:
         res = blind.solve_array(source.image)
-    if not res.solved:
+    return with_fitted_camera(source, res)
+
+
+def with_fitted_camera(source: Source, result: SolveResult) -> Source:
+    """The source drawn with the camera its solve fitted (FOV, k1, k2, depth): every drawing of the image
+    (frustum, texture, rings, the identification) then agrees with the stars. The FOV a user typed, or a
+    simulated scene's exact camera, stays when nothing was fitted."""
+    if not (result.solved and result.camera_fitted):
         return source
-    cam = res.camera
-    depth = min(float(np.ceil(res.mag_limit * 4.0) / 4.0), AUTO_DEPTH_MAX) if res.mag_limit else None
+    cam = result.camera
+    depth = min(float(np.ceil(result.mag_limit * 4.0) / 4.0), AUTO_DEPTH_MAX) if result.mag_limit else None
     return dataclasses.replace(source, fov_deg=cam.fov_deg, k1=cam.k1, k2=cam.k2, fitted=True, depth_mag=depth)
 
 

@@ -40,6 +40,7 @@ from skyview.present.drawables import (
 from skyview.viewer.geometry import (
     STAR_NAMES,
     frustum_scale,
+    image_plane_xy,
     local_grid,
     nice_step,
     pose_wxyz,
@@ -301,8 +302,7 @@ class SkyScene:
             NODES["footprint"], _f32(polylines_as_segments([sensor_footprint(cam, R)])),
             EST_RGB if run.result.R is not None else TRUE_RGB, thickness=2.0, thickness_units="screen")
         # centroids: rings on the image plane, coloured by outcome, numbered by brightness
-        uv = run.result.centroids.uv
-        xy = (uv - np.array([cam.cx, cam.cy])) / np.array([cam.fx, cam.fy]) * depth
+        xy = image_plane_xy(cam, run.result.centroids.uv) * depth
         self._image_plane_xy = xy
         ring = RING_PX * max(cam.width, cam.height) / 1024.0 / cam.fx * depth
         self._ring = ring

@@ -28,7 +28,7 @@ from skyview.core.errors import BadInput
 from skyview.identify import VARIANTS
 from skyview.viewer import panel as P
 from skyview.viewer.camera_control import CameraControl
-from skyview.viewer.geometry import nearest_star, ray_to_sphere
+from skyview.viewer.geometry import nearest_star, ray_to_sphere, undistorted
 from skyview.viewer.picture import annotate, decode_image_bytes, panel_base, stretch, texture
 from skyview.viewer.player import Player
 from skyview.viewer.plot_control import FramePlot, StepPlot
@@ -239,7 +239,7 @@ class Session:
 
     @reported
     def receive_upload(self, name: str | None, content: bytes) -> None:
-        """An image uploaded through the panel, at the panel's "Image FOV" (errors go to the panel)."""
+        """An image uploaded through the panel, with the panel's "FOV hint" (errors go to the panel)."""
         fov = check_fov(self.panel.upload_fov.value)
         image = decode_image_bytes(content, name or "the upload")
         self.load_image(image, fov, name or "upload")
@@ -358,7 +358,7 @@ class Session:
 
     def _draw_run(self, run: Run, t_request: float | None = None) -> None:
         t0 = time.perf_counter()
-        tex = texture(run.source.image)
+        tex = undistorted(texture(run.source.image), run.source.camera)  # the lens's distortion taken out
         base = panel_base(stretch(run.source.image))
         n = len(run.drawables)
         st, p = self.state, self.panel
@@ -381,6 +381,9 @@ class Session:
             if st.sequence is not None and st.frame is not None:
                 p.frame_text.content = st.frame_text()
                 self.frame_plot.mark(st.frame)
+            if run.source.truth is None and st.sequence is None:  # a user's image: what was found
+                with self.quietly():
+                    p.show_found(run)
             p.status.content = st.status_text()
         st.timings["draw_ms"] = (time.perf_counter() - t0) * 1e3
         if t_request is not None:

@@ -1,0 +1,118 @@
+"""A user's own photograph in the viewer: drawn with the camera its solve fitted, so that every catalog star
+sits on its blob — on the frustum's image plane, on the undistorted texture and in the panel — and the
+Scenario tab shows what was found. Real photographs of two fields of view (an 11.4 deg lens with barrel
+distortion, and a crop of it: 5.7 deg)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from skyview.core.attitude import radec_roll_from_R
+from skyview.detect.centroids import load_image
+from skyview.viewer.geometry import image_plane_xy, undistorted
+from skyview.viewer.picture import texture
+from skyview.viewer.run import Solvers
+from skyview.viewer.scene import NODES
+
+REAL = Path(__file__).parent / "data" / "real-images"
+REFERENCE = json.loads((REAL / "reference.json").read_text())
+PHOTO = "2019-07-29T204726_Alt40_Azi45_Try1.png"  # the most distorted of the eight (k1 about -0.007 at the corner)
+
+
+@pytest.fixture(scope="module")
+def session():
+    import viser
+
+    from skyview.viewer.session import Session
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    s = Session(server, Solvers())
+    assert s.wait_idle(60)
+    yield server, s
+    s.close()
+    with contextlib.redirect_stdout(io.StringIO()):
+        server.stop()
+
+
+def _upload(s, image: np.ndarray, name: str, typed_fov: float):
+    ok, png = cv2.imencode(".png", image)
+    s.panel.upload_fov.value = typed_fov  # a wrong hint: the FOV is fitted to the stars
+    s.receive_upload(name, png.tobytes())
+    assert s.wait_idle(60) and s.error == ""
+    return s.run
+
+
+def _crop(image: np.ndarray) -> np.ndarray:
+    h, w = image.shape
+    return np.ascontiguousarray(image[h // 4: h // 4 + h // 2, w // 4: w // 4 + w // 2])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("crop", [False, True], ids=["11.4deg", "5.7deg-crop"])
+def test_catalog_stars_sit_on_the_photographs_stars(session, crop):
+    server, s = session
+    image = load_image(REAL / PHOTO)
+    if crop:
+        image = _crop(image)
+    run = _upload(s, image, "mine.png", typed_fov=8.0)
+    r, cam = run.result, run.source.camera
+    assert r.solved and r.method == "blind" and r.camera_fitted and run.source.fitted
+    ref = REFERENCE[PHOTO]
+    assert cam.fov_deg == pytest.approx(ref["fov_deg"] / (2.0 if crop else 1.0), rel=0.01)
+    # the scene's camera is the fitted one, not the 8 deg typed
+    assert (cam.fov_deg, cam.k1, cam.k2) == pytest.approx((r.camera.fov_deg, r.camera.k1, r.camera.k2), rel=1e-12)
+    # the frustum is drawn at the fitted FOV
+    frustum = server.scene.get_handle_by_name(NODES["frustum"])
+    assert np.degrees(frustum.fov) == pytest.approx(cam.fov_v_deg, rel=1e-6)
+    # every matched catalog star, turned into the camera frame, crosses the image plane on its ring
+    idx = sorted(run.matches)
+    rows = [run.matches[i] for i in idx]
+    p = run.catalog.xyz[rows] @ r.R.T
+    on_plane = p[:, :2] / p[:, 2:]
+    rings = image_plane_xy(cam, r.centroids.uv[idx])
+    px = np.hypot(*((on_plane - rings) * cam.fx).T)  # in the camera's pixels
+    assert len(idx) >= 10 and np.median(px) < 0.5 and px.max() < 2.0
+    # ... and on its blob in the undistorted texture drawn on the frustum
+    tex = undistorted(texture(image), cam)[..., 0].astype(float)
+    scale = tex.shape[1] / cam.width
+    t_uv = (on_plane * [cam.fx, cam.fy] + [cam.cx, cam.cy] + 0.5) * scale - 0.5
+    background = np.median(tex)
+    bright = [tex[int(round(v)), int(round(u))] for u, v in t_uv
+              if 1 <= u < tex.shape[1] - 1 and 1 <= v < tex.shape[0] - 1]
+    rng = np.random.default_rng(0)  # the same test at random places of the texture: mostly the dark floor
+    anywhere = tex[rng.integers(1, tex.shape[0] - 1, 500), rng.integers(1, tex.shape[1] - 1, 500)]
+    assert np.mean(np.array(bright) > background + 15) > 0.9 and np.mean(anywhere > background + 15) < 0.1
+    # the Scenario tab shows what was found, and the method and variant that ran
+    ra, dec, roll = np.degrees(radec_roll_from_R(r.R))
+    assert s.panel.ra.value == pytest.approx(ra % 360, abs=1e-3) and s.panel.dec.value == pytest.approx(dec, abs=1e-3)
+    assert s.panel.fov.value == pytest.approx(cam.fov_deg, abs=1e-3)
+    assert s.panel.upload_fov.value == pytest.approx(cam.fov_deg, abs=1e-3)
+    assert s.panel.method.value == "blind" and s.panel.variant.value == "improved"
+    assert "fitted" in s.panel.result.content
+
+
+def test_a_distorted_camera_moves_the_rings_and_the_texture_together():
+    """image_plane_xy and undistorted agree: a star's pixel, undistorted, lands where the remapped texture
+    shows it (a synthetic dot through a strongly distorted camera)."""
+    from skyview.core.camera import Camera
+
+    cam = Camera.from_fov(40.0, 640, 480, k1=-0.3, k2=0.05)
+    v = np.array([[0.3, -0.2, 1.0]])
+    uv, _ = cam.project(v)
+    img = np.zeros((480, 640), np.uint8)
+    cv2.circle(img, (int(round(uv[0, 0])), int(round(uv[0, 1]))), 2, 255, -1)
+    flat = undistorted(img, cam)
+    xy = image_plane_xy(cam, uv)[0]
+    u0, v0 = xy * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+    assert np.allclose(xy, v[0, :2], atol=1e-9)
+    m = cv2.moments(flat.astype(np.float32))
+    assert np.hypot(m["m10"] / m["m00"] - u0, m["m01"] / m["m00"] - v0) < 0.7
+    assert np.hypot(*(uv[0] - [u0, v0])) > 10  # the lens moved it: the test would see a wrong remap
