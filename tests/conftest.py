@@ -18,7 +18,11 @@ from pathlib import Path
 
 import pytest
 
-_CACHE = tempfile.mkdtemp(prefix="skyview-test-cache-")
+# SKYVIEW_TEST_CACHE=DIR keeps the databases between runs (the quick loop: pytest -m "not slow and not browser");
+# by default every run builds them afresh in a temporary folder, removed at the end
+_KEEP = os.environ.get("SKYVIEW_TEST_CACHE")
+_CACHE = os.path.abspath(_KEEP) if _KEEP else tempfile.mkdtemp(prefix="skyview-test-cache-")
+os.makedirs(_CACHE, exist_ok=True)
 os.environ["SKYVIEW_CACHE"] = _CACHE
 for _var, _sub in (("XDG_CONFIG_HOME", "config"), ("XDG_DATA_HOME", "data"), ("XDG_CACHE_HOME", "xdg-cache"),
                    ("XDG_STATE_HOME", "state")):
@@ -27,7 +31,8 @@ for _var, _sub in (("XDG_CONFIG_HOME", "config"), ("XDG_DATA_HOME", "data"), ("X
 
 
 def pytest_sessionfinish(session, exitstatus):
-    shutil.rmtree(_CACHE, ignore_errors=True)
+    if not _KEEP:
+        shutil.rmtree(_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

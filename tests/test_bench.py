@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from skyview.bench.runner import format_markdown, run_bench, score_trial
 from skyview.simulate.scenarios import SCENARIOS
@@ -79,6 +80,7 @@ def _small_blind_solver(monkeypatch, tmp_path):
                         functools.partial(bench.BlindSolver, pattern_params=PatternParams(min_edge_deg=8.0)))
 
 
+@pytest.mark.slow
 def test_blind_bench_cli_end_to_end(tmp_path, monkeypatch, capsys):
     from skyview.cli import main
 
@@ -100,6 +102,7 @@ def test_blind_bench_cli_end_to_end(tmp_path, monkeypatch, capsys):
     assert s["counts"]["correct"] >= 2
 
 
+@pytest.mark.slow
 def test_blind_bench_with_jpeg_and_distortion(tmp_path, monkeypatch):
     from skyview.bench.runner import format_blind_markdown, run_blind_bench
 

@@ -63,6 +63,7 @@ def test_keys_pack_and_look_up():
     assert not np.any(ni == 50)  # a key that is not stored finds nothing
 
 
+@pytest.mark.slow
 def test_level_patterns_enumerates_each_four_once_by_its_largest_edge():
     rng = np.random.default_rng(3)
     v = rng.normal(size=(40, 3)) * [0.05, 0.05, 1.0]

@@ -59,6 +59,7 @@ def _png_bomb(w: int, h: int) -> bytes:
 
 # ------------------------------------------------------------------------------------------ images
 
+@pytest.mark.slow
 def test_damaged_images_are_one_line_errors_with_json(capsys, tmp_path, sky):
     rng = np.random.default_rng(0)
     good_png = sky.read_bytes()

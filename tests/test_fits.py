@@ -45,6 +45,7 @@ def test_standard_fits_rows_are_read_bottom_first_and_solve(tmp_path, photo):
     assert attitude_error_arcsec(res.R, np.array(REFERENCE[NAME]["R"]))["boresight"] < 120.0
 
 
+@pytest.mark.slow
 def test_top_down_fits_declared_or_not(tmp_path, photo):
     declared = _write(tmp_path / "declared.fits", photo, ROWORDER="TOP-DOWN")
     assert np.array_equal(load_image(declared), photo)
@@ -90,6 +91,7 @@ def test_an_enormous_fits_header_is_refused_before_reading(tmp_path, monkeypatch
         load_image(path)
 
 
+@pytest.mark.slow
 def test_cli_solves_a_fits_file_and_refuses_a_damaged_one(tmp_path, photo):
     good = _write(tmp_path / "sky.fits", np.ascontiguousarray(photo[::-1]))
     out = subprocess.run([sys.executable, "-m", "skyview", "solve", str(good), "--json"], capture_output=True,
@@ -104,6 +106,7 @@ def test_cli_solves_a_fits_file_and_refuses_a_damaged_one(tmp_path, photo):
     assert "error" in json.loads(out.stdout)
 
 
+@pytest.mark.slow
 def test_cli_says_when_it_read_a_silent_fits_the_other_way_up(tmp_path, photo):
     silent = _write(tmp_path / "silent.fits", photo)  # top row first, and the header does not say so
     out = subprocess.run([sys.executable, "-m", "skyview", "solve", str(silent)], capture_output=True, text=True,
@@ -112,6 +115,7 @@ def test_cli_says_when_it_read_a_silent_fits_the_other_way_up(tmp_path, photo):
     assert "note:" in out.stdout and "ROWORDER" in out.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::astropy.wcs.FITSFixedWarning")
 def test_the_wcs_of_a_fits_file_is_for_its_own_rows(tmp_path, photo):
     """A FITS file stored bottom row first gets a WCS in its own pixel grid (DS9 overlays it)."""

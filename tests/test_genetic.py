@@ -338,6 +338,7 @@ def test_end_to_end_simulated_image_identified_means_all_matches_correct(cache, 
     assert solved >= 1
 
 
+@pytest.mark.slow
 def test_two_workers_give_the_same_answer(cache, cat, cam20):
     rng = np.random.default_rng(8)
     f = synthetic_frame(cat, cam20, random_attitudes(1, rng)[0], SIGMA, rng)
@@ -354,6 +355,7 @@ def test_two_workers_give_the_same_answer(cache, cat, cam20):
         assert all(f.truth[o] == c for o, c in one.matches.items())
 
 
+@pytest.mark.slow
 def test_verify_every_answer_counts_no_wrong_pass(cache):
     from skyview.experiments.genetic_map import verify_every_answer
     tally = verify_every_answer(20.0, frames=3, attempts=2, seed=4, initial=5000)

@@ -370,6 +370,7 @@ def genetic(tmp_path_factory):
     return case, path, info, read(path)
 
 
+@pytest.mark.slow
 def test_a_genetic_search_box_is_recorded_as_an_outline(genetic):
     """A real genetic solve: its square boxes and roll circle (SearchRegion layers) become closed outlines
     at sky/step/outline at every step that has one (the whole-sky box has none)."""
@@ -451,6 +452,7 @@ def test_record_command(tmp_path, capsys):
     assert main(["record", "--seed", "8", "--out", str(out), "--force"]) == 0
 
 
+@pytest.mark.slow
 def test_solve_records_only_when_asked(tmp_path):
     png = tmp_path / "orion.png"
     assert main(["simulate", "--ra", "83.8", "--dec", "-5.4", "--roll", "30", "--fov-deg", "8", "--seed", "1",
@@ -576,6 +578,7 @@ def _headless_viewer(*extra: str, size: str = "1280x800"):
     return proc, port
 
 
+@pytest.mark.slow
 def test_replay_serves_the_web_viewer_on_localhost_and_stops(solved):
     _, path, info, _ = solved
     port, grpc = free_port(), free_port()

@@ -238,6 +238,7 @@ def test_bad_input_is_one_line_and_overwrites_nothing(paper, tmp_path):
 
 # ============================================================================ the CLI
 
+@pytest.mark.slow
 def test_solve_sequence_record(paper, tmp_path, capsys, monkeypatch):
     case = paper[0]
     folder = tmp_path / "seq"
@@ -282,6 +283,7 @@ def test_solve_sequence_record(paper, tmp_path, capsys, monkeypatch):
     assert "/truth/camera" not in ents and "/camera" in ents
 
 
+@pytest.mark.slow
 def test_record_stochastic_command(tmp_path, capsys):
     out = tmp_path / "st.rrd"
     assert main(["record", "--method", "stochastic", "--seed", "0", str(out)]) == 0

@@ -259,6 +259,7 @@ def tiny_catalog(n=40, seed=3, radius_deg=9.0):
                         history=("tiny-test-catalog",))
 
 
+@pytest.mark.slow
 def test_database_on_a_tiny_catalog(tmp_path, monkeypatch, cam):
     monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
     cat = tiny_catalog()

@@ -429,6 +429,7 @@ def test_has_neighbour_is_the_kd_tree_count(cat):
         assert np.array_equal(_has_neighbour(cat, rows, chords), want)  # remembered the second time
 
 
+@pytest.mark.slow
 def test_nearest_table_is_each_stars_nearest_chord_and_cached(cat, tmp_path, monkeypatch):
     """The verification's table of nearest-neighbour chords is every star's chord to its nearest other
     star (measured here star by star; inf beyond the reach, 0 for a star that shares its place), built

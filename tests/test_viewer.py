@@ -248,6 +248,7 @@ def genetic_solve():
     return ga, cat, f, r
 
 
+@pytest.mark.slow
 def test_a_genetic_solve_draws_its_search_box_shrinking_around_the_truth(genetic_solve):
     ga, cat, f, r = genetic_solve
     d = present.step_views(r.steps, cat.xyz, n_observed=len(f.obs.vectors))
@@ -648,6 +649,7 @@ def _set_quietly(s, **values):
             getattr(s.panel, name).value = v
 
 
+@pytest.mark.slow
 def test_session_shows_a_stochastic_sequence_frame_by_frame(session, monkeypatch):
     server, s = session
     p = s.panel
@@ -1284,6 +1286,7 @@ def test_view_command_serves_locally_and_stops_on_ctrl_c():
         _stop_view(proc)
 
 
+@pytest.mark.slow
 def test_view_stops_on_ctrl_c_even_when_started_with_sigint_ignored():
     """A background job (`cmd &` in a script, as CI may run the tests) starts its children with SIGINT
     ignored; the viewer must still stop on Ctrl-C."""
