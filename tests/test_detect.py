@@ -9,7 +9,6 @@ import pytest
 from scipy.spatial import cKDTree
 
 from skyview.core.attitude import attitude_error_arcsec, random_attitudes
-from skyview.core.catalog import load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import detect_centroids, load_image
 from skyview.detect.stars import bin_image, detect_stars, psf_sigma_from_moments

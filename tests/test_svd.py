@@ -9,7 +9,6 @@ from scipy.spatial.transform import Rotation
 
 from skyview.bench.runner import score_trial
 from skyview.core.attitude import attitude_error_arcsec, random_attitudes
-from skyview.core.camera import Camera
 from skyview.core.catalog import GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.identify import FAILED, METHODS, make_identifier

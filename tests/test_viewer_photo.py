@@ -116,3 +116,29 @@ def test_a_distorted_camera_moves_the_rings_and_the_texture_together():
     m = cv2.moments(flat.astype(np.float32))
     assert np.hypot(m["m10"] / m["m00"] - u0, m["m01"] / m["m00"] - v0) < 0.7
     assert np.hypot(*(uv[0] - [u0, v0])) > 10  # the lens moved it: the test would see a wrong remap
+
+
+def test_a_busy_photograph_rings_its_brightest_detections_and_more_on_request(session):
+    """800+ detections: the brightest DETECTIONS_DRAWN are ringed by default (on the frustum and in the
+    panel image), the View tab's "Detections drawn" shows more; the identification is the same."""
+    from skyview.core.attitude import R_from_radec_roll
+    from skyview.core.camera import Camera
+    from skyview.simulate.render import SensorModel, simulate_image
+    from skyview.viewer.panel import DETECTIONS_DRAWN
+
+    server, s = session
+    cam = Camera.from_fov(45.0, 1600, 1200)
+    R = R_from_radec_roll(np.radians(272.0), np.radians(-22.0), 0.0)  # the Milky Way in Sagittarius
+    frame = simulate_image(s.solvers.base_catalog, cam, R, SensorModel(), seed=2, mag_limit=9.0)
+    run = _upload(s, frame.image, "busy.png", typed_fov=45.0)
+    n = len(run.result.centroids)
+    assert n > 800 and run.result.solved
+    rings = server.scene.get_handle_by_name(NODES["centroids"])
+    per_ring = len(rings.points) // DETECTIONS_DRAWN
+    assert len(rings.points) == DETECTIONS_DRAWN * per_ring
+    matches = dict(run.matches)
+    s.panel.detections.value = 2000
+    assert s.wait_idle(30) and s.run is run and dict(s.run.matches) == matches
+    rings = server.scene.get_handle_by_name(NODES["centroids"])
+    assert len(rings.points) == n * per_ring
+    s.panel.detections.value = DETECTIONS_DRAWN

@@ -35,6 +35,8 @@ from skyview.viewer.sequence_run import FRAMES_RANGE, STEP_RANGE_DEG, TURNS, Seq
 PAPER_CAMERA = {"fov_deg": 30.0, "resolution": "1024x1024", "mag_limit": 4.5}  # Udomkesmalee et al.'s camera
 
 
+DETECTIONS_DRAWN = 150  # rings drawn by default: a photograph of 800+ detections stays readable
+
 @dataclass
 class Panel:
     """Handles of every widget of one session's panel (viser's handle types: a slider's or a number's
@@ -93,6 +95,7 @@ class Panel:
     boresight: GuiButtonHandle
     wide: GuiButtonHandle
     follow: GuiCheckboxHandle
+    detections: GuiSliderHandle  # how many of the brightest detections are ringed
     checks: dict[str, GuiCheckboxHandle]
     picked: GuiMarkdownHandle
 
@@ -258,6 +261,9 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
         boresight = gui.add_button("Look down the boresight", icon="focus-2")
         wide = gui.add_button("Wide sky", icon="world")
         follow = gui.add_checkbox("Follow the boresight", initial_value=True)
+        detections = gui.add_slider("Detections drawn", min=10, max=2000, step=10, initial_value=DETECTIONS_DRAWN,
+                                    hint="the brightest detections ringed on the image (the identification "
+                                         "uses its own brightest stars, whatever is drawn)")
         checks = {
             "stars": gui.add_checkbox("Catalog stars", initial_value=True),
             "grid": gui.add_checkbox("RA/Dec grid", initial_value=True),
@@ -285,7 +291,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
                  solve=solve, compare=compare, upload_fov=upload_fov, upload=upload, back=back,
                  result=result, compare_table=compare_table, bench_table=bench_table, export=export,
                  boresight=boresight, wide=wide,
-                 follow=follow, checks=checks, picked=picked)
+                 follow=follow, detections=detections, checks=checks, picked=picked)
 
 
 # ---------------------------------------------------------------------------------------------- text

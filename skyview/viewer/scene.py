@@ -267,8 +267,9 @@ class SkyScene:
             for k, (text, p) in enumerate(self._grid_labels)]
 
     # ------------------------------------------------------------------ camera
-    def draw_run(self, run: Run, tex: np.ndarray | None) -> None:
-        """Camera(s), footprints, centroids and matches of a run; the step layer is reset."""
+    def draw_run(self, run: Run, tex: np.ndarray | None, max_rings: int | None = None) -> None:
+        """Camera(s), footprints, centroids and matches of a run; the step layer is reset. max_rings: ring
+        only the brightest this many detections (a busy photograph stays readable; None: all)."""
         s = self.scene
         cam = run.source.camera
         R = run.R_shown
@@ -307,7 +308,7 @@ class SkyScene:
         ring = RING_PX * max(cam.width, cam.height) / 1024.0 / cam.fx * depth
         self._ring = ring
         segs, cols = [], []
-        for i, o in enumerate(run.outcomes):
+        for i, o in enumerate(run.outcomes[:max_rings]):
             rs = ring_segments(xy[i:i + 1], ring, depth * 0.9995)
             segs.append(rs)
             cols.append(np.broadcast_to(np.array(OUTCOME_RGB[o], np.uint8), rs.shape))

@@ -124,6 +124,18 @@ class Session:
     timings = property(lambda self: self.state.timings, doc="ms of the last update, draw, step and frame.")
     compare_rows = property(lambda self: self.state.compare_rows, doc="The comparison table's rows.")
 
+    @property
+    def rings_drawn(self) -> int:
+        """How many of the brightest detections are ringed (the View tab's "Detections drawn")."""
+        return max(1, int(self.panel.detections.value))
+
+    def set_detections_drawn(self) -> None:
+        """The View tab's "Detections drawn" moved: the run on screen drawn again with that many rings."""
+        run = self.state.run
+        if self._quiet or run is None:
+            return
+        self._draw_run(run)
+
     # ------------------------------------------------------------------ plumbing
     def atomic(self):
         return self.owner.atomic()
@@ -198,6 +210,7 @@ class Session:
         p.export.on_click(g(self._on_export))
         p.boresight.on_click(g(lambda _e: self.point_view("boresight")))
         p.wide.on_click(g(lambda _e: self.point_view("wide")))
+        p.detections.on_update(g(lambda _e: self.set_detections_drawn()))
         for what, h in p.checks.items():
             h.on_update(g(lambda e, what=what: self.set_layer(what, bool(e.target.value))))
         self.owner.scene.on_click()(lambda e: self.click_sky(e.ray_origin, e.ray_direction))
@@ -370,7 +383,7 @@ class Session:
                 p.compare_table.content = ""
             self.clear_error()
             self.sky.draw_catalog(run.catalog)
-            self.sky.draw_run(run, tex)
+            self.sky.draw_run(run, tex, max_rings=self.rings_drawn)
             with self.quietly():
                 self.step_plot.options(run.drawables)
                 p.step.disabled = n == 0
@@ -416,8 +429,9 @@ class Session:
         pat = d.pattern if d is not None else None
         # the outcomes (identified, wrong match, ...) only once the identification is made (the last step)
         outcomes = run.outcomes if d is None or d.final else ["unidentified"] * len(run.outcomes)
-        self.panel.image.image = annotate(self._panel_base, run.source.image.shape, run.result.centroids.uv,
-                                          outcomes, highlight=hl, pattern=pat)
+        n = self.rings_drawn
+        self.panel.image.image = annotate(self._panel_base, run.source.image.shape, run.result.centroids.uv[:n],
+                                          outcomes[:n], highlight=hl, pattern=pat)
         if mark and k is not None:
             self.step_plot.mark(k)
 
