@@ -374,9 +374,9 @@ def test_fast_paths_agree_with_the_general_ones(cat, cam, monkeypatch):
 def test_p_false_decides_and_sums_as_numpy_did():
     """p_false_calibrated (on Python floats) takes the binomial exactly when np.all(ps == ps[0]) holds
     (a NaN included) and the Poisson-binomial tail otherwise; the misses' probabilities 1 - p are the
-    numbers numpy's 1.0 - ps gives."""
-    from scipy.special import bdtrc
-
+    numbers numpy's 1.0 - ps gives. (skyview.core.special.binomial_sf is scipy's bdtrc to 1e-11:
+    tests/test_special.py.)"""
+    from skyview.core.special import binomial_sf
     from skyview.identify.verify import p_false_calibrated, poisson_binomial_sf
 
     rng = np.random.default_rng(8)
@@ -389,7 +389,7 @@ def test_p_false_decides_and_sums_as_numpy_did():
             ps[int(rng.integers(0, n))] = np.nan
         assert np.array_equal([1.0 - p for p in ps.tolist()], 1.0 - ps, equal_nan=True)
         for n_agree in {1, 2, n // 2 + 1, n - 1, n} - {0}:
-            want = (float(bdtrc(n_agree - 1, n, ps[0])) if np.all(ps == ps[0])
+            want = (binomial_sf(n_agree, n, float(ps[0])) if np.all(ps == ps[0])
                     else poisson_binomial_sf(n_agree, ps))
             got = p_false_calibrated(n_agree, n, ps, 3)
             assert got == min(1.0, 3 * want) or (np.isnan(got) and np.isnan(want))

@@ -99,9 +99,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.special import erf
 
 from skyview.core.errors import BadInput
+from skyview.core.special import erf
 
 ESTIMATORS = ("fit", "iwcog", "cog", "gauss3")
 DEFAULT_ESTIMATOR = "fit"

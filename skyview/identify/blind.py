@@ -34,14 +34,13 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from skyview.core.camera import Camera
 from skyview.core.catalog import GuideCatalog
 from skyview.identify import database
 from skyview.identify import patterns as pdb
 from skyview.identify.base import FAILED, INCONCLUSIVE, Step
-from skyview.identify.camera_refit import CAP, BlindParams, BlindResult, CameraRefit
+from skyview.identify.camera_refit import CAP, BlindParams, BlindResult, CameraRefit, NearestPixels
 
 PERMUTATIONS = np.array(list(itertools.permutations(range(4))))
 # the pair index (in PAIRS_OF_FOUR order) of each ordered pair of the four stars
@@ -87,7 +86,7 @@ class _Search:
     reason: str = ""
 
     def __post_init__(self):
-        self.tree = cKDTree(self.uv[: self.n_obs])
+        self.tree = NearestPixels(self.uv[: self.n_obs])
 
 
 class BlindIdentifier(CameraRefit):

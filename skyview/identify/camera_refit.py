@@ -17,12 +17,11 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.special import bdtrc
 
 from skyview.core.camera import Camera
 from skyview.core.camera_fit import CameraFit, fit_camera
 from skyview.core.catalog import GuideCatalog
+from skyview.core.special import binomial_sf
 from skyview.identify import database
 from skyview.identify.base import INCONCLUSIVE, Identification, Step
 from skyview.identify.verify import resolved_matches, verification_step, verify
@@ -55,6 +54,28 @@ class BlindResult:
     mag_limit: float | None = None  # the depth the verification used
     sigma_rad: float | None = None
     info: dict = field(default_factory=dict)
+
+
+class NearestPixels:
+    """The nearest of a few points of the image (the brightest centroids, tens of them) to many others,
+    within a radius: cKDTree.query(q, k=1, distance_upper_bound=r)'s answers (distance inf and index
+    len(points) where none is within r), from one (queries x points) distance table, so that a solve
+    needs no scipy.spatial (~0.2 s to import in every process)."""
+
+    def __init__(self, points: np.ndarray):
+        self.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+
+    def query(self, q: np.ndarray, k: int = 1, distance_upper_bound: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        q = np.asarray(q, dtype=np.float64).reshape(-1, 2)
+        n = len(self.points)
+        if n == 0 or len(q) == 0:
+            return np.full(len(q), np.inf), np.full(len(q), n, dtype=np.intp)
+        diff = q[:, None, :] - self.points[None, :, :]
+        d = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
+        j = np.argmin(d, axis=1)
+        best = d[np.arange(len(q)), j]
+        miss = ~(best <= distance_upper_bound)
+        return np.where(miss, np.inf, best), np.where(miss, n, j)
 
 
 class CameraRefit:
@@ -131,7 +152,7 @@ class CameraRefit:
         n_tested = n_obs - 4
         density = len(rows) / (cam.width * cam.height)  # catalog stars per pixel
         p1 = min(1.0, density * math.pi * p.quick_radius_px ** 2)
-        prob = float(min(1.0, checks * bdtrc(len(agree) - 1, n_tested, p1))) if agree else 1.0
+        prob = float(min(1.0, checks * binomial_sf(len(agree), n_tested, p1))) if agree else 1.0
         passed = prob < p.quick_threshold
         note = f"{len(agree)} of {n_tested} other stars land on the {len(rows)} brightest catalog stars, " \
                f"chance {prob:.1e}"
@@ -140,7 +161,7 @@ class CameraRefit:
 
     def _finish(self, uv, n_obs, obs4, rows4, quick, checks, width, height, steps, t0) -> BlindResult:
         p = self.params
-        obs_tree = cKDTree(uv[:n_obs])
+        obs_tree = NearestPixels(uv[:n_obs])
         matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **quick["agree"]}
         cam, R = quick["camera"], quick["R"]
         fit, fitted_on = None, None

@@ -91,12 +91,12 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy.special import bdtr, bdtrc
 
 from skyview.core.attitude import RAD_TO_ARCSEC, remember_svd, svd_attitude
 from skyview.core.camera import Camera
 from skyview.core.catalog import GuideCatalog, chord
 from skyview.core.catalog import einsum_c as _einsum
+from skyview.core.special import binomial_cdf, binomial_sf
 from skyview.identify.steps import LazyStep
 
 _min, _max = np.minimum.reduce, np.maximum.reduce  # what ndarray.min() / .max() call, without their Python wrappers
@@ -299,7 +299,7 @@ def _p_false_floats(n_agree: int, ps: list[float], n_hypotheses: int) -> float:
     tested, one agreeing): the comparisons and numbers numpy's arrays give."""
     p0 = ps[0]
     if p0 == p0 and ps.count(p0) == len(ps):  # = np.all(ps == ps[0]) (count: `is` or ==; NaN: never)
-        tail = float(bdtrc(n_agree - 1, len(ps), p0))  # P[X >= n_agree]
+        tail = binomial_sf(n_agree, len(ps), p0)  # P[X >= n_agree]
     else:
         tail = _sf(n_agree, ps)
     return float(min(1.0, max(1, n_hypotheses) * tail))
@@ -308,7 +308,7 @@ def _p_false_floats(n_agree: int, ps: list[float], n_hypotheses: int) -> float:
 def p_false_tetra3(n_matched: int, n_observed: int, n_nearby: int, radius_fraction: float) -> float:
     """tetra3's mismatch probability: BinomCDF(n_obs - (n_matched - 2), n_obs, 1 - N_nearby r^2)."""
     p1 = min(1.0, n_nearby * radius_fraction ** 2)
-    return float(bdtr(n_observed - (n_matched - 2), n_observed, 1.0 - p1))  # P[X <= k]
+    return binomial_cdf(n_observed - (n_matched - 2), n_observed, 1.0 - p1)  # P[X <= k]
 
 
 def predicted_sigma(vectors: np.ndarray, covariance: np.ndarray, unit: tuple | None = None) -> np.ndarray:
