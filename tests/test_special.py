@@ -1,5 +1,5 @@
 """skyview.core.special against scipy.special (which the solve path no longer imports): the error function
-to within the C library's ulp, the binomial tails to 1e-12 relative from 1 down to 1e-280."""
+the C library's (within 3 ulp of scipy's), the binomial tails to 1e-11 relative from 1 down to 1e-280."""
 
 import math
 import subprocess
@@ -13,13 +13,13 @@ from scipy.special import erf as scipy_erf
 from skyview.core.special import binomial_cdf, binomial_sf, erf
 
 
-def test_erf_is_the_c_librarys_to_an_ulp():
+def test_erf_is_the_c_librarys():
     rng = np.random.default_rng(0)
     x = np.concatenate([rng.uniform(-7, 7, 200_000), rng.normal(0, 1, 200_000), rng.uniform(-1e-8, 1e-8, 1000),
                         [0.0, 0.84375, 1.25, 1 / 0.35, 6.0, -6.0, 1e-300, 27.0]])
     y = erf(x)
     ref = np.array([math.erf(v) for v in x])
-    assert np.all(np.abs(y - ref) <= np.spacing(np.abs(ref)))
+    assert np.array_equal(y, ref)  # the C library's, bit for bit
     assert np.all(np.abs(y - scipy_erf(x)) <= 3 * np.spacing(np.abs(ref)))
     assert np.isnan(erf(np.array([np.nan]))[0]) and erf(np.array([np.inf, -np.inf])).tolist() == [1.0, -1.0]
     assert math.copysign(1, erf(np.array([-0.0]))[0]) == -1  # odd, to the sign of zero
