@@ -315,3 +315,20 @@ def test_the_choices_come_from_the_registries():
                 assert set(METHODS) <= set(action.choices) <= set(METHODS) | {"blind"}, argv
                 seen.add("method")
     assert seen == {"variant", "statistic", "method"}
+
+
+@pytest.mark.slow
+def test_demo_ends_in_the_viewer_on_a_real_photograph(tmp_path, monkeypatch, capsys):
+    """In a terminal `skyview demo` opens the viewer on one of the bundled photographs, solved blind (the
+    server itself is stubbed: the test records what it was asked to serve)."""
+    import skyview.viewer.app as app
+
+    asked = {}
+    monkeypatch.setattr(app, "serve", lambda **kw: asked.update(kw) or 0)
+    monkeypatch.setattr(sys.stdin, "isatty", lambda: True, raising=False)
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: True, raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo"]) == 0
+    out = capsys.readouterr().out
+    assert asked["image"].endswith(".png") and "real-images" in asked["image"] and asked["method"] is None
+    assert "5. the viewer on the photograph" in out

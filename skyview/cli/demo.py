@@ -132,6 +132,7 @@ def cmd_demo(a) -> int:
     bres = blind.solve_array(frame.image)
     print_human(with_truth(bres, R, frame.truth))
     photos = REPO_ROOT / "tests" / "data" / "real-images"
+    photo = None
     if (photos / "reference.json").exists():
         from skyview.detect.centroids import load_image
 
@@ -141,6 +142,7 @@ def cmd_demo(a) -> int:
               f"is cedar-solve's):")
         pres = blind.solve_array(load_image(photos / name))
         print_human(with_truth(pres, np.asarray(ref[name]["R"])))
+        photo = photos / name
     print(f"\ntotal {1e3 * (time.perf_counter() - t0):.0f} ms. Next: skyview solve YOUR_PHOTO.jpg, skyview view")
     if a.json:
         print(json.dumps(out))
@@ -152,9 +154,15 @@ def cmd_demo(a) -> int:
     from skyview.viewer.app import serve
     from skyview.viewer.run import SceneConfig
 
+    scene = SceneConfig(ra_deg=a.ra % 360.0, dec_deg=a.dec, roll_deg=a.roll, fov_deg=a.fov_deg, seed=a.seed)
+    if photo is not None:  # the viewer opens on the real photograph, solved blind, in its place on the sky
+        print(f"\n5. the viewer on the photograph ({photo.name}), solved blind: its catalog stars on its stars, "
+              f"the fitted camera; the Steps tab tells how it was found. 'Back to the simulation' renders its sky, "
+              f"where Method {a.method} steps through the papers' identification.")
+        serve(image=str(photo), config=scene, method=None, say=lambda line: print(line, flush=True))
+        return code
     print(f"\n5. the viewer on this solved scene ({a.method}, {a.variant}): step through how it was identified.")
-    serve(config=SceneConfig(ra_deg=a.ra % 360.0, dec_deg=a.dec, roll_deg=a.roll, fov_deg=a.fov_deg, seed=a.seed),
-          method=a.method, variant=a.variant, say=lambda line: print(line, flush=True))
+    serve(config=scene, method=a.method, variant=a.variant, say=lambda line: print(line, flush=True))
     return code
 
 
