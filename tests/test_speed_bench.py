@@ -33,11 +33,14 @@ def test_speed_bench_scores_and_times_every_stage(tmp_path):
     assert "| angle (improved) |" in md and "load average" in md and "3 16-bit images" in md
     t = s["results"]["triangle (improved)"]  # the default pair of issue 11: angle and triangle, improved
     assert t["n"] == 3 and t["outcomes"]["incorrect"] == 0 and t["outcomes"]["correct"] >= 1
+    d = s["results"]["default, FOV given"]  # what `skyview solve IMG --fov-deg F` runs, timed beside them
+    assert d["n"] == 3 and d["outcomes"]["incorrect"] == 0 and d["outcomes"]["correct"] >= 1
+    assert "| default, FOV given |" in md
 
 
 def test_speed_bench_renders_8_bit_frames_when_asked(tmp_path):
     s = run_speed_bench(get_scenario("cole8"), 1, seed=0, blind=False, peers=False, work_dir=tmp_path,
-                        rounds=1, progress=False, methods=(("angle", "improved"),), bit_depth=8)
+                        rounds=1, progress=False, methods=(("angle", "improved"),), bit_depth=8, default_path=False)
     assert s["bit_depth"] == 8 and load_image(next(tmp_path.glob("trial*.png"))).dtype == np.uint8
     assert "1 8-bit images" in format_markdown(s)
     with pytest.raises(BadInput, match="bit depth 12"):

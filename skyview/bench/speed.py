@@ -17,6 +17,9 @@ has jpeg_quality) into a work folder, then times, one image after the other, in 
   image: centroids, identification, attitude (verification is part of identification: every method
   ends in it), total; scored against the truth sidecar as `skyview bench` scores (a wrong match is
   incorrect);
+- the default pipeline given the FOV (`solve_image(image, fov_deg=F)`: what `skyview solve IMG --fov-deg F`
+  runs, the improved angle method at F first, the blind search over F +- 10 % when that does not verify),
+  when `default_path=True`;
 - the blind pipeline (`BlindSolver.solve_array`, no FOV), scored the same way, when `blind=True`.
 
 Each solver gets one untimed warm-up solve first. With rounds=R (default 2) every solver, tetra3rs
@@ -189,6 +192,7 @@ def _summarize(entry: dict) -> dict:
 
 
 def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS, blind: bool = True,
+                    default_path: bool = True,
                     peers: bool = True, python: str | None = None, work_dir: Path | None = None,
                     max_error_px: float = MAX_ERROR_PX, rounds: int = 2, progress: bool = True,
                     bit_depth: int = DEFAULT_BIT_DEPTH) -> dict:
@@ -197,7 +201,7 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
 
     from skyview.core.catalog import load_guide_catalog
     from skyview.detect.centroids import load_image
-    from skyview.solver.pipeline import BlindSolver, Solver
+    from skyview.solver.pipeline import BlindSolver, Solver, solve_image
 
     if n < 1:
         raise BadInput("the number of images (-n) must be at least 1")
@@ -228,6 +232,12 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
             name = f"{method} ({variant})"
             setup[name] = {"solver_ms": (time.perf_counter() - t0) * 1e3, **solver.setup_ms}
             solvers.append((name, f"skyview {method} ({variant}), exact FOV", solver.solve_array))
+        if default_path:  # what `skyview solve IMG --fov-deg F` and `skyview.solve(img, fov_deg=F)` run
+            t0 = time.perf_counter()
+            solve_image(decoded[0], fov_deg=scenario.fov_deg)  # its solvers built and kept, as in a process
+            setup["default, FOV given"] = {"solver_ms": (time.perf_counter() - t0) * 1e3}
+            solvers.append(("default, FOV given", "skyview's default pipeline given the FOV (+-10 %)",
+                            lambda img: solve_image(img, fov_deg=scenario.fov_deg)))
         if blind:
             t0 = time.perf_counter()
             bsolver = BlindSolver(catalog=catalog, max_stars=40)
