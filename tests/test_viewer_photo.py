@@ -142,3 +142,16 @@ def test_a_busy_photograph_rings_its_brightest_detections_and_more_on_request(se
     rings = server.scene.get_handle_by_name(NODES["centroids"])
     assert len(rings.points) == n * per_ring
     s.panel.detections.value = DETECTIONS_DRAWN
+
+
+def test_the_bundled_photographs_are_one_click_away(session):
+    server, s = session
+    names = [n for n in s.panel.gallery.options if n != "-"]
+    assert sorted(names) == sorted(p.name for p in REAL.glob("*.png")) and s.panel.gallery.visible
+    s.panel.gallery.value = PHOTO  # as a user picks it from the list
+    assert s.wait_idle(60) and s.error == ""
+    assert s.run.source.name == PHOTO and s.run.result.solved and s.run.source.fitted
+    ra, dec, _ = np.degrees(radec_roll_from_R(s.run.result.R))
+    ref = REFERENCE[PHOTO]
+    # within 0.02 deg of cedar-solve's reference: this photograph is its most distorted (57" apart: README)
+    assert abs(dec - ref["dec_deg"]) < 0.02 and abs((ra - ref["ra_deg"] + 180) % 360 - 180) < 0.02

@@ -35,6 +35,7 @@ from skyview.viewer.sequence_run import FRAMES_RANGE, STEP_RANGE_DEG, TURNS, Seq
 PAPER_CAMERA = {"fov_deg": 30.0, "resolution": "1024x1024", "mag_limit": 4.5}  # Udomkesmalee et al.'s camera
 
 
+NO_PHOTO = "-"  # the gallery's first entry: no bundled photograph chosen
 DETECTIONS_DRAWN = 150  # rings drawn by default: a photograph of 800+ detections stays readable
 
 @dataclass
@@ -86,6 +87,7 @@ class Panel:
     compare: GuiButtonHandle
     upload_fov: GuiNumberHandle
     upload: GuiUploadButtonHandle
+    gallery: GuiDropdownHandle  # the bundled photographs, one click each
     back: GuiButtonHandle
     # result
     result: GuiMarkdownHandle
@@ -176,7 +178,7 @@ def legend_markdown() -> str:
     return "<small>" + " &nbsp; ".join(items) + "</small>"
 
 
-def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
+def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig, photos: tuple[str, ...] = (),
                 coverage_label: str | None = None) -> Panel:
     """Lay out the panel (docked right, dark); returns the handles."""
     gui.configure_theme(dark_mode=True, control_width="large", show_logo=False, show_share_button=False,
@@ -190,6 +192,8 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
     upload_fov = gui.add_number("FOV hint (deg)", initial_value=cfg.fov_deg, min=FOV_RANGE_DEG[0],
                                 max=FOV_RANGE_DEG[1], step=0.1,
                                 hint="a hint only (horizontal field of view): the FOV is fitted to the stars")
+    gallery = gui.add_dropdown("Or a bundled photograph", (NO_PHOTO, *photos), initial_value=NO_PHOTO,
+                               visible=bool(photos), hint="real photographs that come with skyview, solved blind")
     back = gui.add_button("Back to the simulation", visible=False)
     status = gui.add_markdown("starting…")
     progress = gui.add_progress_bar(100.0, animated=True, visible=False)
@@ -288,7 +292,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig,
                  false_stars=false_stars, dropped=dropped, seed=seed, method=method, variant=variant,
                  seq_controls=seq_controls, track=track, n_frames=n_frames, turn=turn, turn_step=turn_step,
                  paper_camera=paper_camera, auto=auto,
-                 solve=solve, compare=compare, upload_fov=upload_fov, upload=upload, back=back,
+                 solve=solve, compare=compare, upload_fov=upload_fov, upload=upload, gallery=gallery, back=back,
                  result=result, compare_table=compare_table, bench_table=bench_table, export=export,
                  boresight=boresight, wide=wide,
                  follow=follow, detections=detections, checks=checks, picked=picked)

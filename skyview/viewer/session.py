@@ -56,6 +56,14 @@ PLAY_INTERVAL_S = 0.7
 FRAME_INTERVAL_S = 1.5  # Play the frames: each frame redraws the sensor image, the camera and its steps
 
 
+def bundled_photographs() -> list[Path]:
+    """The real photographs that come with skyview (tests/data/real-images of a source checkout), by name."""
+    from skyview.core.catalog import REPO_ROOT
+
+    folder = REPO_ROOT / "tests" / "data" / "real-images"
+    return sorted(p for p in folder.glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff"))
+
+
 def reported(fn: Callable) -> Callable:
     """A user's action: its errors go to the panel (BadInput as one line), the server keeps running."""
 
@@ -88,6 +96,7 @@ class Session:
         self._panel_base: np.ndarray | None = None  # the sensor image of the run on screen, before annotation
         self.sky = SkyScene(owner.scene)
         self.panel = p = P.build_panel(owner.gui, list(viewer_methods()), list(VARIANTS), config or SceneConfig(),
+                                       photos=tuple(p.name for p in bundled_photographs()),
                                        coverage_label=None if coverage is None else coverage.label)
         self.step_plot = StepPlot(p.plot_key, p.step_plot)
         self.frame_plot = FramePlot(p.frame_plot)
@@ -203,6 +212,7 @@ class Session:
         p.compare.on_click(g(lambda _e: self.request_compare()))
         p.random.on_click(g(lambda _e: self.randomise()))
         p.upload.on_upload(lambda e: self.receive_upload(e.target.value.name, e.target.value.content))
+        p.gallery.on_update(g(lambda e: self.load_bundled(str(e.target.value))))
         p.back.on_click(g(lambda _e: self.use_simulation()))
         p.step.on_update(g(lambda _e: self.set_step(int(p.step.value))))
         p.play.on_click(g(lambda _e: self.toggle_play()))
@@ -256,6 +266,17 @@ class Session:
         fov = check_fov(self.panel.upload_fov.value)
         image = decode_image_bytes(content, name or "the upload")
         self.load_image(image, fov, name or "upload")
+
+    def load_bundled(self, name: str) -> None:
+        """One of the bundled photographs chosen in the panel's gallery, solved as an upload is."""
+        if self._quiet or name == P.NO_PHOTO:
+            return
+        path = next((p for p in bundled_photographs() if p.name == name), None)
+        if path is None:
+            raise BadInput(f"{name!r} is not one of the bundled photographs")
+        from skyview.detect.centroids import load_image
+
+        self.load_image(load_image(path), check_fov(self.panel.upload_fov.value), name)
 
     def load_image(self, image: np.ndarray, fov_deg: float, name: str) -> None:
         """Solve a user's image (upload, or `--image`) instead of the simulation."""
