@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
 import io
 import os
 import signal
@@ -59,6 +60,7 @@ def check_host(host: str) -> None:
                    f"address of this machine, e.g. 127.0.0.1 or 0.0.0.0)")
 
 
+RELEASE_AFTER_S = 0.5  # a closed tab's session is collected this long after its client left
 NO_AUTH_WARNING = ("warning: the viewer has no authentication: anyone who can reach {host} can use it. Put it "
                    "behind a reverse proxy with authentication (nginx, Caddy) or an SSH tunnel to 127.0.0.1 instead")
 
@@ -127,6 +129,13 @@ class ViewerApp:
             session = self.sessions.pop(client.client_id, None)
         if session is not None:
             session.close()
+            del session
+            # a session and its panel's callbacks hold each other (a reference cycle), and viser holds the
+            # client until this callback returns: collected a moment later, not at the next full collection,
+            # which a server of numpy arrays may not reach for a long time (~9 MB a closed tab)
+            timer = threading.Timer(RELEASE_AFTER_S, gc.collect)
+            timer.daemon = True
+            timer.start()
 
     def stop(self) -> None:
         with self._lock:
