@@ -61,6 +61,7 @@ class ToyMethod(Identifier):
 
     name = "toy"
     title = "the toy method"
+    paper_scenario = "cole8"  # the conditions it is meant for: the bench's, the comparison's, the recordings' default
     Params = ToyParams
     improved_params = dataclasses.replace(ToyParams(), beta=4.0).changed()
 
@@ -263,6 +264,16 @@ def test_the_toy_method_in_the_cli_the_bench_and_the_drawables(toy, cat, cam, fr
 
     b = run_bench("toy", get_scenario("cole8"), 4, seed=0, progress=False)
     assert b["counts"]["correct"] >= 2 and b["counts"]["incorrect"] == 0  # weak (no false-star handling), never wrong
+
+    # the comparison and the example recordings find it in the registry, with its own scenario: no list
+    # outside its module names it
+    from skyview.bench.compare import method_order, run_simulated, slow_methods
+    from skyview.present.text import paper_scenario
+
+    assert "toy" in method_order() and "toy" not in slow_methods() and "genetic" in slow_methods()
+    assert paper_scenario("toy") == "cole8" and paper_scenario("angle") == "cole8" and paper_scenario("blind") is None
+    sim = run_simulated(get_scenario("cole8"), 2, 0, n_slow=1, methods=("toy",))
+    assert {row["method"] for row in sim["rows"]} == {"toy"} and all(row["incorrect"] == 0 for row in sim["rows"])
 
     r = make_identifier("toy", cat, cam, 87e-6).identify(frame.obs)
     views = step_views(r.steps, cat.xyz, len(frame.obs), camera=cam, hip=cat.hip)

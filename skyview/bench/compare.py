@@ -32,13 +32,21 @@ from skyview.bench.trials import TrialContext, run_trial
 from skyview.core.attitude import attitude_error_arcsec, random_attitudes
 from skyview.core.catalog import load_guide_catalog
 from skyview.core.errors import BadInput
-from skyview.identify import VARIANTS
+from skyview.identify import METHODS, VARIANTS
 from skyview.simulate.render import SensorModel
 from skyview.simulate.scenarios import Scenario
 from skyview.solver.pipeline import Solver
 
-METHOD_ORDER = ("angle", "triangle", "svd", "ellipticity", "stochastic", "genetic")
-SLOW_METHODS = ("genetic",)  # run on the first n_slow images only
+
+def method_order() -> tuple[str, ...]:
+    """Every method of the registry, in its order (`skyview.identify.METHODS`: a method registered at run
+    time is compared too)."""
+    return tuple(METHODS)
+
+
+def slow_methods() -> tuple[str, ...]:
+    """The methods whose `slow` flag says an identification takes seconds: run on the first n_slow images."""
+    return tuple(m for m in METHODS if getattr(METHODS[m], "slow", False))
 STAR_BINS = ((0, 3, "0-3"), (4, 4, "4"), (5, 5, "5"), (6, 6, "6"), (7, 7, "7"), (8, 10, "8-10"),
              (11, 10**6, "11+"))
 REAL_IMAGES = Path(__file__).resolve().parents[2] / "tests" / "data" / "real-images"
@@ -96,10 +104,12 @@ def _short(reason: str) -> str:
     return (" ".join(words[:14]) + (" ..." if len(words) > 14 else "")) or "none"
 
 
-def run_simulated(scenario: Scenario, n: int, seed: int, *, n_slow: int, methods=METHOD_ORDER,
-                  variants=VARIANTS, progress=None, slow=SLOW_METHODS) -> dict:
-    """Every method and variant on the same n simulated images of the scenario (the first n_slow for the
-    slow methods)."""
+def run_simulated(scenario: Scenario, n: int, seed: int, *, n_slow: int, methods=None,
+                  variants=VARIANTS, progress=None, slow=None) -> dict:
+    """Every method and variant (default: the registry's) on the same n simulated images of the scenario
+    (the first n_slow for the slow methods)."""
+    methods = method_order() if methods is None else tuple(methods)
+    slow = slow_methods() if slow is None else tuple(slow)
     if n < 1 or n_slow < 1:
         raise BadInput("the number of images (-n, --compare-slow-n) must be at least 1")
     rng = np.random.default_rng(seed)
@@ -127,7 +137,7 @@ def run_simulated(scenario: Scenario, n: int, seed: int, *, n_slow: int, methods
             "seed": seed, "bins": [label for _, _, label in STAR_BINS], "rows": rows}
 
 
-def run_real(folder: Path = REAL_IMAGES, methods=METHOD_ORDER, variants=VARIANTS, progress=None, *,
+def run_real(folder: Path = REAL_IMAGES, methods=None, variants=VARIANTS, progress=None, *,
              blind: bool = True, names: list[str] | None = None) -> dict:
     """Every method and variant on the real photographs, each told its FOV exactly (calibrated mode),
     and (blind=True) the default pipeline told nothing. names: a subset of the photographs."""
@@ -139,6 +149,7 @@ def run_real(folder: Path = REAL_IMAGES, methods=METHOD_ORDER, variants=VARIANTS
         raise BadInput(f"no real photographs at {folder} (reference.json missing)")
     ref = json.loads(ref_path.read_text())
     images = {name: load_image(Path(folder) / name) for name in sorted(ref) if names is None or name in names}
+    methods = method_order() if methods is None else tuple(methods)
     jobs = [(m, v) for m in methods for v in variants] + ([(None, "improved")] if blind else [])
     rows = []
     for method, variant in jobs:
@@ -166,7 +177,7 @@ def run_real(folder: Path = REAL_IMAGES, methods=METHOD_ORDER, variants=VARIANTS
 
 
 def run_compare(scenario: Scenario, n: int, seed: int, *, n_slow: int = 30, real: bool = True,
-                methods=METHOD_ORDER, progress=None) -> dict:
+                methods=None, progress=None) -> dict:
     """The whole comparison: simulated images (and the real photographs unless real=False)."""
     t0 = time.perf_counter()
     report = {"kind": "compare", "version": FORMAT_VERSION,
@@ -191,7 +202,8 @@ def format_markdown(report: dict) -> str:
     """The comparison as Markdown tables (what docs/benchmarks.md keeps)."""
     sim = report["simulated"]
     sc = sim["scenario"]
-    lines = [f"### Simulated: `{sc['name']}`, {sim['n']} attitudes (genetic: the first {sim['n_slow']}), seed "
+    slow = ", ".join(sim.get("slow_methods") or []) or "slow methods"
+    lines = [f"### Simulated: `{sc['name']}`, {sim['n']} attitudes ({slow}: the first {sim['n_slow']}), seed "
              f"{sim['seed']}", "",
              f"{sc['description']}.", "",
              "| method | variant | n | correct | inconclusive | wrong | unverified: correct / wrong | identify ms "

@@ -67,13 +67,13 @@ class _Registry(Mapping):
         self._classes.pop(name, None)
 
 
-METHODS: Mapping[str, type[Identifier]] = _Registry({
+METHODS: Mapping[str, type[Identifier]] = _Registry({  # the order every listing and comparison shows
     "angle": "skyview.identify.angle.AngleMethod",
-    "ellipticity": "skyview.identify.ellipticity.EllipticityMethod",
-    "genetic": "skyview.identify.genetic.GeneticMethod",
-    "stochastic": "skyview.identify.stochastic.StochasticMethod",
-    "svd": "skyview.identify.svd.SVDMethod",
     "triangle": "skyview.identify.triangle.TriangleMethod",
+    "svd": "skyview.identify.svd.SVDMethod",
+    "ellipticity": "skyview.identify.ellipticity.EllipticityMethod",
+    "stochastic": "skyview.identify.stochastic.StochasticMethod",
+    "genetic": "skyview.identify.genetic.GeneticMethod",
 })
 
 

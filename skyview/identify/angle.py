@@ -149,6 +149,7 @@ class AngleMethod(PivotMethod):
     """Cole & Crassidis' angle method with pivoting, ending in the shared verification."""
 
     name = "angle"
+    paper_scenario = "cole8"
     title = "the angle method"
     Params = AngleParams
     improved_params = IMPROVED_PARAMS

@@ -191,6 +191,10 @@ class Identifier(ABC):
     Params: type | None = None  # the frozen dataclass of the method's parameters (paper defaults)
     min_stars: int = 3  # fewer observed stars than this: FAILED, "too few stars"
     title: str = ""  # the method in a sentence ("the angle method"), for the too-few-stars reason
+    # the scenario of the method's paper (`skyview.simulate.scenarios`): the conditions it was published
+    # under, the bench's and the example recording's default for it, what a result is compared with
+    paper_scenario: str | None = None
+    slow: bool = False  # an identification takes seconds: a comparison runs it on fewer images
     # Options beyond the paper that make the method better; `variant="improved"` applies them.
     improved_params: dict = {}
     database_key: dict

@@ -274,6 +274,7 @@ class EllipticityMethod(Identifier):
     """Sun, Qi, Jin & Wang's ellipticity pivot-star method, ending in the shared verification."""
 
     name = "ellipticity"
+    paper_scenario = "sun20"
     title = "the ellipticity method"
     Params = EllipticityParams
     min_stars = 4

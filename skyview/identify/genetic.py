@@ -616,6 +616,8 @@ class GeneticMethod(Identifier):
     """Paladugu, Williams & Schoen's spiral GA on the celestial sphere, ending in the shared verification."""
 
     name = "genetic"
+    paper_scenario = "sun20"
+    slow = True  # a generational search: seconds a frame
     title = "the genetic method"
     Params = GeneticParams
     improved_params = IMPROVED_PARAMS

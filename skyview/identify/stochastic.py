@@ -349,6 +349,7 @@ class StochasticMethod(SequenceIdentifier):
     `identify_sequence(observations, turns)` runs the recursion of eq. 3."""
 
     name = "stochastic"
+    paper_scenario = "udomkesmalee30"
     Params = StochasticParams
     improved_params = IMPROVED_PARAMS
 

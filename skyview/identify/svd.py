@@ -515,6 +515,7 @@ class SVDMethod(Identifier):
     """Juang, Kim & Junkins' singular value method, ending in the shared verification."""
 
     name = "svd"
+    paper_scenario = "juang8"
     title = "the SVD method"
     Params = SVDParams
     improved_params = IMPROVED_PARAMS

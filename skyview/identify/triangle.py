@@ -169,6 +169,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
     """Cole & Crassidis' spherical-triangle method with pivoting, ending in the shared verification."""
 
     name = "triangle"
+    paper_scenario = "cole8"
     title = "the spherical-triangle method"
     Params = TriangleParams
     improved_params = IMPROVED_PARAMS

@@ -102,7 +102,7 @@ def _paper_conditions(result) -> str:
     """A sentence when the scene is outside the conditions of the method's paper (its scenario)."""
     from skyview.simulate.scenarios import SCENARIOS
 
-    name = PAPER_SCENARIOS.get(result.method)
+    name = paper_scenario(result.method)
     sc = SCENARIOS.get(name) if name else None
     if sc is None or result.variant != "paper":
         return ""
@@ -118,6 +118,9 @@ def _paper_conditions(result) -> str:
             f"({cam.fov_deg:.0f}° field, stars to Hp {sc.mag_limit:g}).")
 
 
-# The scenario of each method's paper (its conditions; `skyview.simulate.scenarios`).
-PAPER_SCENARIOS = {"angle": "cole8", "triangle": "cole8", "svd": "juang8", "ellipticity": "sun20", "genetic": "sun20",
-                   "stochastic": "udomkesmalee30"}
+def paper_scenario(method: str) -> str | None:
+    """The scenario of a method's paper (its `paper_scenario`), None for a method without one (blind)."""
+    from skyview.identify import METHODS
+
+    cls = METHODS.get(method)
+    return getattr(cls, "paper_scenario", None) if cls is not None else None

@@ -13,13 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from skyview.core.errors import BadInput
-from skyview.present.text import PAPER_SCENARIOS
+from skyview.present.text import paper_scenario
 from skyview.record.cases import Case, CaseRunner
 from skyview.record.draw import check_output_path
 
 # Every method's example is on its paper's scenario; a sequence method's (`is_sequence_method`) is the
 # paper's frame sequence there (skyview.record.sequence).
-EXAMPLE_SCENARIOS = PAPER_SCENARIOS
 # The failure example: the paper variant of this method on this scenario, first seed that ends inconclusive.
 FAILURE_EXAMPLE = ("angle", "cole8-false")
 EXAMPLE_SEED_START = 1
@@ -44,9 +43,9 @@ def record_examples(out_dir: str | os.PathLike = "recordings", *, force: bool = 
         raise BadInput(f"folder {out} does not exist")
     plan: list[tuple[str, str, bool]] = []
     for method in METHODS:
-        scenario = EXAMPLE_SCENARIOS.get(method)
+        scenario = paper_scenario(method)
         if scenario is None:
-            say(f"skipped {method}: no default scenario for it in skyview.present.drawables.PAPER_SCENARIOS")
+            say(f"skipped {method}: the method names no paper_scenario")
         elif scenario not in SCENARIOS:
             say(f"skipped {method}: its scenario {scenario!r} does not exist yet")
         else:

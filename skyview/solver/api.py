@@ -44,7 +44,7 @@ __all__ = ["solve", "Solver", "Solution", "Match", "NotSolvedError", "Status", "
 
 Status = Literal["solved", "failed"]
 """``"solved"``: a verified attitude; ``"failed"``: none (``Solution.reason`` says why)."""
-MethodName = Literal["angle", "ellipticity", "genetic", "stochastic", "svd", "triangle"]
+MethodName = str  # a name in skyview.identify.METHODS (the registry: a method added there is accepted here)
 """The identification methods (``skyview.identify.METHODS``); ``None`` is the default blind pipeline."""
 VariantName = Literal["paper", "improved"]
 EstimatorName = Literal["svd", "q-method"]
