@@ -825,6 +825,15 @@ def _settle(pg, timeout_s: float = 30.0, quiet_s: float = 0.5) -> None:
     raise TimeoutError("the render loop never settled")
 
 
+def _chromium(playwright, tmp_path: Path):
+    """Headless Chromium whose own files (dconf, caches) go to the test's folder, not the user's home."""
+    home = tmp_path / "browser-home"
+    home.mkdir(exist_ok=True)
+    env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
+           "XDG_CONFIG_HOME": str(home / ".config")}
+    return playwright.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS, env=env)
+
+
 def _open(browser, url: str, nbytes: list | None = None):
     pg = browser.new_page(viewport={"width": 1400, "height": 860})
     external = []
@@ -920,12 +929,7 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
     proc, url = _start_view()
     try:
         with pw.sync_playwright() as p:
-            # the browser's own files (dconf, caches) go to the test's folder, not the user's home
-            home = tmp_path / "browser-home"
-            home.mkdir()
-            env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
-                   "XDG_CONFIG_HOME": str(home / ".config")}
-            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS, env=env)
+            browser = _chromium(p, tmp_path)
             try:
                 frames: list[int] = []
                 pg = _open(browser, url, frames)
@@ -1206,11 +1210,7 @@ def test_browser_tells_each_methods_story_step_by_step(tmp_path):
     proc, url = _start_view()
     try:
         with pw.sync_playwright() as p:
-            home = tmp_path / "browser-home"
-            home.mkdir()
-            env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
-                   "XDG_CONFIG_HOME": str(home / ".config")}
-            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS, env=env)
+            browser = _chromium(p, tmp_path)
             try:
                 pg = _open(browser, url)
                 pg.get_by_role("tab", name="Scenario").click()
@@ -1401,11 +1401,7 @@ def test_a_closed_tab_frees_its_session(tmp_path):
     gc.disable()  # only the app's own collection may free them
     try:
         with pw.sync_playwright() as p:
-            home = tmp_path / "browser-home"
-            home.mkdir()
-            env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache"),
-                   "XDG_CONFIG_HOME": str(home / ".config")}
-            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS, env=env)
+            browser = _chromium(p, tmp_path)
             try:
                 for _ in range(3):
                     pg = browser.new_page()

@@ -151,18 +151,12 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
         if isinstance(img, np.ndarray) and img.shape != shape:
             img = BadInput(f"{names[k]} is {img.shape[1]}x{img.shape[0]}, the sequence's frames are "
                            f"{shape[1]}x{shape[0]}")
-        if not isinstance(img, np.ndarray):  # this frame's error; the run goes on
-            tracker.skip(turn)
-            errors.append(k)
-            d = {"frame": k, "image": names[k], "status": "error", "error": str(img), "method": a.method or "blind"}
-            text = json.dumps(d, allow_nan=False)
-            lines.append(text)
-            print(text if a.json else f"frame {k}: error: {img}", flush=True)
-            continue
         try:
+            if not isinstance(img, np.ndarray):
+                raise img
             fr = tracker.process(img, turn)
-        except (BadInput, SkyviewError) as exc:
-            tracker.skip(None)
+        except (BadInput, SkyviewError) as exc:  # this frame's error (its line, exit code 1); the run goes on
+            tracker.skip(turn)
             errors.append(k)
             d = {"frame": k, "image": names[k], "status": "error", "error": str(exc), "method": a.method or "blind"}
             text = json.dumps(d, allow_nan=False)
