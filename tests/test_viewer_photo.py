@@ -97,6 +97,7 @@ def test_catalog_stars_sit_on_the_photographs_stars(session, crop):
     assert s.panel.upload_fov.value == pytest.approx(cam.fov_deg, abs=1e-3)
     assert s.panel.method.value == "blind" and s.panel.variant.value == "improved"
     assert "fitted" in s.panel.result.content
+    assert " · in Cassiopeia" in s.panel.status.content  # where it is, in words (RA 355 deg, Dec +58 deg)
 
 
 def test_a_distorted_camera_moves_the_rings_and_the_texture_together():
@@ -155,3 +156,17 @@ def test_the_bundled_photographs_are_one_click_away(session):
     ref = REFERENCE[PHOTO]
     # within 0.02 deg of cedar-solve's reference: this photograph is its most distorted (57" apart: README)
     assert abs(dec - ref["dec_deg"]) < 0.02 and abs((ra - ref["ra_deg"] + 180) % 360 - 180) < 0.02
+
+
+def test_constellations_in_view_are_the_iau_ones_around_the_boresight():
+    from skyview.core.attitude import R_from_radec_roll
+    from skyview.core.camera import Camera
+    from skyview.viewer.geometry import constellations_in_view
+
+    orion = constellations_in_view(Camera.from_fov(8.0, 1024, 768), R_from_radec_roll(np.radians(83.8),
+                                                                                        np.radians(-5.4), 0.3))
+    assert orion == ["Orion"]  # the belt and the sword: one constellation
+    wide = constellations_in_view(Camera.from_fov(40.0, 1024, 768), R_from_radec_roll(np.radians(83.8),
+                                                                                       np.radians(-5.4), 0.3))
+    # a 40 x 30 deg field on Orion reaches its neighbours on every side, the boresight's first
+    assert wide[0] == "Orion" and {"Eridanus", "Monoceros", "Lepus", "Taurus"} <= set(wide) and len(set(wide)) == len(wide)

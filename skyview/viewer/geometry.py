@@ -168,3 +168,19 @@ def undistorted(image: np.ndarray, camera: Camera) -> np.ndarray:
     K = np.array([[camera.fx * sx, 0.0, (camera.cx + 0.5) * sx - 0.5],
                   [0.0, camera.fy * sy, (camera.cy + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
     return cv2.undistort(image, K, np.array([camera.k1, camera.k2, 0.0, 0.0]), None, K)
+
+
+def constellations_in_view(camera: Camera, R: np.ndarray, n: int = 7) -> list[str]:
+    """The IAU constellations a solved field covers (astropy's constellation boundaries), the boresight's
+    first, then the others by how much of an n x n grid of the image each holds."""
+    import astropy.units as u
+    from astropy.coordinates import SkyCoord, get_constellation
+
+    us, vs = np.meshgrid(np.linspace(0, camera.width - 1, n), np.linspace(0, camera.height - 1, n))
+    uv = np.column_stack([[camera.cx, *us.ravel()], [camera.cy, *vs.ravel()]])
+    ra, dec = vec_to_radec(camera.unproject(uv) @ np.asarray(R, dtype=np.float64))  # v_icrs = R^T v_cam
+    names = [str(x) for x in get_constellation(SkyCoord(ra=np.degrees(ra) * u.deg, dec=np.degrees(dec) * u.deg))]
+    counts: dict[str, int] = {}
+    for name in names[1:]:
+        counts[name] = counts.get(name, 0) + 1
+    return [names[0], *sorted((k for k in counts if k != names[0]), key=lambda k: -counts[k])]

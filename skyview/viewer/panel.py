@@ -27,7 +27,7 @@ from viser import (
 from skyview.core.attitude import radec_roll_from_R
 from skyview.present.drawables import LEGEND, OUTCOME_RGB, PALETTE, StepView
 from skyview.present.text import format_number, step_summary, why_not
-from skyview.viewer.geometry import STAR_NAMES
+from skyview.viewer.geometry import STAR_NAMES, constellations_in_view
 from skyview.viewer.plot_control import add_frame_plot, add_step_plot
 from skyview.viewer.run import FOV_RANGE_DEG, RESOLUTIONS, SEQUENCE_NOTE, Run, SceneConfig, needs_sequence
 from skyview.viewer.sequence_run import FRAMES_RANGE, STEP_RANGE_DEG, TURNS, SequenceConfig, SequenceRun
@@ -318,8 +318,11 @@ def status_markdown(run: Run) -> str:
         err = ""
         if run.error_arcsec:
             err = f" · error {_arcsec(run.error_arcsec['boresight'])}"
+        where = ""
+        if run.source.truth is None:  # a user's image: where it is, in words (IAU constellations)
+            where = " · in " + ", ".join(constellations_in_view(r.camera, r.R)[:3])
         return (f"<span style='color:rgb(90,230,130)'>● solved</span> by {head}: RA {ra:.3f}° Dec {dec:+.3f}° "
-                f"roll {roll:+.2f}°{err} · {len(r.matches)}/{len(r.centroids)} stars")
+                f"roll {roll:+.2f}°{err} · {len(r.matches)}/{len(r.centroids)} stars{where}")
     note = (" (one image only: this method identifies over a sequence of frames, which the viewer runs on "
             "simulated scenes)") if needs_sequence(r.method) else ""
     return f"<span style='color:rgb(255,150,40)'>● not solved</span> by {head}: {r.reason}{note}"
