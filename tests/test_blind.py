@@ -415,3 +415,12 @@ def test_resolved_matches_leaves_out_a_blended_pair(catalog):
     kept = resolved_matches(matches, catalog, scale)
     assert 0 not in kept and all(k + 1 in kept for k in range(len(alone)))
     assert resolved_matches(matches, catalog, 0.5 * table[pair] / BLEND_RADIUS_PX) == matches  # resolved there
+    # a camera of over 0.4 deg a pixel (beyond the table's reach): the k-d tree asked star by star
+    from skyview.identify.verify import BLEND_REACH_RAD
+
+    huge = 1.5 * BLEND_REACH_RAD / BLEND_RADIUS_PX
+    near = catalog.tree.query_ball_point(catalog.xyz[alone], float(np.sqrt(2 - 2 * np.cos(huge * BLEND_RADIUS_PX))))
+    expect = {k + 1 for k, (r, nb) in enumerate(zip(alone, near))
+              if not any(j != r and catalog.mag[j] <= catalog.mag[r] + 2.5 for j in nb)}
+    wide = resolved_matches({k + 1: r for k, r in enumerate(alone)}, catalog, huge)
+    assert set(wide) == (expect if len(expect) >= 2 else set(range(1, len(alone) + 1)))

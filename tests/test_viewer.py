@@ -27,6 +27,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
+from helpers import viewer_session
 
 from skyview.cli import main
 from skyview.core import sky_geometry as sg
@@ -368,22 +369,12 @@ def test_picture_stretch_decode_and_annotate():
 
 @pytest.fixture(scope="module")
 def session():
-    import viser
-
-    from skyview.viewer.session import Session
-
-    with contextlib.redirect_stdout(io.StringIO()):
-        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    s = Session(server, Solvers())
-    assert s.wait_idle(60)
-    # the viewer opens on the default pipeline (blind); these tests follow the angle method's steps
-    assert s.panel.method.value == "blind" and s.run.result.method == "blind" and s.run.result.solved
-    s.panel.method.value = "angle"
-    assert s.wait_idle(60) and s.run.result.method == "angle"
-    yield server, s
-    s.close()
-    with contextlib.redirect_stdout(io.StringIO()):
-        server.stop()
+    with viewer_session() as (server, s):
+        # the viewer opens on the default pipeline (blind); these tests follow the angle method's steps
+        assert s.panel.method.value == "blind" and s.run.result.method == "blind" and s.run.result.solved
+        s.panel.method.value = "angle"
+        assert s.wait_idle(60) and s.run.result.method == "angle"
+        yield server, s
 
 
 def _node(server, key: str):

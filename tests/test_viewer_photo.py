@@ -5,20 +5,18 @@ distortion, and a crop of it: 5.7 deg)."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from helpers import viewer_session
 
 from skyview.core.attitude import radec_roll_from_R
 from skyview.detect.centroids import load_image
 from skyview.viewer.geometry import image_plane_xy, undistorted
 from skyview.viewer.picture import texture
-from skyview.viewer.run import Solvers
 from skyview.viewer.scene import NODES
 
 REAL = Path(__file__).parent / "data" / "real-images"
@@ -28,18 +26,8 @@ PHOTO = "2019-07-29T204726_Alt40_Azi45_Try1.png"  # the most distorted of the ei
 
 @pytest.fixture(scope="module")
 def session():
-    import viser
-
-    from skyview.viewer.session import Session
-
-    with contextlib.redirect_stdout(io.StringIO()):
-        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    s = Session(server, Solvers())
-    assert s.wait_idle(60)
-    yield server, s
-    s.close()
-    with contextlib.redirect_stdout(io.StringIO()):
-        server.stop()
+    with viewer_session() as (server, s):
+        yield server, s
 
 
 def _upload(s, image: np.ndarray, name: str, typed_fov: float):

@@ -398,20 +398,6 @@ class GuideCatalog:
         inside = s <= lim[ci]
         return ci[inside], rows[inside], s[inside], np.unique(ci[np.abs(s - lim[ci]) <= BALL_UNSURE])
 
-    def ball_pairs(self, centers: np.ndarray, chord_: float) -> tuple[np.ndarray, np.ndarray]:
-        """Every (center index, row) with the row within the chord of that center, for many centers at
-        once: the pairs of tree.query_ball_point(centers, chord_)."""
-        c = np.atleast_2d(np.asarray(centers, dtype=np.float64))
-        if len(c) == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        ci, rows, _, unsure = self._pairs_within(c, np.full(len(c), float(chord_)))
-        if len(unsure):  # a star on a limit: the tree decides, as ball_rows does
-            sure = ~np.isin(ci, unsure)
-            extra = [(k, r) for k in unsure.tolist() for r in self.tree.query_ball_point(c[k], float(chord_))]
-            ci = np.concatenate([ci[sure], np.array([k for k, _ in extra], dtype=np.int64)])
-            rows = np.concatenate([rows[sure], np.array([r for _, r in extra], dtype=np.int64)])
-        return ci, rows
-
     def ball_counts(self, centers: np.ndarray, chords, among: np.ndarray | None = None,
                     among_xyz: np.ndarray | None = None) -> np.ndarray:
         """How many stars lie within each center's chord: = tree.query_ball_point(centers, chords,

@@ -135,11 +135,10 @@ def resolved_matches(matches: dict[int, int], catalog: GuideCatalog, pixel_scale
         if table is None:
             table = _BLEND[catalog] = blend_table(catalog)
         blended = table[rows] <= lim
-    else:  # a camera of over 0.4 deg a pixel: the stars near each match, asked for
-        ci, near = catalog.ball_pairs(catalog.xyz[rows], lim)
-        rival = (near != rows[ci]) & (catalog.mag[near] <= catalog.mag[rows[ci]] + BLEND_DELTA_MAG)
-        blended = np.zeros(len(obs), dtype=bool)
-        blended[ci[rival]] = True
+    else:  # a camera of over 0.4 deg a pixel: the stars near each match, from the k-d tree
+        near = catalog.tree.query_ball_point(catalog.xyz[rows], lim)
+        blended = np.array([any(k != c and catalog.mag[k] <= catalog.mag[c] + BLEND_DELTA_MAG for k in nb)
+                            for c, nb in zip(rows.tolist(), near)], dtype=bool)
     keep = {int(o): int(c) for o, c, b in zip(obs.tolist(), rows.tolist(), blended.tolist()) if not b}
     return keep if len(keep) >= 2 else matches
 
