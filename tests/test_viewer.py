@@ -1415,3 +1415,24 @@ def test_a_closed_tab_frees_its_session(tmp_path):
         if gc_was:
             gc.enable()
         app.stop()
+
+
+def test_the_progress_line_is_restored_before_wait_idle_returns():
+    """A job shown as running ("⏳ solving… 0.5 s") is reported ended before wait_idle returns, and no
+    late tick writes the progress line over the result afterwards."""
+    from skyview.viewer.worker import Worker
+
+    events: list[str] = []
+    w = Worker(on_error=lambda exc: events.append(f"error {exc}"))
+    w.watch(lambda label, s, p: events.append("busy"), lambda: events.append("idle"), after_s=0.05, every_s=0.01)
+    try:
+        for _ in range(3):
+            w.submit("solving", lambda: time.sleep(0.2))
+            assert w.wait_idle(5)
+            assert "busy" in events and events[-1] == "idle"
+            n = len(events)
+            time.sleep(0.1)
+            assert events[n:] == []
+            events.clear()
+    finally:
+        w.close()

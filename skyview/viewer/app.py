@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import gc
+import importlib
 import io
 import os
 import signal
@@ -81,6 +82,8 @@ class ViewerApp:
         self._lock = threading.Lock()
         check_host(host)
         self.solvers.base_catalog  # load once before the first tab arrives
+        # astropy (the constellation names of a solved photograph, 0.3 s to import) while nobody waits
+        threading.Thread(target=importlib.import_module, args=("astropy.coordinates",), daemon=True).start()
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own banner
             self.server = viser.ViserServer(host=host, port=port, label="skyview", verbose=False)
         self.host = host

@@ -18,6 +18,11 @@ class Worker:
         self._closed = False
         self.busy: tuple[str, float] | None = None  # (label, start time)
         self.progress: float | None = None  # 0..100 when the job knows, else None
+        # the progress line: written under this lock, by the ticker while a job runs and by the worker
+        # when it ends (so that no late tick writes over the result, and wait_idle sees the line restored)
+        self._report = threading.Lock()
+        self._shown = False  # the ticker showed the running job
+        self._on_idle: Callable[[], None] | None = None
         self._thread = threading.Thread(target=self._loop, name="skyview-viewer-worker", daemon=True)
         self._thread.start()
 
@@ -35,20 +40,18 @@ class Worker:
     def watch(self, on_busy: Callable[[str, float, float | None], None], on_idle: Callable[[], None],
               after_s: float = 0.3, every_s: float = 0.2) -> None:
         """Until closed, report a job that runs longer than after_s every every_s, as on_busy(label,
-        seconds so far, progress 0..100 or None), and its end, as on_idle() (from a thread of its own)."""
+        seconds so far, progress 0..100 or None; from a thread of its own), and the end of a job so
+        reported as on_idle() (from the worker, before wait_idle returns)."""
+        self._on_idle = on_idle
 
         def loop() -> None:
-            shown = False
             while not self._closed:
-                busy = self.busy
-                if busy is not None and time.monotonic() - busy[1] > after_s:
-                    with contextlib.suppress(Exception):
-                        on_busy(busy[0], time.monotonic() - busy[1], self.progress)
-                    shown = True
-                elif busy is None and shown:
-                    with contextlib.suppress(Exception):
-                        on_idle()
-                    shown = False
+                with self._report:
+                    busy = self.busy
+                    if busy is not None and time.monotonic() - busy[1] > after_s:
+                        with contextlib.suppress(Exception):
+                            on_busy(busy[0], time.monotonic() - busy[1], self.progress)
+                        self._shown = True
                 time.sleep(every_s)
 
         threading.Thread(target=loop, name="skyview-viewer-ticker", daemon=True).start()
@@ -94,6 +97,11 @@ class Worker:
             except Exception as exc:  # noqa: BLE001 - shown in the panel, the thread lives on
                 self._on_error(exc)
             finally:
-                with self._cv:
-                    self.busy = None
-                    self._cv.notify_all()
+                with self._report:
+                    shown, self._shown = self._shown, False
+                    if shown and self._on_idle is not None:
+                        with contextlib.suppress(Exception):
+                            self._on_idle()
+                    with self._cv:
+                        self.busy = None
+                        self._cv.notify_all()
