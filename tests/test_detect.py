@@ -110,3 +110,61 @@ def test_saturated_stars_only_at_the_border_are_kept_as_they_are():
         cv2.circle(img, (u, v), 1, 3000, -1)
     c = detect_stars(img)
     assert len(c) == 7 and c.saturated.sum() == 3
+
+
+# ------------------------------------------------------------------ faint frames: the matched filter
+
+def _faint_frame(catalog, seed):
+    sc = get_scenario("faint6")
+    R = random_attitudes(seed + 1, np.random.default_rng(seed))[-1]
+    return simulate_image(catalog, sc.camera(), R, sc.sensor(), seed=seed, **sc.render_kwargs()), R
+
+
+def _true_and_false(c, truth, radius=1.5):
+    tu = np.array([[s["u"], s["v"]] for s in truth["stars"]])
+    d = cKDTree(tu).query(c.uv)[0]
+    return int(np.count_nonzero(d <= radius)), int(np.count_nonzero(d > radius))
+
+
+def test_a_faint_8bit_frame_is_searched_through_the_matched_filter(catalog):
+    # a star tracker's 30 ms frame, 8 bits, background ~2 DN: pixel by pixel the centroider finds a handful
+    found_plain, found = [], []
+    for seed in range(4):
+        fr, R = _faint_frame(catalog, seed)
+        assert 1.0 <= np.median(fr.image) <= 3.0 and fr.image.dtype == np.uint8
+        plain = detect_centroids(fr.image)
+        c = detect_stars(fr.image)
+        assert c.params["matched_filter_sigma_px"] > 0
+        true, false = _true_and_false(c, fr.truth)
+        assert false <= 1 and c.n_hot_pixels_rejected >= 8  # the sensor's 8 hot pixels are not stars
+        found_plain.append(len(plain))
+        found.append(true)
+        res = BlindSolver(catalog=catalog).solve_array(fr.image)
+        assert res.solved and attitude_error_arcsec(res.R, R)["boresight"] < 10.0
+    assert sum(found) >= 2 * sum(found_plain), (found, found_plain)
+
+
+def test_a_frame_with_enough_stars_never_goes_through_the_matched_filter(catalog):
+    fr = _frame(catalog, "blind8", seed=3)
+    c = detect_stars(fr.image)
+    assert len(c) >= 12 and "matched_filter_sigma_px" not in c.params
+
+
+def test_the_matched_filter_keeps_noise_out_of_an_empty_faint_frame(catalog):
+    sc = get_scenario("faint6")
+    empty = catalog.select(np.zeros(len(catalog), dtype=bool), "no stars")
+    for seed in range(3):
+        fr = simulate_image(empty, sc.camera(), np.eye(3), sc.sensor(), seed=seed, mag_limit=9.0)
+        assert len(detect_stars(fr.image)) == 0
+
+
+def test_patch_hot_pixels_takes_a_hot_pixel_and_leaves_a_star():
+    from skyview.detect.stars import patch_hot_pixels
+
+    img = np.full((40, 40), 2.0, np.float32)
+    yy, xx = np.mgrid[:40, :40]
+    img += 20.0 * np.exp(-((xx - 10.3) ** 2 + (yy - 12.6) ** 2) / (2 * 1.1 ** 2))
+    img[30, 25] = 60.0
+    out, n = patch_hot_pixels(img, 2.0, 1.0)
+    assert n == 1 and out[30, 25] == 2.0
+    np.testing.assert_array_equal(out[:25], img[:25])  # the star untouched

@@ -94,12 +94,15 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     `workers` processes, or a scheduler's address); the same trials and outcomes."""
     if n < 1:
         raise BadInput("the number of trials (-n) must be at least 1")
-    if scenario.name.split("[")[0] == SLEW:
+    if scenario.is_slew:
         if int(jobs) != 1 or on_trial is not None or scheduler is not None:
             raise BadInput("the slew bench runs in one process and records nothing: leave out --jobs, "
                            "--scheduler and --record-failures")
         return run_slew_bench(method, scenario, n, seed=seed, method_params=method_params, variant=variant,
                               sensor=sensor, progress=progress)
+    if scenario.catalog != "guide":
+        raise BadInput(f"{scenario.name} shows stars of the deep catalog, which the classic methods do not search: "
+                       f"run it with --blind (skyview bench --blind --scenario {scenario.name})")
     jobs = int(jobs)
     if jobs < 1:
         raise BadInput("the number of jobs must be at least 1")
@@ -521,8 +524,13 @@ def run_blind_bench(scenario: Scenario, n: int, *, seed: int = 0, fov_error: flo
 
         solver = BlindSolver(catalog=load_guide_catalog(), progress=print_progress if progress else None)
     setup_ms = (time.perf_counter() - t0) * 1e3
-    ctx = _BlindContext(solver=solver, catalog=solver.catalog, camera=camera, scenario=scenario,
-                        sensor=sensor or SensorModel(), attitudes=attitudes, seeds=seeds, fov_factors=factors,
+    catalog = solver.catalog
+    if scenario.catalog == "deep":
+        from skyview.core.deep_catalog import load_deep_catalog
+
+        catalog = load_deep_catalog(catalog.epoch)  # the stars rendered (the solver picks its own)
+    ctx = _BlindContext(solver=solver, catalog=catalog, camera=camera, scenario=scenario,
+                        sensor=sensor or scenario.sensor(), attitudes=attitudes, seeds=seeds, fov_factors=factors,
                         fov_error=fov_error, max_error_px=float(max_error_px))
     counts: Counter = Counter()
     given = "no FOV" if fov_error is None else f"FOV +-{100 * fov_error:g} %"
@@ -682,7 +690,7 @@ def format_blind_markdown(s: dict) -> str:
 
 def run_slew_bench(method: str | None, scenario: Scenario, n: int, *, seed: int = 0, method_params: dict | None = None,
                    variant: str = "paper", sensor: SensorModel | None = None, progress: bool = True,
-                   n_frames: int = SLEW_FRAMES, step_deg: float = SLEW_STEP_DEG, axis: str = SLEW_AXIS) -> dict:
+                   n_frames: int | None = None, step_deg: float | None = None, axis: str = SLEW_AXIS) -> dict:
     """n slews (random start attitude, n_frames frames, step_deg per frame about a camera axis), each
     tracked (`skyview.solver.track.Tracker`) twice: with the sequence's turns (gyros) and with the rate from
     the last two attitudes only; and every frame also solved lost-in-space (the time and the outcome a
@@ -693,6 +701,8 @@ def run_slew_bench(method: str | None, scenario: Scenario, n: int, *, seed: int 
     from skyview.simulate.render import simulate_sequence, turn_about_camera_axis
     from skyview.solver.track import LOST_IN_SPACE, TRACKING, Tracker, body_turn_rotvec
 
+    n_frames = int(n_frames or scenario.frames or SLEW_FRAMES)
+    step_deg = float(step_deg or scenario.step_deg or SLEW_STEP_DEG)
     rng = np.random.default_rng(seed)
     catalog = load_guide_catalog()
     camera = scenario.camera()

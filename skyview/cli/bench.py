@@ -76,11 +76,11 @@ def cmd_bench(a) -> int:
     scenario = bench_scenario(a)
     from skyview.identify import METHODS
 
-    if a.method == "blind" and scenario.name == "slew":
+    if a.method == "blind" and scenario.is_slew:
         a.method, a.variant = None, "improved"  # tracking with the default blind pipeline for lost-in-space
     elif a.method not in METHODS:
         raise BadInput(f"unknown method {a.method!r}: choose from {', '.join(METHODS)}"
-                       + (" (or blind, with --scenario slew)" if scenario.name == "slew" else ""))
+                       + (" (or blind, with --scenario slew)" if scenario.is_slew else ""))
     mparams = method_params(a)
     out_dir = check_out_folder(a.out)
     if a.jobs < 1:

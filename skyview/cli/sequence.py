@@ -83,8 +83,8 @@ def _solve_sequence_method(a) -> int:
                     f"the prior, leading HIP {f['top_hips'][0] if f['top_hips'] else '-'} at {f['top_posterior']:.3f}")
             if f.get("true_hip") is not None:
                 line += f" (true HIP {f['true_hip']}: {f['true_posterior']:.3f})"
-            line += f" -> {f['status']}"
-            if f["status"] == "identified":
+            line += f" -> {f['identification_status']}"
+            if f["solved"]:
                 line += f", {f['n_matches']} matches, P(false) {f['p_false']:.1e}"
             print(line)
         if res.solved:
@@ -101,6 +101,7 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     from skyview.core.attitude import attitude_error_arcsec
     from skyview.core.camera import Camera
     from skyview.solver.sequence import load_sequence
+    from skyview.solver.solution_json import solution_dict
     from skyview.solver.track import Tracker, body_turn_rotvec
 
     sequence_only = [o for o, v in (("--p-identify", a.p_identify), ("--mag-zero-point", a.mag_zero_point),
@@ -158,7 +159,9 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
         except (BadInput, SkyviewError) as exc:  # this frame's error (its line, exit code 1); the run goes on
             tracker.skip(turn)
             errors.append(k)
-            d = {"frame": k, "image": names[k], "status": "error", "error": str(exc), "method": a.method or "blind"}
+            d = {"frame": k, "image": names[k], **solution_dict(status="error", reason=str(exc),
+                                                                method=a.method or "blind", variant=a.variant),
+                 "error": str(exc)}
             text = json.dumps(d, allow_nan=False)
             lines.append(text)
             print(text if a.json else f"frame {k}: error: {exc}", flush=True)
@@ -168,7 +171,6 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
             recorded.append((k, img))
         d = fr.to_dict()
         d = {"frame": k, "image": names[k], **{key: v for key, v in d.items() if key != "frame"}}
-        d["method"] = a.method or "blind"
         if truths is not None and fr.solved:
             R_true = np.asarray(truths[k]["R"], dtype=np.float64)
             d["error_arcsec"] = attitude_error_arcsec(fr.R, R_true)

@@ -47,6 +47,16 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 ASSET_PATH = REPO_ROOT / "assets" / "guide_catalog.npz"
 
 
+GAIA_ID_MIN = 1_000_000  # catalog numbers from here up are Gaia DR3 source ids (skyview.core.deep_catalog)
+
+
+def designation(star_id: int) -> str:
+    """A catalog number as astronomers write it: 'HIP 32349', or 'Gaia DR3 4472832130942575872' for a star
+    of the deep catalog that Hipparcos does not hold (HIP numbers are below 120,000, Gaia DR3 source ids
+    above 4e9)."""
+    return f"Gaia DR3 {int(star_id)}" if int(star_id) >= GAIA_ID_MIN else f"HIP {int(star_id)}"
+
+
 def cache_dir() -> Path:
     """Where databases are cached: $SKYVIEW_CACHE, else $XDG_CACHE_HOME/skyview, else ~/.cache/skyview."""
     env = os.environ.get("SKYVIEW_CACHE")
@@ -223,9 +233,11 @@ def squared_chords(points: np.ndarray, centers: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class GuideCatalog:
-    """Stars as unit vectors at `epoch`. Index i is the row; `hip[i]` its Hipparcos number."""
+    """Stars as unit vectors at `epoch`. Index i is the row; `hip[i]` its catalog number: the Hipparcos
+    number, or in the deep catalog (`skyview.core.deep_catalog`) a Gaia DR3 source id for a star Hipparcos
+    does not hold (`designation`)."""
 
-    hip: np.ndarray  # (N,) int32
+    hip: np.ndarray  # (N,) int32 (int64 in the deep catalog)
     xyz: np.ndarray  # (N, 3) float64, ICRS unit vectors at `epoch`
     mag: np.ndarray  # (N,) float32, Hipparcos Hp
     pm: np.ndarray  # (N, 2) float32, rad/yr (mu_alpha*, mu_delta)
@@ -513,11 +525,11 @@ def build_guide_catalog(epoch: float = DEFAULT_EPOCH, mag_limit: float = DEFAULT
     )
 
 
-def save_guide_catalog(cat: GuideCatalog, path: Path) -> None:
+def save_guide_catalog(cat: GuideCatalog, path: Path,
+                       source: str = "Hipparcos-2, van Leeuwen 2007 (CDS I/311, hip2.dat)") -> None:
     path = Path(path)
-    meta = {"format": FORMAT_VERSION, "epoch": cat.epoch, "history": list(cat.history),
-            "source": "Hipparcos-2, van Leeuwen 2007 (CDS I/311, hip2.dat)"}
-    tmp = path.with_name(path.name + ".tmp")
+    meta = {"format": FORMAT_VERSION, "epoch": cat.epoch, "history": list(cat.history), "source": source}
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # (two processes building at once: one file each)
     with open(tmp, "wb") as fh:
         np.savez(fh, hip=cat.hip, xyz=cat.xyz, mag=cat.mag, pm=cat.pm, bv=cat.bv, flags=cat.flags,
                  meta=np.array(json.dumps(meta, sort_keys=True)))

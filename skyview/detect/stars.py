@@ -13,6 +13,10 @@ in sigma, detects again on the binned image and maps the positions back to the f
 Stars so wide that few of them clear the threshold pixel by pixel (a defocused lens) are found the
 same way: when the first pass finds fewer than a dozen, the image binned 2, 4 and 8 times is tried,
 and a binning that finds at least twice as many is kept.
+Faint frames (a star tracker's short exposure, 8 bits, a background of 1-2 DN) show few stars above
+the threshold pixel by pixel: when fewer than a dozen are found and binning does not help, the frame
+filtered by its PSF (`matched_filter_stars`, about twice the signal to noise) is searched, its hot
+pixels taken out first, and kept when it finds at least three more.
 Then `skyview.detect.trails.trail_members` takes out satellite, aircraft and meteor trails broken into
 rows of fragments. Star trackers' own images (compact PSF, no trails) pass through unchanged.
 """
@@ -31,7 +35,8 @@ from skyview.detect.trails import trail_members
 
 TARGET_SIGMA_PX = 1.1  # the PSF sigma the centroider is made for: bin by floor(sigma / this)
 MAX_BINNING = 16
-FEW_STARS = 12  # fewer detections than this: try the image binned, in case its stars are too wide to detect
+FEW_STARS = 12  # fewer detections than this: try the image binned (stars too wide to detect), then the matched filter
+MATCHED_FILTER_GAIN = 3  # the matched filter's stars are kept when they are at least this many more
 MIN_BINNED_SIDE = 64  # never bin an image below this many pixels a side
 # A star is measured on its pixels above this fraction of its peak (so that the background's structure
 # and its neighbours stay out); the RMS radius of a Gaussian cut there is this fraction of sigma:
@@ -154,6 +159,10 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     else:
         b, binned = 1, image
         c = dataclasses.replace(c, params={**c.params, "binning": 1})
+        if binning is None and len(c) < FEW_STARS:
+            cm = matched_filter_stars(image, c, k_sigma=k_sigma, **kwargs)
+            if len(cm) >= len(c) + MATCHED_FILTER_GAIN:
+                c = cm
     c = _saturated_by_aperture(binned, c, b)
     n_trail = 0
     if reject_trails and len(c):
@@ -164,6 +173,43 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
             c = take(c, ~trail)
     c.params["n_trail_rejected"] = n_trail
     return c
+
+
+def patch_hot_pixels(img: np.ndarray, level: float, sigma: float) -> tuple[np.ndarray, int]:
+    """A float32 copy of `img` with its hot pixels replaced by the median of their 3 x 3 neighbourhood, and
+    their count: the centroider's rule (`detect_centroids`) applied to the whole frame at once, a pixel
+    more than 5 sigma above the background whose brightest neighbour is below max(3 sigma, 15 % of it)
+    (a star's neighbours hold ~65 % of its peak even at a PSF sigma of 1.1 px)."""
+    f = img.astype(np.float32)
+    ring = np.ones((3, 3), np.uint8)
+    ring[1, 1] = 0
+    nb_max = cv2.dilate(f, ring) - np.float32(level)
+    centre = f - np.float32(level)
+    hot = (centre > 5.0 * sigma) & (nb_max < np.maximum(np.float32(3.0 * sigma), np.float32(0.15) * centre))
+    n = int(np.count_nonzero(hot))
+    if n:
+        f[hot] = cv2.medianBlur(f, 3)[hot]
+    return f, n
+
+
+def matched_filter_stars(image: np.ndarray, c: Centroids, *, k_sigma: float = 5.0, **kwargs) -> Centroids:
+    """Stars of a faint frame found through a filter matched to the PSF (`c`: the first pass's centroids).
+
+    A star a few times the noise spreads its light over ~4 pi sigma^2 pixels: the frame convolved with
+    the PSF (a Gaussian of the stars' sigma, 1.1 px when too few were measured) raises its signal to
+    noise by sqrt(pi) sigma (about 2x, 0.75 mag deeper) at the same false-detection rate, the noise
+    being measured on the filtered frame as on any other. Hot pixels are taken out first
+    (`patch_hot_pixels`: the filter would spread one into a star-like blob). The centroids are measured
+    on the filtered frame (a symmetric filter moves no isolated star's centroid); its noise, threshold
+    and `params["matched_filter_sigma_px"]` say so."""
+    gray = to_gray(image)
+    psf = c.psf_sigma_px if math.isfinite(c.psf_sigma_px) and 0.5 <= c.psf_sigma_px <= 3.0 else TARGET_SIGMA_PX
+    f, n_hot = patch_hot_pixels(gray, c.background_level, c.noise_sigma) if c.noise_sigma > 0 else (
+        gray.astype(np.float32), 0)
+    smooth = cv2.GaussianBlur(f, (0, 0), psf)
+    cm = detect_centroids(smooth, k_sigma=k_sigma, **kwargs)
+    return dataclasses.replace(cm, n_hot_pixels_rejected=cm.n_hot_pixels_rejected + n_hot,
+                               params={**cm.params, "binning": 1, "matched_filter_sigma_px": float(psf)})
 
 
 def _binned_kwargs(kwargs: dict, b: int) -> dict:

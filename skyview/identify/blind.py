@@ -112,12 +112,13 @@ class BlindIdentifier(CameraRefit):
         self.database_info = {**info, "patterns": int(len(self.keys))}
         edges = self.pattern_params.levels()
         # a field shows patterns up to about its diagonal and down to a quarter of its width
-        self.fov_range_deg = (max(edges[-1] / self.pattern_params.step * 1.4, 1.0), min(edges[0] * 1.2, 90.0))
+        self.fov_range_deg = (max(edges[-1] / self.pattern_params.step * 1.4, 0.5), min(edges[0] * 1.2, 90.0))
 
     # ------------------------------------------------------------------ main
     def identify(self, uv: np.ndarray, width: int, height: int, *, fov_deg: float | None = None,
-                 fov_error: float = 0.1) -> BlindResult:
-        """Identify centroids uv (N, 2), brightest first, of a width x height image."""
+                 fov_error: float = 0.1, max_checks: int | None = None) -> BlindResult:
+        """Identify centroids uv (N, 2), brightest first, of a width x height image; max_checks: the quick
+        checks allowed (None: params.max_checks)."""
         t0 = time.perf_counter()
         p = self.params
         uv = np.asarray(uv, dtype=np.float64)
@@ -164,7 +165,8 @@ class BlindIdentifier(CameraRefit):
                                   numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
                                            "fov_min_deg": s_lo, "fov_max_deg": s_hi}))
                 before = state.checks
-                res = self._check(uv, quads, cands, state, steps, t0, max_checks=p.max_checks - spent[k])
+                budget = p.max_checks if max_checks is None else int(max_checks)
+                res = self._check(uv, quads, cands, state, steps, t0, max_checks=budget - spent[k])
                 spent[k] += state.checks - before
                 if res is not None or state.timed_out:
                     break

@@ -52,6 +52,7 @@ import rerun.blueprint as rrb
 
 from skyview.core import sky_geometry as sg
 from skyview.core.attitude import attitude_error_arcsec, radec_roll_from_R
+from skyview.core.catalog import designation
 from skyview.core.errors import BadInput
 from skyview.present.drawables import step_views
 from skyview.present.text import result_lines
@@ -310,14 +311,14 @@ def write_matches(rec, matches: list[tuple[int, int]], catalog, camera, R_est, s
             static=static)
     others = [catalog.xyz] + ([] if stars_xyz is None else [np.asarray(stars_xyz, dtype=np.float64).reshape(-1, 3)])
     radii = [catalog_radii(catalog)] + ([] if stars_xyz is None else [np.full(len(others[1]), SKY_OBSERVED_RADIUS)])
-    at, sky_texts = sky_labels(xyz, [f"HIP {int(catalog.hip[c])} (#{o})" for o, c in matches], mag,
+    at, sky_texts = sky_labels(xyz, [f"{designation(catalog.hip[c])} (#{o})" for o, c in matches], mag,
                                eye or SkyEye.behind(R_est), np.concatenate(others), np.concatenate(radii))
     rec.log(MATCH_LABELS, rr.Points3D(at, radii=0.0, labels=sky_texts, show_labels=True, colors=C_MATCH),
             static=static)
     uv, _ = camera.project(xyz @ np.asarray(R_est).T)
     rec.log(IMAGE_MATCHES, rr.Points2D(rerun_uv(uv), radii=rr.Radius.ui_points(7.0), colors=C_MATCH + (110,),
                                        show_labels=False, draw_order=10), static=static)
-    anchors, shown, _ = image_labels(uv, [f"HIP {int(catalog.hip[c])}" for _, c in matches], mag, camera, stars_uv,
+    anchors, shown, _ = image_labels(uv, [designation(catalog.hip[c]) for _, c in matches], mag, camera, stars_uv,
                                      taken)
     rec.log(IMAGE_LABELS, rr.Points2D(anchors, radii=0.0, labels=shown, show_labels=True, colors=C_MATCH,
                                       draw_order=30), static=static)

@@ -469,7 +469,9 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
     sky_gradient_factor(camera, 0.0, 0.0, sky_gradient, sky_gradient_deg)  # one-line error for a bad value
     if jpeg_quality is not None:
         check_jpeg_quality(jpeg_quality)
-    render_limit = max(float(mag_limit), min(float(mag_limit) + float(faint_extra_mag), FAINT_MAG_CAP))
+    # (the guide catalog's depth; a deeper catalog, skyview.core.deep_catalog, renders to its own)
+    cap = max(FAINT_MAG_CAP, float(catalog.mag.max())) if len(catalog) else FAINT_MAG_CAP
+    render_limit = max(float(mag_limit), min(float(mag_limit) + float(faint_extra_mag), cap))
     effects_on = bool(faint_extra_mag > 0 or falloff > 0 or sky_gradient > 0 or jpeg_quality is not None)
     rng = np.random.default_rng(seed)
     H, W = camera.height, camera.width

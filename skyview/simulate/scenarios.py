@@ -2,7 +2,8 @@
 
 A scenario fixes the camera, the guide catalog's magnitude limit, the measurement noise and the
 disturbances (false stars), so that every method is compared under identical conditions. The blind
-scenarios (blind8, blind20, narrow4) add what real photographs have: field stars fainter than the
+scenarios (blind8, blind20, narrow4, and the telescope fields narrow1.5 and narrow1 rendered from the deep
+catalog) add what real photographs have: field stars fainter than the
 catalog, vignetting, a sky gradient, and optionally lens distortion and JPEG compression
 (`skyview bench --blind`, docs/benchmarks.md).
 """
@@ -35,9 +36,27 @@ class Scenario:
     jpeg_quality: int | None = None  # the image goes through a JPEG at this quality (1..100)
     k1: float = 0.0  # radial distortion of the camera (OpenCV k1, k2), rendered and known to Solver
     k2: float = 0.0
+    # the stars rendered: "guide" (Hipparcos-2 to Hp 9) or "deep" (+ Gaia DR3 to G 10, skyview.core.deep_catalog:
+    # the sky a telescope's narrow field shows)
+    catalog: str = "guide"
+    exposure_s: float = 0.1  # the sensor's (SensorModel.exposure_s): 2 s shows G 10 stars at SNR ~10
+    bit_depth: int = 16  # the sensor's ADC
+    bias_e: float = 100.0  # the sensor's pedestal (electrons; 15 e- is a background of ~2 DN at 8 bits)
+    frames: int = 0  # a slew of this many frames (skyview.bench.runner.run_slew_bench); 0: single frames
+    step_deg: float = 2.0  # the slew's turn per frame about the camera y axis
+
+    @property
+    def is_slew(self) -> bool:
+        return self.frames > 0
 
     def camera(self) -> Camera:
         return Camera.from_fov(self.fov_deg, self.width, self.height, k1=self.k1, k2=self.k2)
+
+    def sensor(self):
+        """The default sensor (`skyview.simulate.render.SensorModel`) at this scenario's exposure."""
+        from skyview.simulate.render import SensorModel  # (the renderer imports scipy: not on a solve's path)
+
+        return SensorModel(exposure_s=self.exposure_s, bit_depth=self.bit_depth, bias_e=self.bias_e)
 
     def render_kwargs(self) -> dict:
         """The keyword arguments of simulate_image this scenario fixes (besides camera, R, seed)."""
@@ -100,13 +119,29 @@ SCENARIOS: dict[str, Scenario] = {
                  "to Hp 9.0, 30 % vignetting at the corners, 20 % sky gradient",
                  fov_deg=4.0, width=1024, height=768, mag_limit=7.5, noise_rad=0.0,
                  faint_extra_mag=1.5, vignetting=0.3, sky_gradient=0.2),
+        Scenario("faint6", "blind solving of a star tracker's faint frames: 6 deg FOV, 1280x1024, 8 bit, 30 ms "
+                 "exposure, a background of ~2 DN (15 e- pedestal), every catalog star rendered (to Hp 9): Hp 6 "
+                 "stars at SNR ~10",
+                 fov_deg=6.0, width=1280, height=1024, mag_limit=6.0, noise_rad=0.0, faint_extra_mag=3.0,
+                 exposure_s=0.03, bit_depth=8, bias_e=15.0),
+        Scenario("narrow1.5", "blind solving of a telescope's field: 1.5 deg FOV, 1024x768, every star of the deep "
+                 "catalog rendered (Hipparcos-2 + Gaia DR3 to G 10), 2 s exposure, 30 % vignetting at the corners, "
+                 "20 % sky gradient",
+                 fov_deg=1.5, width=1024, height=768, mag_limit=10.0, noise_rad=0.0, vignetting=0.3,
+                 sky_gradient=0.2, catalog="deep", exposure_s=2.0),
+        Scenario("narrow1", "narrow1.5 at 1.0 deg FOV (a median of 8 stars to G 10 in the field)",
+                 fov_deg=1.0, width=1024, height=768, mag_limit=10.0, noise_rad=0.0, vignetting=0.3,
+                 sky_gradient=0.2, catalog="deep", exposure_s=2.0),
         Scenario("slew", "tracking: a slew of 10 frames turning 2 deg per frame about the camera "
                  "y axis (a pan), 12 deg FOV, 1024x1024, Hp <= 6.0, no noise beyond the centroider's "
                  "(skyview.solver.track; `skyview bench --scenario slew`)",
-                 fov_deg=12.0, width=1024, height=1024, mag_limit=6.0, noise_rad=0.0),
+                 fov_deg=12.0, width=1024, height=1024, mag_limit=6.0, noise_rad=0.0, frames=10),
+        Scenario("slew8", "tracking through sparse sky: a slew of 20 frames turning 2 deg per frame about the camera "
+                 "y axis, 8 deg FOV, 1024x1024, Hp <= 6.0 (frames with 2-3 stars are common)",
+                 fov_deg=8.0, width=1024, height=1024, mag_limit=6.0, noise_rad=0.0, frames=20),
     ]
 }
-# the slew scenario's motion (skyview.bench.runner.run_slew_bench)
+# the slew scenarios' motion (skyview.bench.runner.run_slew_bench)
 SLEW = "slew"
 SLEW_FRAMES = 10
 SLEW_STEP_DEG = 2.0

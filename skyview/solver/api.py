@@ -29,7 +29,9 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from skyview.core.catalog import designation
 from skyview.core.errors import BadInput, SkyviewError
+from skyview.solver.solution_json import solution_dict
 
 if TYPE_CHECKING:  # imported lazily at run time: `import skyview` stays fast
     from astropy.coordinates import SkyCoord
@@ -62,7 +64,9 @@ class NotSolvedError(SkyviewError, ValueError):
 @dataclass(frozen=True)
 class Match:
     """One identified star: centroid ``index`` (in the centroid list, brightest first) at pixel
-    ``(u, v)``, matched to Hipparcos ``hip`` of catalog magnitude ``mag`` (Hp) at ``ra_deg``, ``dec_deg``
+    ``(u, v)``, matched to the catalog star ``name`` ("HIP 32349", or "Gaia DR3 ..." for a star of the deep
+    catalog that Hipparcos lacks), catalog number ``hip`` (its HIP number, or that Gaia DR3 source id), of
+    catalog magnitude ``mag`` (Hp; Gaia G for a Gaia star) at ``ra_deg``, ``dec_deg``
     (ICRS, at the solution's epoch: the catalog row itself, no catalog to open); ``residual_arcsec`` is
     the angle between the observed direction and the catalog star under the solved attitude."""
 
@@ -74,9 +78,11 @@ class Match:
     residual_arcsec: float
     ra_deg: float
     dec_deg: float
+    name: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        return {"index": self.index, "u": self.u, "v": self.v, "hip": self.hip, "ra_deg": self.ra_deg,
+        return {"index": self.index, "u": self.u, "v": self.v, "hip": self.hip, "name": self.name,
+                "ra_deg": self.ra_deg,
                 "dec_deg": self.dec_deg, "mag": self.mag, "residual_arcsec": _finite(self.residual_arcsec)}
 
 
@@ -173,7 +179,8 @@ class Solution:
             p_false = _finite(ident.verification.get("p_false")) if isinstance(ident.verification, dict) else None
         matches = tuple(Match(index=int(m["index"]), u=float(m["u"]), v=float(m["v"]), hip=int(m["hip"]),
                               mag=float(m["mag"]), residual_arcsec=float(m.get("residual_arcsec", float("nan"))),
-                              ra_deg=float(m["ra_deg"]), dec_deg=float(m["dec_deg"]))
+                              ra_deg=float(m["ra_deg"]), dec_deg=float(m["dec_deg"]),
+                              name=m.get("name") or designation(int(m["hip"])))
                         for m in result.matches)
         return cls(
             status="solved" if solved else "failed",
@@ -212,23 +219,15 @@ class Solution:
         return self.R
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able types (lists, floats, None for a missing or non-finite number)."""
-        return {
-            "status": self.status, "solved": self.solved, "reason": self.reason,
-            "method": self.method, "variant": self.variant,
-            "R": None if self.R is None else self.R.tolist(),
-            "quaternion": None if self.quaternion is None else self.quaternion.tolist(),
-            "ra_deg": self.ra_deg, "dec_deg": self.dec_deg, "roll_deg": self.roll_deg,
-            "fov_deg": self.fov_deg, "plate_scale_arcsec_per_px": self.plate_scale_arcsec_per_px,
-            "k1": self.k1, "k2": self.k2, "camera_fitted": self.camera_fitted,
-            "mag_limit": self.mag_limit,
-            "sigma_boresight_arcsec": self.sigma_boresight_arcsec, "sigma_roll_arcsec": self.sigma_roll_arcsec,
-            "p_false": self.p_false,
-            "matches": [m.to_dict() for m in self.matches], "n_matches": len(self.matches),
-            "n_centroids": self.n_centroids,
-            "time_ms": {k: _finite(v) for k, v in self.time_ms.items()},
-            "epoch": self.epoch, "notes": list(self.notes),
-        }
+        """The solution's one JSON shape (`skyview.solver.solution_json`: the keys of `skyview solve --json`
+        and of each `solve-sequence --json` line), plain JSON-able types (None for a missing or non-finite
+        number)."""
+        return solution_dict(
+            status=self.status, reason=self.reason, notes=self.notes, R=self.R,
+            sigma_arcsec=(self.sigma_boresight_arcsec, self.sigma_roll_arcsec) if self.solved else None,
+            p_false=self.p_false, method=self.method, variant=self.variant, camera=self.camera,
+            camera_fitted=self.camera_fitted, mag_limit=self.mag_limit, epoch=self.epoch,
+            n_centroids=self.n_centroids, matches=[m.to_dict() for m in self.matches], time_ms=self.time_ms)
 
     def to_json(self, indent: int | None = None) -> str:
         """``to_dict()`` as strict JSON (no NaN or Infinity)."""

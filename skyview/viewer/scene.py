@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from skyview.core.camera import Camera
-from skyview.core.catalog import GuideCatalog, radec_to_vec, vec_to_radec
+from skyview.core.catalog import GuideCatalog, designation, radec_to_vec, vec_to_radec
 from skyview.core.sky_geometry import (
     group_segments,
     magnitude_bins,
@@ -184,7 +184,7 @@ class SkyScene:
         texts = []
         for i in rows:
             hip = int(catalog.hip[i])
-            texts.append(f"{STAR_NAMES.get(hip, f'HIP {hip}')} {float(catalog.mag[i]):.1f}")
+            texts.append(f"{STAR_NAMES.get(hip, designation(hip))} {float(catalog.mag[i]):.1f}")
             names.append(s.add_label(f"{NODES['names']}/{hip}", texts[-1], position=_f32(catalog.xyz[i] * 1.0),
                                      font_screen_scale=0.85, anchor="top-left", visible=False))
         self.h["names"] = names
@@ -360,7 +360,7 @@ class SkyScene:
         rows = np.array(sorted(set(run.matches.values())), dtype=np.int64)
         self.h["match_labels"] = [
             self.scene.add_label(f"{NODES['match_labels']}/{int(catalog.hip[r])}",
-                                 f"HIP {int(catalog.hip[r])} {float(catalog.mag[r]):.1f}",
+                                 f"{designation(catalog.hip[r])} {float(catalog.mag[r]):.1f}",
                                  position=_f32(catalog.xyz[r]), font_screen_scale=0.7, anchor="top-right")
             for r in rows[np.argsort(catalog.mag[rows])][:25]]
 
