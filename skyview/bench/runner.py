@@ -737,6 +737,7 @@ def run_slew_bench(method: str | None, scenario: Scenario, n: int, *, seed: int 
             for k in range(n_frames):
                 fr = tracker.process(sim.frames[k].image, turns[k - 1] if (k and mode == "turns") else None)
                 rec = {"frame": k, "mode": fr.mode, "solved": fr.solved, "matches": len(fr.matches),
+                       "stars": int(cents[k].n_detected), "verified_by": fr.verified_by or None,
                        "time_ms": dict(fr.time_ms), "lost_lock": fr.lost_lock or None}
                 if fr.solved:
                     wrong = wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in fr.matches],
@@ -785,6 +786,9 @@ def summarize_slew(method, variant, scenario, seed, runs, setup_ms, n_frames, st
             "frames": len(fs), "solved": len(solved), "tracked": len(trk),
             "lost_in_space": len(lis), "lost_in_space_solved": sum(f["solved"] for f in lis),
             "lost_lock": sum(1 for f in fs if f["lost_lock"]),
+            "tracked_on_prediction": sum(1 for f in trk if f.get("verified_by") == "prediction"),
+            "coasted": sum(1 for f in fs if f["mode"] == "coasting"),
+            "unsolved_with_2_stars_or_more": sum(1 for f in fs if not f["solved"] and f.get("stars", 0) >= 2),
             "frames_with_wrong_match": sum(1 for f in solved if f.get("wrong_matches")),
             "attitude_error_total_arcsec": _stats([f["err_total_arcsec"] for f in solved]),
             "boresight_error_arcsec": _stats([f["err_boresight_arcsec"] for f in solved]),
@@ -848,15 +852,17 @@ def format_slew_markdown(s: dict) -> str:
         f"{sc['description']}. Each slew starts at a random attitude and turns {sl['step_deg']:g} deg per frame "
         f"about the camera {sl['axis']} axis. Identifier sigma {s['sigma_assumed_urad']:.1f} urad.",
         "",
-        "| prediction | frames | solved | tracked | lost-in-space (solved) | lost lock | frames with a wrong match "
+        "| prediction | frames | solved | tracked (on the prediction alone) | lost-in-space (solved) | lost lock "
+        "| coasted | unsolved with >= 2 stars | frames with a wrong match "
         "| attitude error median / p95 (\") | relative rotation error median / p95 (\") |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, key in (("turns given (gyros)", "tracking_with_turns"), ("rate of the last two attitudes",
                                                                        "tracking_with_rate")):
         m = s[key]
-        lines.append(f"| {name} | {m['frames']} | {m['solved']} | {m['tracked']} | {m['lost_in_space']} "
-                     f"({m['lost_in_space_solved']}) | {m['lost_lock']} | {m['frames_with_wrong_match']} | "
+        lines.append(f"| {name} | {m['frames']} | {m['solved']} | {m['tracked']} ({m.get('tracked_on_prediction', 0)}) "
+                     f"| {m['lost_in_space']} ({m['lost_in_space_solved']}) | {m['lost_lock']} | {m.get('coasted', 0)} "
+                     f"| {m.get('unsolved_with_2_stars_or_more', 0)} | {m['frames_with_wrong_match']} | "
                      f"{f(m['attitude_error_total_arcsec'])} / {f(m['attitude_error_total_arcsec'], 'p95')} | "
                      f"{f(m['relative_rotation_error_arcsec'])} / {f(m['relative_rotation_error_arcsec'], 'p95')} |")
     e = s["lost_in_space_every_frame"]

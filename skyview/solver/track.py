@@ -32,8 +32,11 @@ as `solve_image` runs them). For every later frame it
    `verify.verify`. A passed verification extends and re-estimates the attitude from every agreeing
    star, exactly as for a lost-in-space solve.
 
-Loss of lock (fewer than MIN_TRACK_MATCHES matches, or the verification refused) falls back to LIS for
-that frame; a frame that neither solves is reported failed, and the next one is predicted from the
+With fewer matches than that, or none left to test them, the prediction itself is the hypothesis
+(`track_verify.verify_by_prediction`): 2 matched stars (3 when the motion is unknown) on their
+predicted places, P(false) below the shared threshold. Loss of lock (fewer stars, or the verification
+refused) falls back to LIS for that frame; a frame that neither solves is coasted on the motion model
+(mode COASTING, for MAX_COAST_FRAMES at most) or reported failed, and the next one is predicted from the
 last solved frame (the prediction's bound grows with the frames in between).
 
 Each frame's `TrackFrame`: mode ("lost_in_space" | "tracking"), status, the attitude, the rotation
@@ -50,7 +53,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from skyview.core.attitude import RAD_TO_ARCSEC, svd_attitude
+from skyview.core.attitude import RAD_TO_ARCSEC, quat_from_R, radec_roll_from_R, svd_attitude
 from skyview.core.camera import Camera
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
@@ -80,6 +83,7 @@ from skyview.solver.track_verify import (
     rotation_matrix,
     rotvec,
     spread_subset,
+    verify_by_prediction,
     verify_windowed,
     wahba,
 )
@@ -90,6 +94,11 @@ MIN_TRACK_MATCHES = 3  # fewer tracked matches than this: lock is lost (two give
 TURN_SIGMA_RAD = float(np.radians(30.0 / 3600.0))  # 1 sigma per axis, per predicted frame (rate change, gyro)
 STILL_SIGMA_RAD = float(np.radians(0.05))  # the motion is unknown (one solved frame, no turn given)
 MAX_TRACK_TRIES = 2  # tracked hypotheses verified per frame before falling back to LIS
+# a frame verified by the prediction alone needs this many matched stars: two when the motion is known (a turn
+# given, or the rate of earlier attitudes), three when it is not (one solved frame, no turn)
+PREDICTION_MIN_STARS = {"turn": 2, "rate": 2, "still": 3}
+MAX_COAST_FRAMES = 5  # a frame that neither tracks nor solves lost-in-space is coasted on the motion model this long
+COASTING = "coasting"
 TRACK_STARS = 16  # a tracked frame measures windows around the brightest this many predicted stars
 WINDOW_MARGIN_PX = 2.0  # a window's half-size: the match bound + the PSF's reach + this
 FIELD_MARGIN_RAD = float(np.radians(0.5))  # catalog stars this far beyond the frame's corners are candidates
@@ -98,7 +107,7 @@ FIELD_MARGIN_RAD = float(np.radians(0.5))  # catalog stars this far beyond the f
 @dataclass
 class TrackFrame:
     frame: int
-    mode: str  # LOST_IN_SPACE | TRACKING (the mode that produced the result)
+    mode: str  # LOST_IN_SPACE | TRACKING | COASTING (the mode that produced the result, or coasting on the motion)
     status: str  # SOLVED | NOT_SOLVED
     reason: str = ""
     R: np.ndarray | None = None
@@ -117,6 +126,8 @@ class TrackFrame:
     # the lost-in-space solve's otherwise), the catalog depth and epoch
     camera: Camera | None = None
     camera_fitted: bool = False
+    verified_by: str = ""  # a tracked frame: "hypothesis" (three matches tested by the rest) | "prediction"
+    prediction: tuple | None = field(default=None, repr=False)  # (R, covariance) the frame was predicted at
     method: str | None = None
     variant: str | None = None
     mag_limit: float | None = None
@@ -143,7 +154,16 @@ class TrackFrame:
             sigma_arcsec=sigma, p_false=self.p_false, method=self.method, variant=self.variant, camera=self.camera,
             camera_fitted=self.camera_fitted, mag_limit=self.mag_limit, epoch=self.epoch,
             n_centroids=self.n_centroids, matches=self.matches, time_ms=self.time_ms)}
-        out.update({"mode": self.mode, "predicted_by": self.predicted_by or None, "lost_lock": self.lost_lock})
+        out.update({"mode": self.mode, "verified_by": self.verified_by or None, "predicted_by": self.predicted_by or None,
+                    "lost_lock": self.lost_lock})
+        if self.mode == COASTING and self.prediction is not None:
+            R, P = self.prediction
+            a, d, r = radec_roll_from_R(R)
+            out["coasted"] = {"R": np.asarray(R).tolist(), "quaternion": quat_from_R(R).tolist(),
+                              "ra_deg": float(np.degrees(a)), "dec_deg": float(np.degrees(d)),
+                              "roll_deg": float(np.degrees(r)),
+                              "sigma_arcsec": {"boresight": float(np.sqrt(0.5 * (P[0, 0] + P[1, 1])) * RAD_TO_ARCSEC),
+                                               "roll": float(np.sqrt(P[2, 2]) * RAD_TO_ARCSEC)}}
         if self.relative_rotvec_rad is not None:
             out["relative_to"] = self.relative_to
             out["relative_rotvec_deg"] = self.relative_rotvec_deg
@@ -232,6 +252,7 @@ class Tracker:
         self.rate: np.ndarray | None = None  # filtered turn per frame (rotation vector, camera axes, rad)
         self.rate_covariance: np.ndarray | None = None
         self._psf_sigma_px: float | None = None  # measured on the last whole-image centroiding
+        self._detection_density = 0.0  # detections per sr of the last whole-image centroiding
         self._half_diag: tuple | None = None  # (camera, its half-diagonal in rad), computed once per camera
 
     @property
@@ -251,7 +272,15 @@ class Tracker:
         return self._stamped(self._process(image, turn))
 
     def _stamped(self, res: TrackFrame) -> TrackFrame:
-        """The frame with the solution's context (`TrackFrame.to_dict` writes it)."""
+        """The frame with the solution's context (`TrackFrame.to_dict` writes it); a frame that neither
+        tracked nor solved lost-in-space within MAX_COAST_FRAMES of the last solved one, with the motion
+        known, is coasted: its attitude is the prediction (reported apart, not as a solution)."""
+        if (not res.solved and res.prediction is not None and res.predicted_by in ("turn", "rate") and self.history
+                and res.frame - self.history[-1][0] <= MAX_COAST_FRAMES):
+            gap = res.frame - self.history[-1][0]
+            res.mode = COASTING
+            res.reason = (f"coasting on the motion model ({res.predicted_by}; {gap} frame{'s' if gap > 1 else ''} "
+                          f"since frame {self.history[-1][0]}, the last solved): {res.reason or res.lost_lock}")
         lis = res.lis_result
         res.camera = lis.camera if lis is not None and lis.camera is not None else self.camera
         res.camera_fitted = lis.camera_fitted if lis is not None else self._camera_fitted
@@ -280,6 +309,8 @@ class Tracker:
     def _note_psf(self, cents: Centroids) -> None:
         if np.isfinite(cents.psf_sigma_px) and len(cents) >= 3:
             self._psf_sigma_px = float(cents.psf_sigma_px)
+        if self.camera is not None:  # detections per steradian of the last whole frame
+            self._detection_density = len(cents) / self.camera.solid_angle_sr
 
     def _process_windowed(self, img: np.ndarray, turn: np.ndarray | None) -> TrackFrame:
         """A tracked frame: centroids only in windows around the predicted stars (`track_window`), the
@@ -465,6 +496,11 @@ class Tracker:
             return R, P, "rate"
         return Rj, Pj + (self.still_sigma ** 2 + (n * self.turn_sigma) ** 2) * np.eye(3), "still"
 
+    def _radii(self, b: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """The match bound of each observed direction under a prediction of covariance P (rad)."""
+        s = predicted_sigma(b, P)  # at the observed directions (close to the predicted ones)
+        return np.minimum(RADIUS_SIGMAS * np.sqrt(self.sigma_rad ** 2 + s ** 2), MAX_RADIUS_RAD)
+
     def _match(self, b: np.ndarray, rows: np.ndarray, R: np.ndarray, P: np.ndarray) -> tuple[dict[int, int], int]:
         """Observed index -> catalog row (of the field rows): nearest neighbours within the bound of
         prediction (R, P), one-to-one; an observed star with two catalog stars within its bound is left
@@ -472,8 +508,7 @@ class Tracker:
         if len(rows) == 0 or len(b) == 0:
             return {}, 0
         v = self.catalog.xyz[rows] @ R.T
-        s = predicted_sigma(b, P)  # at the observed directions (close to the predicted ones)
-        radii = np.minimum(RADIUS_SIGMAS * np.sqrt(self.sigma_rad ** 2 + s ** 2), MAX_RADIUS_RAD)
+        radii = self._radii(b, P)
         qi, rj, n_left = nearest_one_to_one(b, v, radii)
         return dict(zip(qi.tolist(), rows[rj].tolist())), n_left
 
@@ -481,9 +516,11 @@ class Tracker:
                box_sr: np.ndarray | None = None) -> bool:
         R_pred, P_pred, how = prediction
         res.predicted_by = how
+        res.prediction = (R_pred, P_pred)
         b, uv = self._observation(centroids)
         sigma = self.sigma_rad
         matches, n_left = self._match(b, rows, R_pred, P_pred)
+        on_prediction = dict(matches)  # within the prediction's own bound: what the prediction test counts
         if len(matches) >= 2 and (n_left or len(matches) < len(b)):
             # some stars were left out at the prediction's bound: refine the attitude with the matches,
             # then match again with the tighter bound of that estimate
@@ -496,7 +533,7 @@ class Tracker:
         if len(matches) < self.min_matches:
             res.lost_lock = (f"{len(matches)} of {len(b)} stars matched the prediction ({how}); tracking needs "
                              f"{self.min_matches}")
-            return False
+            return self._by_prediction(b, uv, on_prediction, rows, P_pred, how, res)
         idx = np.array(sorted(matches))
         order = idx[np.argsort(-centroids.brightness[idx], kind="stable")]
         if box_sr is not None:  # a windowed frame: the chance agreement within each star's window
@@ -504,10 +541,8 @@ class Tracker:
                                           RADIUS_SIGMAS * sigma, self.min_matches, MAX_TRACK_TRIES)
             if sol is None:
                 res.lost_lock = "verification refused the tracked matches: " + reason
-                return False
-            res.mode, res.status = TRACKING, SOLVED
-            res.R, res.covariance, res.p_false = sol.R, sol.covariance, sol.p_false
-            res.matches = matched_stars(self.catalog, uv, sol.matches)
+                return self._by_prediction(b, uv, on_prediction, rows, P_pred, how, res)
+            self._accept(res, sol.R, sol.covariance, sol.p_false, matched_stars(self.catalog, uv, sol.matches))
             return True
         ver = None
         for t in range(MAX_TRACK_TRIES):
@@ -524,13 +559,39 @@ class Tracker:
                 break
         if ver is None or not ver.passed:
             res.lost_lock = ("verification refused the tracked matches: " + (ver.reason if ver else "no hypothesis"))
+            return self._by_prediction(b, uv, on_prediction, rows, P_pred, how, res)
+        self._accept(res, ver.R, ver.covariance, float(ver.p_false), matched_stars(self.catalog, uv, ver.matches))
+        return True
+
+    @staticmethod
+    def _accept(res: TrackFrame, R: np.ndarray, covariance: np.ndarray, p_false: float, matches: list[dict],
+                verified_by: str = "hypothesis") -> None:
+        res.mode, res.status = TRACKING, SOLVED
+        res.R, res.covariance, res.p_false, res.matches = R, covariance, p_false, matches
+        res.verified_by = verified_by
+        res.lost_lock = ""
+
+    def _by_prediction(self, b: np.ndarray, uv: np.ndarray, matches: dict[int, int], rows: np.ndarray,
+                       P_pred: np.ndarray, how: str, res: TrackFrame) -> bool:
+        """The frame verified by the prediction alone (`track_verify.verify_by_prediction`): what keeps lock
+        on frames of 2-3 stars, where no star is left to test a hypothesis made of three."""
+        if len(b) == 0:
             return False
-        res.mode = TRACKING
-        res.status = SOLVED
-        res.R = ver.R
-        res.covariance = ver.covariance
-        res.p_false = float(ver.p_false)
-        res.matches = matched_stars(self.catalog, uv, ver.matches)
+        radii = self._radii(b, P_pred)
+        # the chance that a star of the predicted field lies within a detection's bound by accident: the
+        # density of stars there times the bound's area (as the shared verification has it), the density
+        # the catalog's around the field or the detections' of the last whole frame, whichever is higher (a
+        # window holds a detection by construction; an accident needs one placed within its bound)
+        cap = self._half_diag[1] + FIELD_MARGIN_RAD
+        density = max(len(rows) / (2.0 * np.pi * (1.0 - np.cos(cap))), self._detection_density)
+        p_each = density * np.pi * radii ** 2
+        need = PREDICTION_MIN_STARS.get(how, 3)
+        sol, reason = verify_by_prediction(b, matches, p_each, self.catalog.xyz, self.sigma_rad, radii, need)
+        if sol is None:
+            res.lost_lock = f"{res.lost_lock}; {reason}"
+            return False
+        self._accept(res, sol.R, sol.covariance, sol.p_false, matched_stars(self.catalog, uv, sol.matches),
+                     verified_by="prediction")
         return True
 
     def _lost_in_space(self, centroids: Centroids, width: int, height: int, res: TrackFrame) -> None:

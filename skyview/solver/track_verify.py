@@ -204,3 +204,28 @@ def verify_windowed(b: np.ndarray, matches: dict[int, int], order: np.ndarray, w
             R, P = wahba(b[f_obs], catalog_xyz[f_cat], sigma_rad)
         return TrackedSolution(R, P, float(p_false), dict(zip(f_obs.tolist(), f_cat.tolist()))), ""
     return None, reason
+
+
+def verify_by_prediction(b: np.ndarray, matches: dict[int, int], p_each: np.ndarray, catalog_xyz: np.ndarray,
+                         sigma_rad: float, radii: np.ndarray, min_stars: int,
+                         threshold: float = DEFAULT_THRESHOLD[CALIBRATED]) -> tuple[TrackedSolution | None, str]:
+    """Tracking on the last stars: the prediction itself is the hypothesis (it came from earlier frames and
+    the motion, not from this frame), so every detected star tests it. `p_each[j]`: the chance that
+    detected star j lands within its match bound of a predicted catalog star by accident (the catalog's
+    density around the field times the bound's area, or the bound's share of its window). P(false) is
+    the shared verification's (`verify.p_false_calibrated`, one hypothesis): at least len(matches) of
+    the len(b) stars so placed by chance. Accepted below `threshold` with at least `min_stars` matches
+    (2 with a known turn or rate, 3 when the motion is unknown); the attitude is then estimated from the
+    matches alone, and every match must fit it within its bound. Returns the solution, or None and why."""
+    k, n = len(matches), len(b)
+    if k < min_stars:
+        return None, f"{k} of {n} stars matched the prediction; the prediction alone needs {min_stars}"
+    p_false = p_false_calibrated(k, n, np.minimum(1.0, np.asarray(p_each, dtype=np.float64)), 1)
+    if not p_false < threshold:
+        return None, f"{k} of {n} stars on their predicted places, P(false) = {p_false:.2e}"
+    obs = np.array(sorted(matches))
+    cat = np.array([matches[o] for o in obs.tolist()])
+    R, P = wahba(b[obs], catalog_xyz[cat], sigma_rad)
+    if np.any(np.linalg.norm(b[obs] - catalog_xyz[cat] @ R.T, axis=1) > radii[obs]):
+        return None, "the matched stars do not fit one attitude"
+    return TrackedSolution(R, P, float(p_false), dict(zip(obs.tolist(), cat.tolist()))), ""
