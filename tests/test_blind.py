@@ -424,3 +424,48 @@ def test_resolved_matches_leaves_out_a_blended_pair(catalog):
               if not any(j != r and catalog.mag[j] <= catalog.mag[r] + 2.5 for j in nb)}
     wide = resolved_matches({k + 1: r for k, r in enumerate(alone)}, catalog, huge)
     assert set(wide) == (expect if len(expect) >= 2 else set(range(1, len(alone) + 1)))
+
+
+# ------------------------------------------------------------------ fields whose brightest detections are not stars
+
+def _lit_roof(image: np.ndarray, seed: int) -> np.ndarray:
+    """The photograph with a lit roof over its lower half (a bright gradient with a wavy edge) and a dozen
+    lamps and windows brighter than any star on it and above it, as a photograph from a town has them."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = image.astype(np.float64)
+    H, W = img.shape
+    top = float(np.percentile(img, 99.99))
+    y0 = int(H * (0.45 + 0.1 * rng.random()))
+    yy, xx = np.mgrid[:H, :W]
+    roof = yy > y0 + 30 * np.sin(xx / 90.0 + seed)
+    out = img.copy()
+    out[roof] = np.median(img) + 0.3 * top * (1 - (yy[roof] - y0) / H)
+    for _ in range(int(rng.integers(8, 20))):
+        cv2.circle(out, (int(rng.integers(0, W)), int(rng.integers(y0, H))), int(rng.integers(2, 6)),
+                   float(top * rng.uniform(0.8, 3.0)), -1)
+    for _ in range(6):
+        cv2.circle(out, (int(rng.integers(0, W)), int(rng.integers(int(y0 * 0.7), y0))), 3, float(top * 2), -1)
+    return np.clip(out, 0, 65535).astype(np.uint16)
+
+
+@pytest.mark.parametrize("k", [0, 7])
+def test_a_lit_roof_and_lamps_brighter_than_the_stars_do_not_hide_them(k):
+    # the brightest 16 detections are lamps and roof edges: no pattern of them verifies, and the pattern
+    # stars slide down the brightness order to the stars (issue 27, item 3)
+    name = sorted(REFERENCE)[k]
+    img = _lit_roof(load_image(REAL / name), seed=k)
+    res = solve_image(img, deep=False)
+    assert res.solved, res.reason
+    ref = REFERENCE[name]
+    R_ref = R_from_radec_roll(math.radians(ref["ra_deg"]), math.radians(ref["dec_deg"]), math.radians(ref["roll_deg"]))
+    assert attitude_error_arcsec(res.R, R_ref)["boresight"] < 120.0
+    assert abs(res.camera.fov_deg / ref["fov_deg"] - 1.0) < 0.005
+    # the pattern stars slid past the brightest: with the window held on them, nothing verifies
+    assert any(st.kind == "lookup" and min(st.observed) >= 8 for st in res.identification.steps)
+    from skyview.detect.stars import detect_stars
+
+    uv = detect_stars(img).uv[:40]
+    held = BlindSolver(deep=False).identifier.identify(uv, img.shape[1], img.shape[0], slide=False)
+    assert not held.identification.identified

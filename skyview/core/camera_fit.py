@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skyview.core.camera import Camera
+from skyview.core.camera import Camera, fisheye_r, fisheye_theta
 
 MIN_STARS_K1 = 6
 MIN_STARS_K2 = 12
@@ -56,7 +56,7 @@ def fit_camera(uv: np.ndarray, xyz: np.ndarray, camera: Camera, R: np.ndarray, *
     spread = _radial_spread(uv, camera)
     auto_k1, auto_k2 = fit_k1 is None, fit_k2 is None
     if auto_k1:  # the models compared start from no distortion
-        camera = Camera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+        camera = Camera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, model=camera.model)
     if auto_k1:
         fit_k1 = n >= MIN_STARS_K1 and spread >= 0.2
     if auto_k2:
@@ -145,7 +145,10 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
     n = len(uv)
     R0 = np.asarray(R, dtype=np.float64)
     f0 = camera.fx
+    fisheye = camera.fisheye
     rc2 = (np.hypot(camera.width, camera.height) / 2.0 / f0) ** 2
+    if fisheye:  # a fisheye's distortion is a polynomial in the off-axis angle: its corner's, squared
+        rc2 = float(np.nan_to_num(fisheye_theta(np.asarray(np.sqrt(rc2)), camera.model), nan=np.pi / 2)) ** 2
     names = ("attitude",) + (("f",) if fit_focal else ()) + (("k1",) if fit_k1 else ()) + (("k2",) if fit_k2 else ())
 
     def unpack(p):
@@ -166,6 +169,13 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
     def project(p):
         Rk, f, k1, k2 = unpack(p)
         v = xyz @ Rk.T
+        if fisheye:
+            rho = np.hypot(v[:, 0], v[:, 1])
+            th = np.arctan2(rho, v[:, 2])
+            t2 = th * th
+            r = fisheye_r(th * (1.0 + k1 * t2 + k2 * t2 * t2), camera.model)
+            s = np.where(rho > 1e-15, r / np.maximum(rho, 1e-300), 0.0)
+            return np.stack([f * v[:, 0] * s + camera.cx, f * v[:, 1] * s + camera.cy], axis=1)
         z = np.maximum(v[:, 2], 1e-9)
         x, y = v[:, 0] / z, v[:, 1] / z
         r2 = x * x + y * y
@@ -190,7 +200,8 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
         return CameraFit(camera, R0, np.hypot(d[:, 0], d[:, 1]), float("nan"), ())
     x = robust_gauss_newton(lambda p: (project(p) - uv).ravel(), p0, lo, hi)
     Rk, f, k1, k2 = unpack(x)
-    cam = Camera(camera.width, camera.height, float(f), float(f), camera.cx, camera.cy, float(k1), float(k2))
+    cam = Camera(camera.width, camera.height, float(f), float(f), camera.cx, camera.cy, float(k1), float(k2),
+                 camera.model)
     d = project(x) - uv
     rms = float(np.sqrt(np.sum(d * d) / max(2 * n - len(p0), 1)))
     return CameraFit(cam, Rk, np.hypot(d[:, 0], d[:, 1]), rms, names)

@@ -1085,8 +1085,8 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
             frac = _psf_models(pj[b, None].astype(np.float64), pi[b, None].astype(np.float64), uv_b,
                                np.ones(len(b)), psf_used)[:, 0, 0]
             amp_b = peak_val[b] / np.maximum(frac, 1e-6)
-            sa, sb = np.divmod(np.arange(len(b) * len(b)), len(b))  # every (a, b) pair: meshgrid's "ij", raveled
-            near = ((sa != sb) & (comp[b][sa] == comp[b][sb])
+            sa, sb = _pairs_within_groups(comp[b])  # (a, b) of one component, in meshgrid "ij" raveled order
+            near = ((sa != sb)
                     & (np.abs(pi[b][sa] - pi[b][sb]) <= 2 * h + 1) & (np.abs(pj[b][sa] - pj[b][sb]) <= 2 * h + 1))
             sa, sb = sa[near], sb[near]
             vals = vals.copy()
@@ -1118,6 +1118,27 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         n_small_rejected=n_small, psf_sigma_px=psf_used, estimator=estimator, image_shape=(H, W),
         params=params, n_extended_rejected=n_extended, n_unmeasured=n_eligible - len(order),
     )
+
+
+def _pairs_within_groups(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every ordered pair (a, b) of indices with labels[a] == labels[b] (a == b included), in the order
+    np.divmod(np.arange(n * n), n) lists them (a, then b): the pairs of the whole n x n grid that share a
+    label, without the grid (a field split into thousands of blended peaks made it gigabytes)."""
+    n = len(labels)
+    if n == 0:
+        e = np.zeros(0, dtype=np.int64)
+        return e, e
+    order = np.argsort(labels, kind="stable")
+    sl = labels[order]
+    starts = np.flatnonzero(np.r_[True, sl[1:] != sl[:-1]])
+    sizes = np.diff(np.r_[starts, n])
+    per = np.repeat(sizes, sizes)  # each element's group size
+    a_sorted = np.repeat(np.arange(n), per)
+    first = np.repeat(np.repeat(starts, sizes), per)
+    offset = np.arange(len(a_sorted)) - np.repeat(np.cumsum(np.r_[0, per[:-1]]), per)
+    a, b = order[a_sorted], order[first + offset]
+    o = np.lexsort((b, a))
+    return a[o], b[o]
 
 
 def _brightest(brightness, blended, extended, comp, n: int) -> np.ndarray | None:

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skyview.core.camera import Camera
+from skyview.core.camera import FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera
 from skyview.core.catalog import GuideCatalog
 from skyview.identify import database
 from skyview.identify import patterns as pdb
@@ -49,6 +49,8 @@ _PAIR_INDEX.update({(b, a): k for (a, b), k in list(_PAIR_INDEX.items())})
 # for each permutation p, the catalog edge that lands on each image edge
 PERM_EDGES = np.array([[_PAIR_INDEX[(int(p[a]), int(p[b]))] for a, b in pdb.PAIRS_OF_FOUR] for p in PERMUTATIONS])
 WIDE_FROM_DEG = 54.0  # FOVs above this are searched after the narrower ones (see BlindIdentifier.identify)
+PATTERN_SLIDE = 8  # when the brightest stars' patterns do not verify, the window of pattern stars moves this far
+MAX_SLIDE_DEPTH = 40  # down to this many stars (the verification's own depth)
 
 
 def fov_ladder(lo: float, hi: float, ladder_deg2: float) -> list[tuple[float, float]]:
@@ -84,6 +86,7 @@ class _Search:
     timed_out: bool = False
     gave_up: str = ""  # how many checks and how long, when the budget ran out
     reason: str = ""
+    model: str = PINHOLE  # the lens searched through
 
     def __post_init__(self):
         self.tree = NearestPixels(self.uv[: self.n_obs])
@@ -116,30 +119,69 @@ class BlindIdentifier(CameraRefit):
 
     # ------------------------------------------------------------------ main
     def identify(self, uv: np.ndarray, width: int, height: int, *, fov_deg: float | None = None,
-                 fov_error: float = 0.1, max_checks: int | None = None) -> BlindResult:
+                 fov_error: float = 0.1, max_checks: int | None = None,
+                 pattern_idx: np.ndarray | None = None, slide: bool = True, model: str = PINHOLE) -> BlindResult:
         """Identify centroids uv (N, 2), brightest first, of a width x height image; max_checks: the quick
-        checks allowed (None: params.max_checks)."""
+        checks allowed (None: params.max_checks); pattern_idx: the centroids the patterns are made of, in
+        that order (None: the brightest params.pattern_stars, and with `slide` the next ones after them
+        when those do not verify); every centroid verifies. model: the lens the image is searched through
+        (`skyview.core.camera`: a fisheye over FISHEYE_FOV_RANGE_DEG, its k1 and k2 fitted like a
+        pinhole's)."""
         t0 = time.perf_counter()
         p = self.params
         uv = np.asarray(uv, dtype=np.float64)
         steps: list[Step] = []
-        lo, hi = self.fov_range_deg
+        span = self.fov_range_deg if model == PINHOLE else FISHEYE_FOV_RANGE_DEG
+        lo, hi = span
         if fov_deg is not None:
             lo, hi = fov_deg * (1.0 - fov_error), fov_deg * (1.0 + fov_error)
-            if hi < self.fov_range_deg[0] or lo > self.fov_range_deg[1]:
-                return self._fail(FAILED, f"the blind database covers FOVs of {self.fov_range_deg[0]:.1f}-"
-                                          f"{self.fov_range_deg[1]:.1f} deg, not {lo:.2f}-{hi:.2f} deg", steps)
-            lo, hi = max(lo, self.fov_range_deg[0]), min(hi, self.fov_range_deg[1])
-        n_pat = min(len(uv), p.pattern_stars)
+            if hi < span[0] or lo > span[1]:
+                what = "the blind database covers" if model == PINHOLE else f"the {model} search covers"
+                return self._fail(FAILED, f"{what} FOVs of {span[0]:.1f}-{span[1]:.1f} deg, not {lo:.2f}-{hi:.2f} deg",
+                                  steps)
+            lo, hi = max(lo, span[0]), min(hi, span[1])
+        state = _Search(uv, min(len(uv), p.verify_stars), width, height, model=model)
+        budget = p.max_checks if max_checks is None else int(max_checks)
+        if pattern_idx is not None:
+            windows = [np.asarray(pattern_idx, dtype=np.int64)[:p.pattern_stars]]
+        else:
+            # the brightest pattern_stars first; when no pattern of them verifies, the window slides down the
+            # brightness order (a lit roof, street lights or a planet can take the brightest places), each
+            # window with its own budget of checks, every check counted in the verification (Bonferroni)
+            # and one time budget for all
+            starts = [0] + [s for s in range(PATTERN_SLIDE, MAX_SLIDE_DEPTH, PATTERN_SLIDE)
+                            if slide and len(uv) - s >= 8]
+            windows = [np.arange(s, min(len(uv), s + p.pattern_stars)) for s in starts]
+        if len(windows[0]) < 4:
+            return self._fail(FAILED, f"{len(windows[0])} stars found: a pattern needs four", steps)
+        res, n_cands = None, 0
+        for pat in windows:
+            res, n = self._search(uv, pat, width, height, lo, hi, state, steps, t0, budget)
+            n_cands += n
+            if res is not None or state.timed_out:
+                break
+        if res is not None:
+            return res
+        reason = ": ".join(x for x in (state.gave_up, state.reason) if x) if state.checks else (
+            "no catalog pattern matches the brightest stars (not a star field, or its FOV is outside "
+            f"{lo:.1f}-{hi:.1f} deg)")
+        return self._fail(INCONCLUSIVE if state.checks else FAILED, reason, steps,
+                          stats={"checks": state.checks, "candidates": n_cands})
+
+    def _search(self, uv, pat, width, height, lo, hi, state: "_Search", steps, t0, budget: int):
+        """The quads of the pattern stars `pat` (indices of uv, brightest first), looked up and checked in
+        batches: the quads of the first 8, then those that add the next stars. Fields wider than
+        WIDE_FROM_DEG (a ladder twice as long, for a few cameras) are a section of their own, searched
+        after the narrower one at each batch, each section with `budget` checks. Returns (the verified
+        result or None, the number of candidates)."""
+        n_pat = len(pat)
         if n_pat < 4:
-            return self._fail(FAILED, f"{len(uv)} stars found: a pattern needs four", steps)
+            return None, 0
         quads = np.array(list(itertools.combinations(range(n_pat), 4)), dtype=np.int64)
         # brightest first: by the faintest star of the quad, then by the sum of ranks
         quads = quads[np.lexsort((quads.sum(axis=1), quads.max(axis=1)))]
-        # in batches: the quads of the brightest 8 stars, then those that add the next stars. Fields
-        # wider than WIDE_FROM_DEG (a ladder twice as long, for a few cameras) are a section of their
-        # own, searched after the narrower one at each batch, each section with its own count of checks
-        state = _Search(uv, min(len(uv), p.verify_stars), width, height)
+        quads_uv = pat[quads]  # the quads as indices of uv
+        state.done_upto = 0
         n_cands = 0
         res = None
         sections = [(a, b) for a, b in ((lo, min(hi, WIDE_FROM_DEG)), (max(lo, WIDE_FROM_DEG), hi)) if a < b]
@@ -153,39 +195,32 @@ class BlindIdentifier(CameraRefit):
             for k, (s_lo, s_hi) in enumerate(sections):
                 if k in exhausted:
                     continue
-                cands = self._lookup(uv[:n_pat], quads, batch, width, height, s_lo, s_hi)
+                cands = self._lookup(uv[pat], quads, batch, width, height, s_lo, s_hi, state.model)
                 n_cands += len(cands["pattern"])
                 shown = self.rows[cands["pattern"][:CAP]]
                 steps.append(Step("lookup", f"patterns of four among the {upto} brightest stars ({len(batch)} new), "
                                             f"FOV {s_lo:.2f}-{s_hi:.2f} deg: {len(cands['pattern'])} catalog patterns "
                                             "agree",
-                                  observed=list(range(upto)),
+                                  observed=pat[:upto].tolist(),
                                   catalog=sorted({int(r) for r in shown.ravel()}),
                                   groups=[tuple(int(r) for r in g) for g in shown],
                                   numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
                                            "fov_min_deg": s_lo, "fov_max_deg": s_hi}))
                 before = state.checks
-                budget = p.max_checks if max_checks is None else int(max_checks)
-                res = self._check(uv, quads, cands, state, steps, t0, max_checks=budget - spent[k])
+                res = self._check(uv, quads_uv, cands, state, steps, t0, max_checks=budget - spent[k])
                 spent[k] += state.checks - before
                 if res is not None or state.timed_out:
-                    break
+                    return res, n_cands
                 if state.out_of_budget:
                     exhausted.add(k)
                     state.out_of_budget = False
-            if res is not None or state.timed_out or len(exhausted) == len(sections):
+            if len(exhausted) == len(sections):
                 break
-        if res is not None:
-            return res
-        reason = ": ".join(x for x in (state.gave_up, state.reason) if x) if state.checks else (
-            "no catalog pattern matches the brightest stars (not a star field, or its FOV is outside "
-            f"{lo:.1f}-{hi:.1f} deg)")
-        return self._fail(INCONCLUSIVE if state.checks else FAILED, reason, steps,
-                          stats={"checks": state.checks, "candidates": n_cands})
+        return None, n_cands
 
     # ------------------------------------------------------------------ look-up
     def _lookup(self, uv: np.ndarray, quads_all: np.ndarray, batch: np.ndarray, width: int, height: int,
-                lo: float, hi: float) -> dict:
+                lo: float, hi: float, model: str = PINHOLE) -> dict:
         """Catalog patterns that agree with quads_all[batch]: (quad index, table row, FOV, ratio error)."""
         quads = quads_all[batch]
         p, pp = self.params, self.pattern_params
@@ -193,8 +228,8 @@ class BlindIdentifier(CameraRefit):
         # a ratio +- tol spans up to three bins (tol < w)
         offsets = np.array(list(itertools.product((0, 1, 2), repeat=pdb.N_RATIOS)), dtype=np.int64)
         found_q, found_p, found_f, found_err = [], [], [], []
-        for fa, cover in fov_ladder(lo, hi, p.ladder_deg2):
-            cam = Camera.from_fov(float(fa), width, height)
+        for fa, cover in fov_ladder(lo, hi, p.ladder_deg2 if model == PINHOLE else p.fisheye_ladder_deg2):
+            cam = Camera.from_fov(float(fa), width, height, model=model)
             vec = cam.unproject(uv)
             ratios, largest = pdb.edge_ratios(pdb.separations(vec[quads]))
             qlo = pdb.quantise(ratios - tol, w)
@@ -257,7 +292,7 @@ class BlindIdentifier(CameraRefit):
                 return None
             obs4 = quads[q]
             rows4 = self.rows[pr].astype(np.int64)
-            cam = Camera.from_fov(float(fov), width, height)
+            cam = Camera.from_fov(float(fov), width, height, model=state.model)
             b = cam.unproject(uv[obs4])
             r = self.catalog.xyz[rows4]
             # correspondence: the permutation of the catalog stars whose separations agree best

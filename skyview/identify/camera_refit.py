@@ -39,6 +39,8 @@ class BlindParams:
     verify_stars: int = 40  # brightest centroids the frame is checked with
     ratio_tolerance: float = 0.006  # edge ratios agree within this
     ladder_deg2: float = 60.0  # an assumed FOV F covers the FOVs within a factor 1 + ladder_deg2 / F^2
+    # the same through a fisheye, whose angles depend far less on the scale assumed than a pinhole's
+    fisheye_ladder_deg2: float = 1500.0
     depth_factor: float = 2.0  # catalog stars projected per centroid used
     quick_radius_px: float = 4.0
     quick_threshold: float = 1e-3
@@ -152,7 +154,10 @@ class CameraRefit:
         n_tested = n_obs - 4
         density = len(rows) / (cam.width * cam.height)  # catalog stars per pixel
         p1 = min(1.0, density * math.pi * p.quick_radius_px ** 2)
-        prob = float(min(1.0, checks * binomial_sf(len(agree), n_tested, p1))) if agree else 1.0
+        # the chance for this hypothesis alone: a filter before the camera fit, whose verification counts every
+        # hypothesis checked (Bonferroni); counted here too, the true pattern of a field whose brightest
+        # detections are not stars (a lit roof, a planet) came too late to pass the filter
+        prob = float(min(1.0, binomial_sf(len(agree), n_tested, p1))) if agree else 1.0
         passed = prob < p.quick_threshold
         note = f"{len(agree)} of {n_tested} other stars land on the {len(rows)} brightest catalog stars, " \
                f"chance {prob:.1e}"

@@ -715,7 +715,7 @@ class _Frame:
         v = near.xyz @ R.T
         f = max(camera.fx, camera.fy)
         if len(rows):
-            if camera.distorted:
+            if camera.distorted or camera.fisheye:
                 uv, front = camera.project(v)  # NaN pixels behind the camera compare False below
                 every = False
             else:  # = camera.project without its per-call overhead: the same numbers

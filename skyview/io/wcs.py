@@ -1,11 +1,14 @@
-"""A solution as a FITS WCS (TAN, with SIP terms for the fitted radial distortion), through astropy.
+"""A solution as a FITS WCS (TAN, ARC or ZEA, with SIP terms for the fitted radial distortion), through astropy.
 
 The header opens in DS9, astropy and the astrometry.net tools. Conventions (docs/conventions.md):
 CRVAL is the boresight RA/Dec (degrees); CRPIX the principal point + 1 (FITS pixels are 1-based);
 CD the 2x2 linear part in degrees per pixel, with the roll and the parity of the camera frame (x
 right, y down); the radial distortion x_d = x (1 + k1 r^2 + k2 r^4) becomes the SIP polynomials A, B
 (pixel -> intermediate: distorted offsets (u, v) from CRPIX map to undistorted (u + A, v + B)),
-with the inverse AP, BP fitted on a grid, so `all_world2pix` lands on the centroids.
+with the inverse AP, BP fitted on a grid, so `all_world2pix` lands on the centroids. A fisheye
+(`skyview.core.camera`) takes the projection its lens is: ARC for the equidistant (the radius in
+intermediate degrees is the off-axis angle), ZEA for the equisolid (2 sin(angle / 2)); the same CD
+scales both, and its distortion in the off-axis angle becomes SIP terms the same way.
 """
 
 from __future__ import annotations
@@ -53,15 +56,16 @@ def solution_wcs(R: np.ndarray, camera: Camera, *, rows_reversed: bool = False):
     w.wcs.crval = [float(np.degrees(ra)), float(np.degrees(dec))]
     w.wcs.cd = cd
     w.wcs.radesys = "ICRS"
+    proj = {"pinhole": "TAN", "equidistant": "ARC", "equisolid": "ZEA"}[camera.model]
     if camera.distorted:
-        w.wcs.ctype = ["RA---TAN-SIP", "DEC--TAN-SIP"]
+        w.wcs.ctype = [f"RA---{proj}-SIP", f"DEC--{proj}-SIP"]
         a, b, ap, bp = _sip(camera)
         if rows_reversed:  # A(u, -v) and -B(u, -v): the terms in v^q take (-1)^q
             sign = (-1.0) ** np.arange(SIP_ORDER + 1)[None, :]
             a, ap, b, bp = a * sign, ap * sign, -b * sign, -bp * sign
         w.sip = Sip(a, b, ap, bp, w.wcs.crpix)
     else:
-        w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+        w.wcs.ctype = [f"RA---{proj}", f"DEC--{proj}"]
     w.wcs.set()
     return w
 
@@ -74,7 +78,7 @@ def _sip(camera: Camera):
     U, V = np.meshgrid(us, vs)
     ud, vd = U.ravel(), V.ravel()  # distorted offsets (what the image shows)
     xy_d = np.stack([ud / camera.fx, vd / camera.fy], axis=1)
-    xy = camera._undistort(xy_d)
+    xy = camera.undistorted_normalised(xy_d)
     uu, vu = xy[:, 0] * camera.fx, xy[:, 1] * camera.fy  # undistorted offsets
     a = _poly_fit(ud, vd, uu - ud)
     b = _poly_fit(ud, vd, vu - vd)

@@ -253,7 +253,12 @@ def vignetting_falloff(camera: Camera, vignetting: float | str) -> float:
 
 
 def _cos4(camera: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """cos^4 of the pinhole off-axis angle at pixel (u, v) (broadcast over u and v)."""
+    """cos^4 of the off-axis angle at pixel (u, v) (broadcast over u and v; a fisheye's from its own
+    projection)."""
+    if camera.fisheye:
+        uu, vv = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
+        z = camera.unproject(np.stack([uu.ravel(), vv.ravel()], axis=1))[:, 2].reshape(uu.shape)
+        return np.clip(z, 0.0, 1.0) ** 4
     x = (np.asarray(u, dtype=np.float64) - camera.cx) / camera.fx
     y = (np.asarray(v, dtype=np.float64) - camera.cy) / camera.fy
     return 1.0 / (1.0 + x * x + y * y) ** 2

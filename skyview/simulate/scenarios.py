@@ -42,6 +42,7 @@ class Scenario:
     exposure_s: float = 0.1  # the sensor's (SensorModel.exposure_s): 2 s shows G 10 stars at SNR ~10
     bit_depth: int = 16  # the sensor's ADC
     bias_e: float = 100.0  # the sensor's pedestal (electrons; 15 e- is a background of ~2 DN at 8 bits)
+    lens: str = "pinhole"  # the camera model (skyview.core.camera): pinhole, equidistant or equisolid fisheye
     frames: int = 0  # a slew of this many frames (skyview.bench.runner.run_slew_bench); 0: single frames
     step_deg: float = 2.0  # the slew's turn per frame about the camera y axis
 
@@ -50,7 +51,7 @@ class Scenario:
         return self.frames > 0
 
     def camera(self) -> Camera:
-        return Camera.from_fov(self.fov_deg, self.width, self.height, k1=self.k1, k2=self.k2)
+        return Camera.from_fov(self.fov_deg, self.width, self.height, k1=self.k1, k2=self.k2, model=self.lens)
 
     def sensor(self):
         """The default sensor (`skyview.simulate.render.SensorModel`) at this scenario's exposure."""
@@ -124,6 +125,14 @@ SCENARIOS: dict[str, Scenario] = {
                  "stars at SNR ~10",
                  fov_deg=6.0, width=1280, height=1024, mag_limit=6.0, noise_rad=0.0, faint_extra_mag=3.0,
                  exposure_s=0.03, bit_depth=8, bias_e=15.0),
+        Scenario("fisheye120", "blind solving through a wide fisheye: equidistant lens, 120 deg across, 1280x960, "
+                 "Hp <= 5.0 + fainter field stars to Hp 7.0, 30 % vignetting (cos^4-shaped in the off-axis angle)",
+                 fov_deg=120.0, width=1280, height=960, mag_limit=5.0, noise_rad=0.0, faint_extra_mag=2.0,
+                 vignetting=0.3, lens="equidistant", max_stars=40),
+        Scenario("allsky180", "blind solving of an all-sky camera: equisolid fisheye, 180 deg across a 1024x1024 "
+                 "sensor, Hp <= 4.0 + fainter field stars to Hp 6.0, k1 = 0.01 (its lens' own distortion)",
+                 fov_deg=180.0, width=1024, height=1024, mag_limit=4.0, noise_rad=0.0, faint_extra_mag=2.0,
+                 lens="equisolid", k1=0.01, max_stars=40),
         Scenario("narrow1.5", "blind solving of a telescope's field: 1.5 deg FOV, 1024x768, every star of the deep "
                  "catalog rendered (Hipparcos-2 + Gaia DR3 to G 10), 2 s exposure, 30 % vignetting at the corners, "
                  "20 % sky gradient",

