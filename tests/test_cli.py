@@ -96,7 +96,7 @@ def test_empty_sky_is_not_solved(capsys, tmp_path):
     assert json.loads(out)["status"] == "failed"
 
 
-@pytest.mark.parametrize("fov", ["0", "-3", "180", "250", "nan", "abc"])
+@pytest.mark.parametrize("fov", ["0", "-3", "360", "400", "nan", "abc"])
 def test_impossible_fov(capsys, orion, fov):
     code, out, err = run(capsys, "solve", str(orion), "--fov-deg", fov)
     assert code == 2 and one_line_error(err)

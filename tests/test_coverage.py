@@ -175,3 +175,40 @@ def test_the_stochastic_method_is_swept_with_its_own_sequences(tmp_path):
     assert json.loads((tmp_path / "config.json").read_text())["frames"] == 5
     with pytest.raises(BadInput, match="single frames"):
         CoverageConfig("angle", frames=3).checked()
+
+
+@pytest.mark.slow
+def test_a_sweep_killed_with_sigkill_resumes_to_the_table_of_an_uninterrupted_run(tmp_path):
+    # issue 28, item 5: the process killed outright (no handler runs) mid-sweep, then the same command again
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    args = ["coverage", "--method", "angle", "--variant", "improved", "--fov-deg", "20", "--mag-limit", "5",
+            "--nside", "2", "--rolls", "2", "--chunk", "4", "--scheduler", "inline", "--quiet", "--json"]
+    killed, whole = tmp_path / "killed", tmp_path / "whole"
+    cmd = [sys.executable, "-c", "import sys; from skyview.cli import main; sys.exit(main(sys.argv[1:]))"]
+    p = subprocess.Popen(cmd + args + ["--out", str(killed)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while len(list((killed / "chunks").glob("task-*.npz"))) < 3 and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert p.poll() is None, "the sweep ended before it could be killed"
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait(timeout=30)
+    n_before = len([q for q in (killed / "chunks").glob("task-*.npz") if not q.stem.endswith(".tmp")])
+    assert 3 <= n_before < 24  # 96 orientations in 24 tasks: stopped part way
+    again = subprocess.run(cmd + args + ["--out", str(killed)], capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-400:]
+    resumed = json.loads(again.stdout)
+    assert resumed["run"]["tasks_run"] == 24 - n_before  # only what the killed run had not saved
+    ref = subprocess.run(cmd + args + ["--out", str(whole)], capture_output=True, text=True, timeout=600)
+    assert ref.returncode == 0, ref.stderr[-400:]
+    uninterrupted = json.loads(ref.stdout)
+    a, b = load_results(killed), load_results(whole)
+    assert set(a) == set(b)
+    for k in set(a) - {"time_ms", "worker_s"}:  # every record but its timings
+        assert np.array_equal(a[k], b[k]), k
+    for k in ("counts", "coverage_pct", "orientations", "enough_stars_pct"):
+        assert resumed[k] == uninterrupted[k], k

@@ -280,7 +280,7 @@ def check_fov_deg(fov_deg: float, model: str = PINHOLE) -> None:
     if not np.isfinite(f) or f <= 0.0 or f >= top:
         if model == PINHOLE:
             raise BadInput(f"FOV {fov_deg} deg is impossible for a pinhole camera: it must be in (0, 180) (a wider "
-                           "lens is a fisheye: --lens equidistant or equisolid)")
+                           "lens is a fisheye: model='equidistant' or 'equisolid')")
         raise BadInput(f"FOV {fov_deg} deg is impossible for a {model} fisheye: it must be in (0, 360)")
 
 

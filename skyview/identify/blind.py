@@ -120,13 +120,15 @@ class BlindIdentifier(CameraRefit):
     # ------------------------------------------------------------------ main
     def identify(self, uv: np.ndarray, width: int, height: int, *, fov_deg: float | None = None,
                  fov_error: float = 0.1, max_checks: int | None = None,
-                 pattern_idx: np.ndarray | None = None, slide: bool = True, model: str = PINHOLE) -> BlindResult:
+                 pattern_idx: np.ndarray | None = None, slide: bool = True, model: str = PINHOLE,
+                 checks_before: int = 0) -> BlindResult:
         """Identify centroids uv (N, 2), brightest first, of a width x height image; max_checks: the quick
         checks allowed (None: params.max_checks); pattern_idx: the centroids the patterns are made of, in
         that order (None: the brightest params.pattern_stars, and with `slide` the next ones after them
         when those do not verify); every centroid verifies. model: the lens the image is searched through
         (`skyview.core.camera`: a fisheye over FISHEYE_FOV_RANGE_DEG, its k1 and k2 fitted like a
-        pinhole's)."""
+        pinhole's). checks_before: hypotheses already checked on this image by earlier searches (another
+        database, another lens): the verification counts them with its own (Bonferroni)."""
         t0 = time.perf_counter()
         p = self.params
         uv = np.asarray(uv, dtype=np.float64)
@@ -141,6 +143,7 @@ class BlindIdentifier(CameraRefit):
                                   steps)
             lo, hi = max(lo, span[0]), min(hi, span[1])
         state = _Search(uv, min(len(uv), p.verify_stars), width, height, model=model)
+        state.checks = int(checks_before)
         budget = p.max_checks if max_checks is None else int(max_checks)
         if pattern_idx is not None:
             windows = [np.asarray(pattern_idx, dtype=np.int64)[:p.pattern_stars]]

@@ -171,7 +171,10 @@ class CameraRefit:
         cam, R = quick["camera"], quick["R"]
         fit, fitted_on = None, None
         # the attitude and the scale first, then the distortion too, each followed by matching again
-        for radius, distortion in ((p.quick_radius_px, False), (max(1.5, 0.5 * p.quick_radius_px), None)):
+        passes = ((p.quick_radius_px, False), (max(1.5, 0.5 * p.quick_radius_px), None))
+        if cam.fisheye:  # a fisheye's distortion moves its stars by pixels from the first fit: fitted throughout
+            passes = ((p.quick_radius_px, None), (p.quick_radius_px, None), (max(1.5, 0.5 * p.quick_radius_px), None))
+        for radius, distortion in passes:
             idx = np.array(sorted(matches))
             fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R,
                              fit_k1=distortion, fit_k2=distortion)

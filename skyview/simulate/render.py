@@ -422,7 +422,8 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
                    n_dropped: int | float = 0, position_noise_rad: float = 0.0,
                    noise: bool = True, faint_extra_mag: float = 0.0, vignetting: float | str = 0.0,
                    sky_gradient: float = 0.0, sky_gradient_deg: float = 0.0,
-                   jpeg_quality: int | None = None, jpeg_scale: float | None = None) -> SimulatedFrame:
+                   jpeg_quality: int | None = None, jpeg_scale: float | None = None,
+                   image_circle_deg: float | None = None) -> SimulatedFrame:
     """Render the sky seen by `camera` at attitude R (v_cam = R @ v_icrs).
 
     - catalog stars with Hp <= mag_limit whose (jittered) PSF centre lands on the sensor are drawn;
@@ -438,6 +439,9 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
       normalised (then jittered like a star); redrawn if it misses the sensor;
     - noise=False switches off shot noise and read noise (hot pixels, bias, quantisation and
       saturation remain; set their SensorModel fields to 0 to remove them).
+
+    - image_circle_deg: only stars within this angle of the boresight are drawn (a circular all-sky
+      fisheye sees the sky to its horizon, 90 deg, and the ground beyond).
 
     Real-world effects (all off by default; off, nothing changes, bit for bit):
 
@@ -485,7 +489,10 @@ def simulate_image(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sensor:
     # ---------------------------------------------------------------- catalog stars in the field
     boresight = R[2]
     margin_rad = 6.0 * sigma / camera.fx + 10.0 * position_noise_rad
-    cone = catalog.within(boresight, camera.half_diagonal_rad + margin_rad)
+    reach = camera.half_diagonal_rad + margin_rad
+    if image_circle_deg is not None:  # a circular fisheye: nothing beyond its image circle (the horizon)
+        reach = min(reach, np.radians(float(image_circle_deg)))
+    cone = catalog.within(boresight, reach)
     cone = cone[catalog.mag[cone] <= (render_limit if faint_extra_mag > 0 else mag_limit)]
     cone = cone[np.argsort(catalog.mag[cone], kind="stable")]  # brightest first
     v_true = catalog.xyz[cone] @ R.T

@@ -42,6 +42,7 @@ class Scenario:
     exposure_s: float = 0.1  # the sensor's (SensorModel.exposure_s): 2 s shows G 10 stars at SNR ~10
     bit_depth: int = 16  # the sensor's ADC
     bias_e: float = 100.0  # the sensor's pedestal (electrons; 15 e- is a background of ~2 DN at 8 bits)
+    image_circle_deg: float | None = None  # a circular fisheye: stars drawn only this far from the boresight
     lens: str = "pinhole"  # the camera model (skyview.core.camera): pinhole, equidistant or equisolid fisheye
     frames: int = 0  # a slew of this many frames (skyview.bench.runner.run_slew_bench); 0: single frames
     step_deg: float = 2.0  # the slew's turn per frame about the camera y axis
@@ -64,7 +65,8 @@ class Scenario:
         kw = dict(mag_limit=self.mag_limit, n_false_stars=self.n_false_stars,
                   false_star_placement=self.false_star_placement, position_noise_rad=self.noise_rad)
         effects = dict(faint_extra_mag=self.faint_extra_mag, vignetting=self.vignetting,
-                       sky_gradient=self.sky_gradient, jpeg_quality=self.jpeg_quality)
+                       sky_gradient=self.sky_gradient, jpeg_quality=self.jpeg_quality,
+                       image_circle_deg=self.image_circle_deg)
         kw.update({k: v for k, v in effects.items() if v})  # off effects are not passed at all
         return kw
 
@@ -130,9 +132,10 @@ SCENARIOS: dict[str, Scenario] = {
                  fov_deg=120.0, width=1280, height=960, mag_limit=5.0, noise_rad=0.0, faint_extra_mag=2.0,
                  vignetting=0.3, lens="equidistant", max_stars=40),
         Scenario("allsky180", "blind solving of an all-sky camera: equisolid fisheye, 180 deg across a 1024x1024 "
-                 "sensor, Hp <= 4.0 + fainter field stars to Hp 6.0, k1 = 0.01 (its lens' own distortion)",
+                 "sensor, the sky to its horizon (90 deg from the zenith; the corners dark), Hp <= 4.0 + fainter "
+                 "field stars to Hp 6.0, k1 = 0.01 (its lens' own distortion)",
                  fov_deg=180.0, width=1024, height=1024, mag_limit=4.0, noise_rad=0.0, faint_extra_mag=2.0,
-                 lens="equisolid", k1=0.01, max_stars=40),
+                 lens="equisolid", k1=0.01, max_stars=40, image_circle_deg=90.0),
         Scenario("narrow1.5", "blind solving of a telescope's field: 1.5 deg FOV, 1024x768, every star of the deep "
                  "catalog rendered (Hipparcos-2 + Gaia DR3 to G 10), 2 s exposure, 30 % vignetting at the corners, "
                  "20 % sky gradient",

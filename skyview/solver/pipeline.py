@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from skyview.core.attitude import ESTIMATORS
-from skyview.core.camera import EQUIDISTANT, FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera
+from skyview.core.camera import EQUIDISTANT, EQUISOLID, FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, finite_image, load_image, to_gray
@@ -222,15 +222,31 @@ class BlindSolver:
     def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
                         fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
         kw = dict(fov_deg=fov_deg, fov_error=fov_error)
-        if fov_deg is not None and fov_deg >= FISHEYE_FOV_RANGE_DEG[0] and fov_deg * (1 - fov_error) >= 180.0:
-            result = None  # no pinhole sees that much: a fisheye only
+        if fov_deg is not None and fov_deg * (1 - fov_error) > self.fov_range_deg[1]:
+            result = None  # wider than the pinhole search reaches: a fisheye only
         else:
             result = self._pinhole(centroids, width, height, **kw)
             if result.solved or not self._fisheye_may_solve(centroids, fov_deg, fov_error):
                 return result
         # a fisheye (all-sky, meteor cameras): the equidistant lens searched, its k1 and k2 fitted (an equisolid
         # lens is an equidistant one with k1 = -1/24, k2 = 1/1920)
-        fres = self._solve_centroids(centroids, width, height, model=EQUIDISTANT, **kw)
+        checks = _checks(result) if result is not None else 0
+        fres = None
+        for lens in (EQUIDISTANT, EQUISOLID):
+            # each lens searched until one fits its stars as a lens should (an equisolid lens seen through an
+            # equidistant search may verify with its distortion unfitted and its attitude pulled aside)
+            r = self._solve_centroids(centroids, width, height, model=lens, checks_before=checks, **kw)
+            checks = max(checks, _checks(r))
+            if fres is None or (r.solved and (not fres.solved or _fit_rms(r) < _fit_rms(fres))):
+                fres = r
+            if fres.solved and _fit_rms(fres) <= FISHEYE_MAX_RMS_PX:
+                break
+        if fres.solved and _fit_rms(fres) > FISHEYE_MAX_RMS_PX:
+            rms = _fit_rms(fres)
+            fres.status, fres.R = NOT_SOLVED, None
+            fres.reason = (f"the stars were identified through a fisheye, but no lens model fits them better than "
+                           f"{rms:.1f} px (the attitude would be off by that): not reported")
+            fres.matches = []
         if fres.solved:
             fres.notes.append(f"a fisheye: {fres.camera.fov_deg:.1f} deg across, the equidistant lens with k1 "
                               f"{fres.camera.k1:+.4f} and k2 {fres.camera.k2:+.5f} fitted to its stars")
@@ -262,7 +278,7 @@ class BlindSolver:
         if first.solved:
             return first
         narrow = narrow_field_solver(self.epoch, **self._narrow_kwargs)
-        nres = narrow._solve_centroids(centroids, width, height, slide=False, **kw)
+        nres = narrow._solve_centroids(centroids, width, height, slide=False, checks_before=_checks(first), **kw)
         if nres.solved:
             nres.notes.append(f"a narrow field ({nres.camera.fov_deg:.2f} deg): solved in the deep catalog "
                               "(Hipparcos-2 + Gaia DR3 to G 10)")
@@ -270,7 +286,8 @@ class BlindSolver:
         result = first
         if int(first.identification.stats.get("checks", 0)) >= NARROW_AFTER_CHECKS or len(centroids) >= 16:
             # the guide catalog's whole search: its full budget, and the pattern stars sliding past the brightest
-            result = _with_time_of(self._solve_centroids(centroids, width, height, **kw), first)
+            result = _with_time_of(self._solve_centroids(centroids, width, height, checks_before=_checks(nres), **kw),
+                                   first)
         result = _with_time_of(result, nres)
         if not result.solved:
             result.reason = f"{result.reason}; as a narrow field in the deep catalog: {nres.reason}"
@@ -278,21 +295,32 @@ class BlindSolver:
 
     def _solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None,
                          fov_error: float, max_checks: int | None = None, slide: bool = True,
-                         model: str = PINHOLE) -> SolveResult:
+                         model: str = PINHOLE, checks_before: int = 0) -> SolveResult:
         check_fov_error(fov_error)
         if fov_deg is not None:
-            Camera.from_fov(fov_deg, width, height, model=model if fov_deg >= 180.0 else PINHOLE)  # one-line error
+            # a one-line error for an impossible FOV (one of 180 deg or more is a fisheye's)
+            Camera.from_fov(fov_deg, width, height, model=PINHOLE if fov_deg < 180.0 else EQUIDISTANT)
         t0 = time.perf_counter()
         n = min(len(centroids), self.max_stars)
         br = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error,
-                                      max_checks=max_checks, slide=slide, model=model)
+                                      max_checks=max_checks, slide=slide, model=model, checks_before=checks_before)
         ident = br.identification
         identify_ms = (time.perf_counter() - t0) * 1e3
         span = self.fov_range_deg if model == PINHOLE else FISHEYE_FOV_RANGE_DEG
         guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(span)))
-        camera = br.camera if br.camera is not None else Camera.from_fov(guess, width, height, model=model)
         if br.camera is not None and model != PINHOLE:
-            camera = _simplest_lens(camera, centroids.uv, self.catalog.xyz, ident.matches, ident.R)
+            # the other fisheye lens, fitted to the matched stars, matched and verified again through it: kept
+            # when it holds more stars, or as many with less distortion
+            for lens in _other_lenses(br.camera, centroids.uv, self.catalog.xyz, ident.matches, ident.R):
+                again = self.identifier.refit(centroids.uv[:n], ident.matches, lens, ident.R,
+                                              checks=int(ident.stats.get("checks", 1)), steps=list(ident.steps))
+                a = again.identification
+                if a.identified and (len(a.matches) > len(ident.matches) or (
+                        len(a.matches) == len(ident.matches)
+                        and abs(again.camera.k1) + abs(again.camera.k2) < abs(br.camera.k1) + abs(br.camera.k2))):
+                    a.stats = {**ident.stats, **a.stats}
+                    br, ident = again, a
+        camera = br.camera if br.camera is not None else Camera.from_fov(guess, width, height, model=model)
         sigma = br.sigma_rad if br.sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
         obs = observation(centroids, camera, sigma, n)
         result = result_from_identification(
@@ -413,6 +441,19 @@ def narrow_field_solver(epoch: float = DEFAULT_EPOCH, **kwargs) -> BlindSolver:
 
 
 FISHEYE_MIN_STARS = 8  # the fisheye search runs on an image that shows at least this many stars
+FISHEYE_MAX_RMS_PX = 1.5  # a fisheye answer whose lens fits its stars worse than this (per axis) is not reported
+
+
+def _fit_rms(result: SolveResult) -> float:
+    ident = result.identification
+    rms = ident.stats.get("fit_rms_px") if ident is not None else None
+    return float(rms) if rms is not None and np.isfinite(rms) else float("inf")
+
+
+def _checks(result: SolveResult) -> int:
+    """The hypotheses a blind search checked (its successors count them in their verification)."""
+    ident = result.identification
+    return int(ident.stats.get("checks", 0)) if ident is not None else 0
 
 
 def _short(reason: str) -> str:
@@ -550,24 +591,23 @@ def _with_time_of(result: SolveResult, other: SolveResult) -> SolveResult:
     return result
 
 
-def _simplest_lens(camera: Camera, uv: np.ndarray, xyz: np.ndarray, matches: dict[int, int], R: np.ndarray) -> Camera:
-    """A fisheye's lens as the model that needs the least distortion: the equidistant fit, or the equisolid
-    one when it fits the matched stars as well with smaller k1 and k2 (an equisolid lens searched as an
-    equidistant one comes out with k1 ~ -1/24)."""
+def _other_lenses(camera: Camera, uv: np.ndarray, xyz: np.ndarray, matches: dict[int, int],
+                  R: np.ndarray) -> list[Camera]:
+    """The other fisheye model (equidistant <-> equisolid) fitted to the matched stars, without distortion and
+    with what the stars support (none with too few): an equisolid lens searched as an equidistant one needs
+    k1 ~ -1/24, which the search's fit, on the stars near the centre it first matches, may stop short of."""
     from skyview.core.camera import EQUISOLID
     from skyview.core.camera_fit import fit_camera
 
     obs = sorted(matches)
     if len(obs) < 6 or R is None:
-        return camera
+        return []
+    other = EQUISOLID if camera.model == EQUIDISTANT else EQUIDISTANT
+    start = Camera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, model=other)
     p_uv, p_xyz = uv[obs], xyz[[matches[o] for o in obs]]
-    base = fit_camera(p_uv, p_xyz, camera, R, fit_k1=camera.k1 != 0.0, fit_k2=camera.k2 != 0.0)
-    solid = Camera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, model=EQUISOLID)
-    alt = fit_camera(p_uv, p_xyz, solid, base.R)
-    rss = float(np.sum(base.residuals_px ** 2))
-    rss_alt = float(np.sum(alt.residuals_px ** 2))
-    simpler = abs(alt.camera.k1) + abs(alt.camera.k2) < abs(camera.k1) + abs(camera.k2)
-    return alt.camera if simpler and rss_alt <= 1.1 * rss + 1e-9 else camera
+    plain = fit_camera(p_uv, p_xyz, start, R, fit_k1=False, fit_k2=False).camera
+    free = fit_camera(p_uv, p_xyz, start, R).camera
+    return [plain] if free == plain else [plain, free]
 
 
 def _narrow_field_may_solve(deep: bool | None, centroids: Centroids, fov_deg: float | None,

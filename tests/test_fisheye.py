@@ -1,0 +1,113 @@
+"""Wide and fisheye lenses (issue 27, item 4): the equidistant and equisolid camera models, their fit, their
+WCS, and blind solving of simulated 120 deg and 180 deg all-sky frames against the simulator's truth."""
+
+import json
+
+import numpy as np
+import pytest
+
+from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes
+from skyview.core.camera import EQUIDISTANT, EQUISOLID, Camera
+from skyview.core.camera_fit import fit_camera
+from skyview.core.catalog import vec_to_radec
+from skyview.core.errors import BadInput
+from skyview.simulate.render import simulate_image
+from skyview.simulate.scenarios import get_scenario
+from skyview.solver.pipeline import BlindSolver
+
+
+@pytest.mark.parametrize("model", [EQUIDISTANT, EQUISOLID])
+@pytest.mark.parametrize("k1,k2", [(0.0, 0.0), (0.02, -0.002)])
+def test_fisheye_projection_round_trips_and_follows_its_law(model, k1, k2):
+    cam = Camera.from_fov(180.0, 1024, 768, k1=k1, k2=k2, model=model)
+    uv = np.random.default_rng(0).uniform([0, 0], [1023, 767], (500, 2))
+    v = cam.unproject(uv)
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-12)
+    back, front = cam.project(v)
+    assert front.all()
+    np.testing.assert_allclose(back, uv, atol=1e-8)
+    # the law: the radius in pixels against the off-axis angle (distortion on the angle)
+    th = np.arccos(v[:, 2])
+    thd = th * (1 + k1 * th ** 2 + k2 * th ** 4)
+    r = np.hypot(uv[:, 0] - cam.cx, uv[:, 1] - cam.cy) / cam.fx
+    np.testing.assert_allclose(r, thd if model == EQUIDISTANT else 2 * np.sin(thd / 2), atol=1e-9)
+    if k1 == 0.0:
+        assert cam.fov_deg == pytest.approx(180.0)
+        # the edge of the width is 90 deg off axis
+        assert np.degrees(np.arccos(cam.unproject([[-0.5, cam.cy]])[0, 2])) == pytest.approx(90.0)
+
+
+def test_an_equisolid_lens_is_equal_area_and_the_pinhole_refuses_180_degrees():
+    cam = Camera.from_fov(180.0, 1024, 1024, model=EQUISOLID)
+    assert cam.solid_angle_sr == pytest.approx(1024 * 1024 / cam.fx ** 2, rel=0.01)  # every pixel within r = 2
+    with pytest.raises(BadInput, match="fisheye"):
+        Camera.from_fov(180.0, 1024)
+    with pytest.raises(BadInput):
+        Camera.from_fov(360.0, 1024, model=EQUIDISTANT)
+    assert Camera.from_dict(cam.to_dict()) == cam
+
+
+@pytest.mark.parametrize("model,ctype", [(EQUIDISTANT, "ARC"), (EQUISOLID, "ZEA")])
+def test_a_fisheye_solution_writes_the_wcs_of_its_lens(model, ctype):
+    from skyview.io.wcs import solution_wcs
+
+    R = R_from_radec_roll(np.radians(83.8), np.radians(-5.4), np.radians(30.0))
+    for k1, tol in ((0.0, 1e-6), (0.02, 0.2)):
+        cam = Camera.from_fov(150.0, 1024, 768, k1=k1, model=model)
+        w = solution_wcs(R, cam)
+        assert w.wcs.ctype[0].startswith(f"RA---{ctype}")
+        uv = np.random.default_rng(1).uniform([0, 0], [1023, 767], (300, 2))
+        ra, dec = np.degrees(vec_to_radec(cam.unproject(uv) @ R))
+        px = np.array(w.all_world2pix(ra, dec, 0)).T
+        assert np.abs(px - uv).max() < tol
+
+
+def test_fit_camera_recovers_a_fisheyes_focal_length_and_distortion():
+    truth = Camera.from_fov(120.0, 1280, 960, k1=0.015, model=EQUIDISTANT)
+    R = R_from_radec_roll(1.0, 0.3, 0.2)
+    rng = np.random.default_rng(2)
+    uv = rng.uniform([0, 0], [1279, 959], (60, 2))
+    xyz = truth.unproject(uv) @ R
+    start = Camera.from_fov(110.0, 1280, 960, model=EQUIDISTANT)
+    fit = fit_camera(uv + rng.normal(0, 0.1, uv.shape), xyz, start, R)
+    assert fit.camera.model == EQUIDISTANT and "k1" in fit.fitted
+    assert fit.camera.fov_deg == pytest.approx(120.0, abs=0.05) and fit.camera.k1 == pytest.approx(0.015, abs=0.002)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["fisheye120", "allsky180"])
+def test_a_fisheye_sky_is_solved_blind(catalog, name):
+    sc = get_scenario(name)
+    cam = sc.camera()
+    solver = BlindSolver(catalog=catalog, deep=False)
+    for seed in range(2):
+        R = random_attitudes(seed + 1, np.random.default_rng(seed))[-1]
+        fr = simulate_image(catalog, cam, R, sc.sensor(), seed=seed, **sc.render_kwargs())
+        res = solver.solve_array(fr.image)
+        assert res.solved, res.reason
+        assert res.camera.fisheye and any("fisheye" in n for n in res.notes)
+        assert attitude_error_arcsec(res.R, R)["boresight"] < 0.5 * cam.pixel_scale_rad * 206265
+        # the lens: the same pixels for the same directions as the true one, wherever the stars are
+        uv = np.array([[m["u"], m["v"]] for m in res.matches])
+        np.testing.assert_allclose(res.camera.project(cam.unproject(uv) @ R @ res.R.T)[0], uv, atol=0.6)
+
+
+@pytest.mark.slow
+def test_the_cli_solves_an_all_sky_frame_given_its_180_degrees(tmp_path, catalog, capsys):
+    import cv2
+
+    from skyview.cli import main
+
+    sc = get_scenario("allsky180")
+    R = random_attitudes(1, np.random.default_rng(5))[0]
+    fr = simulate_image(catalog, sc.camera(), R, sc.sensor(), seed=5, **sc.render_kwargs())
+    png = tmp_path / "allsky.png"
+    cv2.imwrite(str(png), fr.image)
+    assert main(["solve", str(png), "--fov-deg", "180", "--json", "--no-truth", "--wcs", str(tmp_path / "a.wcs")]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["camera"]["model"] in (EQUIDISTANT, EQUISOLID) and d["camera_fitted"]
+    # within two pixels (632"/px at the centre): the lens fitted to the stars it matched
+    assert attitude_error_arcsec(np.array(d["R"]), R)["boresight"] < 2 * sc.camera().pixel_scale_rad * 206265
+    from astropy.io import fits
+
+    assert fits.getheader(tmp_path / "a.wcs")["CTYPE1"][5:8] in ("ARC", "ZEA")
