@@ -158,3 +158,31 @@ def test_constellations_in_view_are_the_iau_ones_around_the_boresight():
                                                                                        np.radians(-5.4), 0.3))
     # a 40 x 30 deg field on Orion reaches its neighbours on every side, the boresight's first
     assert wide[0] == "Orion" and {"Eridanus", "Monoceros", "Lepus", "Taurus"} <= set(wide) and len(set(wide)) == len(wide)
+
+
+@pytest.mark.slow
+def test_a_telescope_field_and_an_all_sky_frame_are_drawn_from_what_solved_them(session, catalog):
+    # a 1.2 deg field solves in the deep catalog (its matches index that catalog's rows, not the guide
+    # catalog's), a 180 deg all-sky frame through a fisheye; then a photograph of the usual kind again
+    from skyview.core.attitude import attitude_error_arcsec, random_attitudes
+    from skyview.core.camera import Camera
+    from skyview.core.deep_catalog import load_deep_catalog
+    from skyview.simulate.render import SensorModel, simulate_image
+    from skyview.simulate.scenarios import get_scenario
+
+    server, s = session
+    deep = load_deep_catalog(catalog.epoch)
+    R = random_attitudes(2, np.random.default_rng(7))
+    narrow = simulate_image(deep, Camera.from_fov(1.2, 1024, 768), R[0], SensorModel(exposure_s=2.0), seed=1,
+                            mag_limit=10.0)
+    run = _upload(s, narrow.image, "m44.png", typed_fov=8.0)
+    assert run.result.solved and run.catalog is run.result.catalog and len(run.catalog) > 400_000
+    assert attitude_error_arcsec(run.result.R, R[0])["boresight"] < 5.0
+    assert run.source.camera.fov_deg == pytest.approx(1.2, rel=1e-3)
+    sc = get_scenario("allsky180")
+    sky = simulate_image(catalog, sc.camera(), R[1], sc.sensor(), seed=2, **sc.render_kwargs())
+    run = _upload(s, sky.image, "allsky.png", typed_fov=8.0)
+    assert run.result.solved and run.source.camera.fisheye and run.source.camera.model == run.result.camera.model
+    assert s.panel.upload_fov.value <= 90.0  # the next photograph's hint stays a pinhole's
+    run = _upload(s, load_image(REAL / PHOTO), "mine.png", typed_fov=8.0)
+    assert run.result.solved and not run.source.camera.fisheye

@@ -143,7 +143,8 @@ class Panel:
         self.set_pointing(round(ra % 360.0, 3), round(dec, 3), round((roll + 180.0) % 360.0 - 180.0, 3))
         fov = round(src.fov_deg, 3)
         self.fov.value = min(max(fov, self.fov.min), self.fov.max)
-        self.upload_fov.value = fov  # the next photograph of this camera starts from it
+        # the next photograph of this camera starts from it (a pinhole's hint: a fisheye's FOV is beyond it)
+        self.upload_fov.value = min(max(fov, FOV_RANGE_DEG[0]), FOV_RANGE_DEG[1])
         if src.depth_mag is not None:
             self.mag.value = min(max(float(src.depth_mag), self.mag.min), self.mag.max)
 

@@ -143,10 +143,12 @@ class Source:
     k2: float = 0.0
     fitted: bool = False  # fov_deg, k1, k2 were fitted to the stars by the blind front end
     depth_mag: float | None = None  # the catalog depth the image shows (from the blind front end)
+    lens: str = "pinhole"  # the camera model (skyview.core.camera): a fisheye's when one was fitted
 
     @property
     def camera(self) -> Camera:
-        return Camera.from_fov(self.fov_deg, self.image.shape[1], self.image.shape[0], k1=self.k1, k2=self.k2)
+        return Camera.from_fov(self.fov_deg, self.image.shape[1], self.image.shape[0], k1=self.k1, k2=self.k2,
+                               model=self.lens)
 
 
 @dataclass
@@ -261,7 +263,9 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
         with lock:
             result = blind.solve_array(source.image)
         time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
-        return make_run(with_fitted_camera(source, result), result, blind.catalog, blind.max_stars, time_ms)
+        # (the result's own catalog: a narrow field is solved in the deep catalog, whose rows its matches index)
+        catalog = result.catalog if result.catalog is not None else blind.catalog
+        return make_run(with_fitted_camera(source, result), result, catalog, blind.max_stars, time_ms)
     source = fit_camera_blind(source, solvers)
     if source.depth_mag is not None:  # a user's image: the depth it shows, not the panel's limit
         mag_limit = source.depth_mag
@@ -305,7 +309,8 @@ def with_fitted_camera(source: Source, result: SolveResult) -> Source:
         return source
     cam = result.camera
     depth = min(float(np.ceil(result.mag_limit * 4.0) / 4.0), AUTO_DEPTH_MAX) if result.mag_limit else None
-    return dataclasses.replace(source, fov_deg=cam.fov_deg, k1=cam.k1, k2=cam.k2, fitted=True, depth_mag=depth)
+    return dataclasses.replace(source, fov_deg=cam.fov_deg, k1=cam.k1, k2=cam.k2, fitted=True, depth_mag=depth,
+                               lens=cam.model)
 
 
 def make_run(source: Source, result: SolveResult, catalog: GuideCatalog, max_stars: int,
