@@ -7,7 +7,8 @@ Run with skyview's virtualenv (SKYVIEW_CACHE decides where databases are cached)
 
 1. Images: n images of a skyview bench scenario rendered exactly as `skyview bench --blind` renders them
    (skyview.bench.runner.run_blind_bench: one rng seeded with --seed, random_attitudes(n, rng), then the per-trial
-   noise seeds rng.integers(0, 2**31 - 1, n); scenario.camera(), scenario.render_kwargs(), SensorModel()),
+   noise seeds rng.integers(0, 2**31 - 1, n); scenario.camera(), scenario.render_kwargs(), scenario.sensor(), and
+   the stars of the scenario's catalog: the deep one, Hipparcos-2 + Gaia DR3, for the narrow fields),
    saved as 16-bit PNG (or the simulator's own JPEG bytes when the scenario has jpeg_quality) with a truth
    JSON each, in a work folder. Or, with --real DIR, the photographs in DIR with the attitudes of
    DIR/reference.json as the truth.
@@ -41,7 +42,7 @@ import numpy as np
 from skyview.core.attitude import radec_roll_from_R, random_attitudes
 from skyview.core.catalog import load_guide_catalog
 from skyview.detect.centroids import load_image
-from skyview.simulate.render import SensorModel, simulate_image
+from skyview.simulate.render import simulate_image
 from skyview.simulate.scenarios import get_scenario
 from skyview.solver.pipeline import BlindSolver
 
@@ -72,7 +73,11 @@ def render_scenario(scenario, n: int, seed: int, work: Path, catalog) -> list[di
     camera = scenario.camera()
     attitudes = random_attitudes(n, rng)
     seeds = rng.integers(0, 2**31 - 1, size=n)
-    sensor = SensorModel()
+    sensor = scenario.sensor()
+    if scenario.catalog == "deep":  # the stars a narrow field shows (skyview.core.deep_catalog)
+        from skyview.core.deep_catalog import load_deep_catalog
+
+        catalog = load_deep_catalog(catalog.epoch)
     images = []
     for k in range(n):
         frame = simulate_image(catalog, camera, attitudes[k], sensor, seed=int(seeds[k]), **scenario.render_kwargs())

@@ -17,7 +17,7 @@ from skyview.simulate.render import SensorModel, save_sequence, simulate_sequenc
 
 CAM = Camera.from_fov(12.0, 1024)
 PER_FRAME = ("/camera", "/camera/image", "/camera/image/centroids", "/camera/image/matches", "/sky/footprint",
-             "/sky/path", "/log", "/plots/mode", "/plots/matches", "/plots/time_ms", "/plots/error_arcsec")
+             "/sky/boresight", "/log", "/plots/mode", "/plots/matches", "/plots/time_ms", "/plots/error_arcsec")
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def test_the_recording_has_a_frame_timeline_with_every_frame(sequence_dir, capsy
     # without turns: frame 1 loses lock (lost-in-space solves it), then the rate predicts
     assert [r["mode"] for r in rows] == ["lost_in_space", "lost_in_space", "tracking", "tracking", "tracking"]
     ent = read(rrd)
-    for name in ("/sky/stars", "/sky/true_path", "/result"):
+    for name in ("/sky/stars", "/sky/true_path", "/sky/path", "/result"):
         assert ent[name]["static"] and not ent[name]["timelines"]
     for name in PER_FRAME:
         e = ent[name]
@@ -87,3 +87,37 @@ def test_bad_record_paths_are_one_line(sequence_dir, capsys):
         rc = main(["solve-sequence", str(sequence_dir), "--method", "angle", "--record", str(sequence_dir / path)])
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1, (path, err)
+
+
+def test_the_recording_is_written_as_the_run_goes_and_a_killed_run_keeps_its_frames(sequence_dir, tmp_path):
+    # issue 28, item 1: 60 frames (the sequence's five, again and again); the process killed outright once
+    # 20 frames have answered: the .rrd holds them, frame by frame
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    frames = sorted(p for p in sequence_dir.glob("*.png"))
+    paths = [str(frames[k % len(frames)]) for k in range(60)]
+    rrd = tmp_path / "long.rrd"
+    cmd = [sys.executable, "-c", "import sys; from skyview.cli import main; sys.exit(main(sys.argv[1:]))",
+           "solve-sequence", *paths, "--fov-deg", "12", "--method", "angle", "--json", "--record", str(rrd)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    seen, deadline = 0, time.monotonic() + 120
+    while seen < 20 and time.monotonic() < deadline:
+        if p.stdout.readline():
+            seen += 1
+    assert seen == 20
+    time.sleep(0.2)  # (the recorder logs a frame before its line is printed)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait(timeout=30)
+    assert rrd.exists()
+    done = set()
+    try:
+        for ch in RrdReader(rrd).stream():
+            if ch.entity_path == "/plots/mode":
+                done |= set(ch.to_record_batch().column("frame").to_pylist())
+    except Exception:  # the last message may be cut short by the kill: what came before it is read
+        pass
+    assert set(range(16)) <= done, sorted(done)  # flushed every 8 frames: at most the last 8 not yet on disk

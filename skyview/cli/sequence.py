@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -143,7 +144,13 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     tracker = Tracker(camera, method, mag_limit=a.mag_limit, variant=a.variant, epoch=a.epoch,
                       sigma_rad=None if a.sigma_arcsec is None else a.sigma_arcsec * ARCSEC,
                       max_stars=a.max_stars, k_sigma=a.k_sigma, progress=progress_line)
-    lines, failed, tracked, recorded, errors = [], [], [], [], []
+    failed, errors = [], []
+    recorder = None
+    if a.record:  # written frame by frame as the run goes (memory flat; a killed run keeps its frames)
+        from skyview.record.track import TrackRecorder
+
+        recorder = TrackRecorder(a.record, tracker.catalog, method=a.method or "blind", force=a.force)
+    out_lines = _LineFile(output) if output is not None else None
     shape = None
     for k, img in enumerate(images):
         turn = None if (k == 0 or turns is None) else turns[k - 1]
@@ -163,12 +170,14 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
                                                                 method=a.method or "blind", variant=a.variant),
                  "error": str(exc)}
             text = json.dumps(d, allow_nan=False)
-            lines.append(text)
+            if out_lines is not None:
+                out_lines.write(text)
+            if recorder is not None:
+                recorder.add_error(k, str(exc))
             print(text if a.json else f"frame {k}: error: {exc}", flush=True)
             continue
-        tracked.append(fr)
-        if a.record:
-            recorded.append((k, img))
+        if recorder is not None:
+            recorder.add(fr, img, tracker.camera, None if truths is None else truths[k])
         d = fr.to_dict()
         d = {"frame": k, "image": names[k], **{key: v for key, v in d.items() if key != "frame"}}
         if truths is not None and fr.solved:
@@ -181,20 +190,16 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
         if not fr.solved:
             failed.append(k)
         text = json.dumps(d, allow_nan=False)
-        lines.append(text)
+        if out_lines is not None:
+            out_lines.write(text)
         if a.json:
             print(text, flush=True)
         else:
             print(_track_line(k, d, fr.solved), flush=True)
-    if output is not None:
-        write_text_new(output, "\n".join(lines) + "\n", a.force)
-    if a.record and tracked:
-        from skyview.record.track import record_track
-
-        kept = [k for k, _ in recorded]
-        info = record_track(a.record, tracked, [im for _, im in recorded], tracker.camera, tracker.catalog,
-                            truths=None if truths is None else [truths[k] for k in kept],
-                            method=a.method or "blind", force=a.force)
+    if out_lines is not None:
+        out_lines.close()
+    if recorder is not None:
+        info = recorder.close()
         print(f"recorded {info.frames} frames into {info.path} ({info.bytes / 1e6:.1f} MB"
               + (f"; frames {', '.join(map(str, errors))} could not be read" if errors else "") + ")",
               file=sys.stderr)
@@ -206,6 +211,24 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
         print(f"skyview: {len(failed)} of {n} frames not solved: frame{'s' if len(failed) > 1 else ''} "
               f"{', '.join(map(str, failed))}", file=sys.stderr)
     return EXIT_NOT_SOLVED if (failed or errors) else EXIT_SOLVED
+
+
+class _LineFile:
+    """--output's JSON lines, written as the run goes to a file beside it and moved into place at the end
+    (the path was checked before the run: never overwritten without --force)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.part")
+        self.fh = open(self.tmp, "w", encoding="utf-8")
+
+    def write(self, line: str) -> None:
+        self.fh.write(line + "\n")
+        self.fh.flush()
+
+    def close(self) -> None:
+        self.fh.close()
+        os.replace(self.tmp, self.path)
 
 
 def _frames(paths: list[str]):
