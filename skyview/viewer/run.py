@@ -183,8 +183,11 @@ class Solvers:
 
     `get_or_build` caches other solvers the same way (the sequence solvers of `sequence_run`)."""
 
-    def __init__(self, size: int = 12):
+    def __init__(self, size: int = 12, slots: int | None = None):
+        from skyview.viewer.solve_queue import SolveQueue
+
         self._size = size
+        self.queue = SolveQueue(slots)  # every tab's solves take turns here (first come, first served)
         self._lock = threading.Lock()
         self._items: OrderedDict[tuple, tuple[Solver, threading.Lock]] = OrderedDict()
         self._building: dict[tuple, threading.Lock] = {}

@@ -49,6 +49,7 @@ from skyview.viewer.run import (
 )
 from skyview.viewer.scene import SkyScene
 from skyview.viewer.sequence_run import SequenceRun, TrackedSequenceRun, solve_sequence_run, track_sequence_run
+from skyview.viewer.solve_queue import Superseded
 from skyview.viewer.state import Quiet, ViewState
 from skyview.viewer.worker import Worker
 
@@ -303,15 +304,21 @@ class Session:
     def _job_solve(self, t_request: float) -> None:
         method, variant = check_method(self.panel.method.value, self.panel.variant.value)
         say, simulated = self.worker.relabel, self.state.upload is None
-        if simulated and (needs_sequence(method) or self.panel.track.value):
-            make = solve_sequence_run if needs_sequence(method) else track_sequence_run
-            shown = make(self.panel.scene_config(), self.panel.sequence_config(), method, variant, self.solvers,
-                         label=say)
-            draw = self.show_sequence
-        else:
-            say("simulating" if simulated else "loading the image")
-            shown = solve(self._source(), method, variant, float(self.panel.mag.value), self.solvers, label=say)
-            draw = self.show_run
+        try:
+            # the solve takes its turn with every other tab's (first come, first served); the drawing does not
+            with self.solvers.queue.turn(say, stale=lambda: self.worker.superseded):
+                if simulated and (needs_sequence(method) or self.panel.track.value):
+                    make = solve_sequence_run if needs_sequence(method) else track_sequence_run
+                    shown = make(self.panel.scene_config(), self.panel.sequence_config(), method, variant,
+                                 self.solvers, label=say)
+                    draw = self.show_sequence
+                else:
+                    say("simulating" if simulated else "loading the image")
+                    shown = solve(self._source(), method, variant, float(self.panel.mag.value), self.solvers,
+                                  label=say)
+                    draw = self.show_run
+        except Superseded:  # a newer request, or the tab closed, while it waited: nothing to show
+            return
         if self.worker.superseded:
             return
         say("drawing")
@@ -325,7 +332,11 @@ class Session:
             self.worker.progress = 100.0 * k / max(n, 1)
             self.worker.relabel(f"comparing: {what} ({k + 1 if k < n else n}/{n})")
 
-        rows = compare(source, mag, self.solvers, progress, methods)
+        try:
+            with self.solvers.queue.turn(self.worker.relabel, stale=lambda: self.worker.superseded):
+                rows = compare(source, mag, self.solvers, progress, methods)
+        except Superseded:
+            return
         self.state.compare_rows, self.state.compare_source = rows, source
         with self.atomic():
             self.panel.compare_table.content = P.compare_markdown(rows, source.name)
