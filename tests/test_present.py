@@ -181,3 +181,34 @@ def test_of_two_colliding_labels_the_brightest_keeps_its_place():
     # place_labels (the viewer's one-sided form) is layout_labels to the right, with no stars to avoid
     keep = present.place_labels(xy, np.array([3.0, 1.0]), sizes, gap=1.0)
     assert keep.tolist() == [False, True]
+
+
+def test_the_ra_dec_grid_lies_on_its_own_coordinates_through_any_lens():
+    # every point of every line, taken back through the camera, has the line's RA (meridians) or Dec (parallels)
+    import math
+
+    from skyview.core.attitude import R_from_radec_roll
+    from skyview.core.camera import Camera
+    from skyview.core.catalog import vec_to_radec
+    from skyview.present.sky_grid import dec_label, image_grid, ra_label
+
+    cases = [(Camera.from_fov(11.4, 1024, 768, k1=-0.01), (350.0, 60.0, 20.0)),
+             (Camera.from_fov(1.2, 1024, 768), (130.1, 19.7, -75.0)),
+             (Camera.from_fov(180.0, 1024, 1024, model="equisolid"), (10.0, 80.0, 0.0))]
+    for cam, (ra, dec, roll) in cases:
+        R = R_from_radec_roll(*(math.radians(x) for x in (ra, dec, roll)))
+        grid = image_grid(cam, R)
+        kinds = {g.kind for g in grid}
+        assert kinds == {"ra", "dec"} and 3 <= len(grid) <= 40, (cam.fov_deg, [(g.kind, g.label) for g in grid])
+        for g in grid:
+            uv = np.concatenate(g.runs)
+            assert cam.in_image(uv).all()
+            a, d = (np.degrees(x) for x in vec_to_radec(cam.unproject(uv) @ R))
+            if g.kind == "dec":
+                np.testing.assert_allclose(d, g.value_deg, atol=1e-6)
+                assert g.label == dec_label(g.value_deg)
+            else:
+                far = np.abs(d) < 89.9  # (at a pole every meridian meets)
+                np.testing.assert_allclose(((a[far] - g.value_deg + 180) % 360) - 180, 0.0, atol=1e-6)
+                assert g.label == ra_label(g.value_deg)
+    assert (dec_label(-5.5), dec_label(42.0), ra_label(85.0), ra_label(0.0)) == ("-5°30'", "+42°", "5h40m", "0h")

@@ -186,3 +186,14 @@ def test_a_telescope_field_and_an_all_sky_frame_are_drawn_from_what_solved_them(
     assert s.panel.upload_fov.value <= 90.0  # the next photograph's hint stays a pinhole's
     run = _upload(s, load_image(REAL / PHOTO), "mine.png", typed_fov=8.0)
     assert run.result.solved and not run.source.camera.fisheye
+    # the panel image carries the solved photograph's RA/Dec grid: the same panel drawn without it differs
+    # along the lines
+    from skyview.present.sky_grid import image_grid
+    from skyview.viewer.picture import annotate, panel_base, stretch
+
+    panel = np.asarray(s.panel.image.image)
+    n = s.rings_drawn
+    bare = annotate(panel_base(stretch(run.source.image)), run.source.image.shape, run.result.centroids.uv[:n],
+                    run.outcomes[:n])
+    assert panel.shape == bare.shape and np.count_nonzero(np.any(panel != bare, axis=2)) > 500
+    assert image_grid(run.result.camera, run.result.R)

@@ -68,7 +68,9 @@ def print_human(out: dict, file=sys.stdout) -> None:
         q = out["quaternion"]
         print(f"  quaternion [w x y z]: {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}", file=file)
         d = out.get("distortion") or {}
-        print(f"  camera{' (fitted)' if out.get('camera_fitted') else ''}: FOV {out['fov_deg']:.4f} deg, "
+        lens = (out.get("camera") or {}).get("model", "pinhole")
+        print(f"  camera{' (fitted)' if out.get('camera_fitted') else ''}"
+              f"{'' if lens == 'pinhole' else f', {lens} fisheye'}: FOV {out['fov_deg']:.4f} deg, "
               f"{out['plate_scale_arcsec_per_px']:.3f} arcsec/px, k1 {d.get('k1', 0.0):+.4f}, "
               f"k2 {d.get('k2', 0.0):+.4f}; catalog to Hp {out.get('mag_limit') or 0:.2f}", file=file)
     else:

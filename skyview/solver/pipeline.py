@@ -248,7 +248,7 @@ class BlindSolver:
                            f"{rms:.1f} px (the attitude would be off by that): not reported")
             fres.matches = []
         if fres.solved:
-            fres.notes.append(f"a fisheye: {fres.camera.fov_deg:.1f} deg across, the equidistant lens with k1 "
+            fres.notes.append(f"a fisheye: {fres.camera.fov_deg:.1f} deg across, the {fres.camera.model} lens with k1 "
                               f"{fres.camera.k1:+.4f} and k2 {fres.camera.k2:+.5f} fitted to its stars")
         if result is None:
             return fres
