@@ -67,3 +67,21 @@ def test_a_failed_solve_has_the_same_keys_with_no_values(tmp_path, capsys):
     assert d["status"] == "failed" and not d["solved"] and d["reason"]
     assert d["R"] is None and d["quaternion"] is None and d["ra_deg"] is None and d["p_false"] is None
     assert d["sigma_arcsec"] == {"boresight": None, "roll": None} and d["matches"] == [] and d["n_matches"] == 0
+
+
+@pytest.mark.slow
+def test_the_viewers_download_is_the_same_shape():
+    from helpers import viewer_session
+
+    photo = PHOTOS[0]
+    import cv2
+
+    with viewer_session() as (server, s):
+        s.receive_upload(photo.name, cv2.imencode(".png", cv2.imread(str(photo), cv2.IMREAD_UNCHANGED))[1].tobytes())
+        assert s.wait_idle(120) and s.error == ""
+        name, text = s.result_json()
+    d = json.loads(text)
+    assert name == photo.stem + "-skyview.json" and _head(d) == SOLUTION_KEYS
+    api = json.loads(skyview.solve(str(photo)).to_json())
+    np.testing.assert_allclose(d["R"], api["R"], atol=1e-12)
+    assert d["solved"] and d["image"] == photo.name and d["n_matches"] == api["n_matches"]

@@ -94,6 +94,7 @@ class Panel:
     result: GuiMarkdownHandle
     compare_table: GuiMarkdownHandle
     export: GuiButtonHandle
+    export_json: GuiButtonHandle
     # view
     boresight: GuiButtonHandle
     wide: GuiButtonHandle
@@ -260,6 +261,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig, 
     with tabs.add_tab("Result", icon="report-analytics"):
         result = gui.add_markdown("")
         export = gui.add_button("Export this run as .rrd", icon="download")
+        export_json = gui.add_button("Download the result (JSON)", icon="download")
         compare_table = gui.add_markdown("")
         bench_table = gui.add_markdown("")  # `skyview view --compare FILE`: a bench --compare report
 
@@ -296,6 +298,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig, 
                  paper_camera=paper_camera, auto=auto,
                  solve=solve, compare=compare, upload_fov=upload_fov, upload=upload, gallery=gallery, back=back,
                  result=result, compare_table=compare_table, bench_table=bench_table, export=export,
+                 export_json=export_json,
                  boresight=boresight, wide=wide,
                  follow=follow, detections=detections, checks=checks, picked=picked)
 

@@ -12,6 +12,7 @@ server keeps running.
 from __future__ import annotations
 
 import functools
+import json
 import sys
 import tempfile
 import threading
@@ -25,6 +26,7 @@ import viser
 
 from skyview.core.camera import Camera
 from skyview.core.errors import BadInput
+from skyview.core.jsonable import plain
 from skyview.identify import VARIANTS
 from skyview.present.sky_grid import image_grid
 from skyview.viewer import panel as P
@@ -221,6 +223,7 @@ class Session:
         p.play.on_click(g(lambda _e: self.toggle_play()))
         p.plot_key.on_update(g(lambda _e: self._plot_key_changed()))
         p.export.on_click(g(self._on_export))
+        p.export_json.on_click(g(self._on_export_json))
         p.boresight.on_click(g(lambda _e: self.point_view("boresight")))
         p.wide.on_click(g(lambda _e: self.point_view("wide")))
         p.detections.on_update(g(lambda _e: self.set_detections_drawn()))
@@ -560,6 +563,21 @@ class Session:
             self.client.send_file_download(name, data)
             self.client.add_notification("Recording ready", f"{name} ({len(data) / 1e6:.2f} MB): open it with "
                                          f"`skyview replay {name}` or the Rerun viewer", auto_close_seconds=8.0)
+
+    def result_json(self) -> tuple[str, str]:
+        """(file name, text) of the image on screen's result in the one JSON shape of a solution
+        (`skyview.solver.solution_json`: what `skyview solve --json` prints), with the image's name."""
+        run = self.state.run
+        if run is None:
+            raise BadInput("nothing to download yet: solve an image first")
+        out = plain({**run.result.to_dict(), "image": run.source.name}, nan_as_none=True)
+        stem = Path(run.source.name).stem or "image"
+        return f"{stem}-skyview.json", json.dumps(out, indent=1, allow_nan=False)
+
+    def _on_export_json(self, _event) -> None:
+        name, text = self.result_json()
+        if self.client is not None:
+            self.client.send_file_download(name, text.encode())
 
     # ------------------------------------------------------------------ progress
     def _show_idle(self) -> None:
