@@ -212,3 +212,39 @@ def test_a_sweep_killed_with_sigkill_resumes_to_the_table_of_an_uninterrupted_ru
         assert np.array_equal(a[k], b[k]), k
     for k in ("counts", "coverage_pct", "orientations", "enough_stars_pct"):
         assert resumed[k] == uninterrupted[k], k
+
+
+@pytest.mark.slow
+def test_a_dask_worker_lost_mid_sweep_is_replaced_and_the_sweep_gives_the_same_table(tmp_path):
+    # issue 28, item 5: a worker process killed outright while it holds tasks; Dask's nanny starts another and
+    # the scheduler gives the lost tasks again: the sweep completes with every record of the single-process one
+    import os
+    import signal
+    import threading
+    import time
+
+    from dask.distributed import LocalCluster
+
+    cfg = CoverageConfig("angle", "improved", fov_deg=20.0, mag_limit=5.0, nside=2, rolls=2, chunk=4)  # 24 tasks
+    ref = run_coverage(cfg, tmp_path / "ref", scheduler="inline", progress=False)
+    out = tmp_path / "lost"
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        pids = [w.process.pid for w in cluster.workers.values()]
+        killed = []
+
+        def kill_one():
+            deadline = time.monotonic() + 120
+            while len(list((out / "chunks").glob("task-*.npz"))) < 3 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            os.kill(pids[0], signal.SIGKILL)
+            killed.append(pids[0])
+
+        t = threading.Thread(target=kill_one)
+        t.start()
+        s = run_coverage(cfg, out, scheduler=cluster.scheduler_address, progress=False)
+        t.join(30)
+    assert killed and s["complete"] and len(list((out / "chunks").glob("task-*.npz"))) == 24
+    a, b = load_results(tmp_path / "ref"), load_results(out)
+    for k in ("index", "ra_deg", "dec_deg", "roll_deg", "stars", "outcome"):
+        assert np.array_equal(a[k], b[k]), k
+    assert s["counts"] == ref["counts"]
