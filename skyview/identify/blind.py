@@ -120,12 +120,11 @@ class BlindIdentifier(CameraRefit):
     # ------------------------------------------------------------------ main
     def identify(self, uv: np.ndarray, width: int, height: int, *, fov_deg: float | None = None,
                  fov_error: float = 0.1, max_checks: int | None = None,
-                 pattern_idx: np.ndarray | None = None, slide: bool = True, model: str = PINHOLE,
+                 slide: bool = True, model: str = PINHOLE,
                  checks_before: int = 0) -> BlindResult:
         """Identify centroids uv (N, 2), brightest first, of a width x height image; max_checks: the quick
-        checks allowed (None: params.max_checks); pattern_idx: the centroids the patterns are made of, in
-        that order (None: the brightest params.pattern_stars, and with `slide` the next ones after them
-        when those do not verify); every centroid verifies. model: the lens the image is searched through
+        checks allowed (None: params.max_checks); slide: when no pattern of the brightest
+        params.pattern_stars verifies, search the next ones after them too; every centroid verifies. model: the lens the image is searched through
         (`skyview.core.camera`: a fisheye over FISHEYE_FOV_RANGE_DEG, its k1 and k2 fitted like a
         pinhole's). checks_before: hypotheses already checked on this image by earlier searches (another
         database, another lens): the verification counts them with its own (Bonferroni)."""
@@ -145,16 +144,12 @@ class BlindIdentifier(CameraRefit):
         state = _Search(uv, min(len(uv), p.verify_stars), width, height, model=model)
         state.checks = int(checks_before)
         budget = p.max_checks if max_checks is None else int(max_checks)
-        if pattern_idx is not None:
-            windows = [np.asarray(pattern_idx, dtype=np.int64)[:p.pattern_stars]]
-        else:
-            # the brightest pattern_stars first; when no pattern of them verifies, the window slides down the
-            # brightness order (a lit roof, street lights or a planet can take the brightest places), each
-            # window with its own budget of checks, every check counted in the verification (Bonferroni)
-            # and one time budget for all
-            starts = [0] + [s for s in range(PATTERN_SLIDE, MAX_SLIDE_DEPTH, PATTERN_SLIDE)
-                            if slide and len(uv) - s >= 8]
-            windows = [np.arange(s, min(len(uv), s + p.pattern_stars)) for s in starts]
+        # the brightest pattern_stars first; when no pattern of them verifies, the window slides down the
+        # brightness order (a lit roof, street lights or a planet can take the brightest places), each
+        # window with its own budget of checks, every check counted in the verification (Bonferroni)
+        # and one time budget for all
+        starts = [0] + [s for s in range(PATTERN_SLIDE, MAX_SLIDE_DEPTH, PATTERN_SLIDE) if slide and len(uv) - s >= 8]
+        windows = [np.arange(s, min(len(uv), s + p.pattern_stars)) for s in starts]
         if len(windows[0]) < 4:
             return self._fail(FAILED, f"{len(windows[0])} stars found: a pattern needs four", steps)
         res, n_cands = None, 0

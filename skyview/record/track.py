@@ -200,19 +200,3 @@ def _row(fr, err: float | None, rel: float | None) -> str:
     return (f"| {fr.frame} | {fr.mode.replace('_', '-')} | {fr.status} | {len(fr.matches)} | "
             f"{fr.time_ms.get('total', float('nan')):.2f} | {'-' if err is None else f'{err:.1f}'} | "
             f"{'-' if rel is None else f'{rel:.1f}'} | {lock or '-'} |")
-
-
-def record_track(path: str | os.PathLike, frames: list, images: list[np.ndarray], camera: Camera,
-                 catalog: GuideCatalog, *, truths: list[dict] | None = None, method: str = "",
-                 force: bool = False) -> TrackRecordInfo:
-    """Write a tracked sequence (`Tracker.process`'s TrackFrames of `images`, in order) as a .rrd
-    (`TrackRecorder`, all at once). truths: the simulator's per-frame truth (with "R") when known."""
-    K = len(frames)
-    if K == 0 or len(images) != K:
-        raise BadInput(f"{len(images)} images for {K} tracked frames")
-    if truths is not None and len(truths) != K:
-        raise BadInput(f"{len(truths)} truth sidecars for {K} frames")
-    recorder = TrackRecorder(path, catalog, method=method, force=force)
-    for k, (fr, img) in enumerate(zip(frames, images)):
-        recorder.add(fr, img, camera, None if truths is None else truths[k])
-    return recorder.close()

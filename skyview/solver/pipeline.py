@@ -284,7 +284,7 @@ class BlindSolver:
                               "(Hipparcos-2 + Gaia DR3 to G 10)")
             return _with_time_of(nres, first)
         result = first
-        if int(first.identification.stats.get("checks", 0)) >= NARROW_AFTER_CHECKS or len(centroids) >= 16:
+        if _checks(first) >= NARROW_AFTER_CHECKS or len(centroids) >= 16:
             # the guide catalog's whole search: its full budget, and the pattern stars sliding past the brightest
             result = _with_time_of(self._solve_centroids(centroids, width, height, checks_before=_checks(nres), **kw),
                                    first)
@@ -549,8 +549,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             fitted = result.camera
             blind_depth = result.mag_limit
         if fast is not None:  # the time of the first try counts; its reason too when nothing solved
-            for stage in ("identify", "solve"):
-                result.time_ms[stage] = result.time_ms.get(stage, 0.0) + fast.time_ms.get(stage, 0.0)
+            _with_time_of(result, fast)
             if result.solved:
                 result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) did not "
                                     f"verify ({fast.reason}): solved by the blind search over +-{100 * fov_error:g} %")
@@ -596,7 +595,6 @@ def _other_lenses(camera: Camera, uv: np.ndarray, xyz: np.ndarray, matches: dict
     """The other fisheye model (equidistant <-> equisolid) fitted to the matched stars, without distortion and
     with what the stars support (none with too few): an equisolid lens searched as an equidistant one needs
     k1 ~ -1/24, which the search's fit, on the stars near the centre it first matches, may stop short of."""
-    from skyview.core.camera import EQUISOLID
     from skyview.core.camera_fit import fit_camera
 
     obs = sorted(matches)
