@@ -111,3 +111,15 @@ def test_the_cli_solves_an_all_sky_frame_given_its_180_degrees(tmp_path, catalog
     from astropy.io import fits
 
     assert fits.getheader(tmp_path / "a.wcs")["CTYPE1"][5:8] in ("ARC", "ZEA")
+
+
+def test_a_paper_method_at_a_fisheyes_fov_is_one_clear_error(capsys, tmp_path):
+    import cv2
+
+    from skyview.cli import main
+
+    png = tmp_path / "sky.png"
+    cv2.imwrite(str(png), np.random.default_rng(0).integers(0, 40, (64, 64), dtype=np.uint8))
+    assert main(["solve", str(png), "--fov-deg", "200", "--method", "angle"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pinhole" in err[0] and "leave out --method" in err[0]

@@ -281,7 +281,7 @@ def check_fov_deg(fov_deg: float, model: str = PINHOLE) -> None:
         if model == PINHOLE:
             raise BadInput(f"FOV {fov_deg} deg is impossible for a pinhole camera: it must be in (0, 180) (a wider "
                            "lens is a fisheye: model='equidistant' or 'equisolid')")
-        raise BadInput(f"FOV {fov_deg} deg is impossible for a {model} fisheye: it must be in (0, 360)")
+        raise BadInput(f"FOV {fov_deg} deg is impossible for the {model} fisheye: it must be in (0, 360)")
 
 
 def fisheye_r(theta: np.ndarray, model: str) -> np.ndarray:

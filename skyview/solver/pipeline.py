@@ -498,6 +498,9 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     if fov_deg is not None:  # one-line error for an impossible FOV before any work (a fisheye's reaches 360)
         Camera.from_fov(fov_deg, W, H, model=PINHOLE if fov_deg < 180.0 else EQUIDISTANT)
     wide = fov_deg is not None and fov_deg >= 180.0  # no pinhole: the fisheye search only
+    if wide and method is not None:
+        raise BadInput(f"the {method} method works through a pinhole lens (FOV under 180 deg); an FOV of {fov_deg:g} "
+                       "deg is a fisheye's: leave out --method to solve it blind")
     common = dict(max_stars=max_stars, k_sigma=k_sigma, estimator=estimator)
 
     def calibrated(method_name: str, camera: Camera, var: str, centroids: Centroids,
