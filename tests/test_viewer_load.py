@@ -1,13 +1,11 @@
 """A viewer for a class (issue 28, item 4): every tab's solve takes its turn on a bounded number of slots,
 first come first served, and says its place; a closed tab's waiting request leaves the queue; thirty tabs
 uploading thirty different photographs at once each get their own answer (no cross-talk).
-The figures (time to open a tab under load, memory over many uploads) come from
-`benchmarks/viewer_load.py`, not from these tests."""
+The tabs speak viser's websocket protocol (tests/viser_protocol.py), as a browser does. The figures (time to
+open a tab under load, memory over many uploads) come from `benchmarks/viewer_load.py`, not from these tests."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import math
 import threading
@@ -105,53 +103,65 @@ def _variants() -> list[tuple[str, np.ndarray, float, float, float]]:
     return out
 
 
+def _sep_arcsec(ra1, dec1, ra2, dec2) -> float:
+    r1, d1, r2, d2 = map(math.radians, (ra1, dec1, ra2, dec2))
+    c = math.sin(d1) * math.sin(d2) + math.cos(d1) * math.cos(d2) * math.cos(r1 - r2)
+    return math.degrees(math.acos(min(1.0, c))) * 3600
+
+
 @pytest.mark.slow
-def test_thirty_tabs_uploading_at_once_each_get_their_own_answer():
-    import viser
+def test_thirty_tabs_uploading_at_once_over_the_websocket_each_get_their_own_answer():
+    """Thirty tabs speak viser's websocket protocol to one `skyview view` server (tests/viser_protocol.py: what
+    a browser sends and reads, without the rendering): each uploads its own photograph through the panel's
+    upload button at the same moment, and reads its answer back through "Download the result (JSON)".
+    Three more tabs upload and close at once: their requests leave the queue, their sessions are released; so
+    are those of five tabs closed while the server was still building their panel."""
+    import asyncio
 
-    from skyview.core.attitude import radec_roll_from_R
-    from skyview.viewer.run import Solvers
-    from skyview.viewer.session import Session
+    from viser_protocol import Tab, solve_by_upload
 
-    # each tab's scene and panel its own (a viser server each, as a browser tab has its own client); the
-    # solvers and their queue shared, as in `skyview view`
-    solvers = Solvers()
+    from skyview.viewer.app import ViewerApp
+
     photos = _variants()[:30]
-    servers = []
+    app = ViewerApp(port=0)
 
-    def tab():
-        with contextlib.redirect_stdout(io.StringIO()):
-            servers.append(viser.ViserServer(host="127.0.0.1", port=0, verbose=False))
-        return Session(servers[-1], solvers)
-
-    sessions = [tab() for _ in photos]
-    closing = [tab() for _ in range(3)]  # three more, closed mid-queue
-    try:
-        for s in sessions + closing:
+    async def drive():
+        tabs = await asyncio.gather(*(Tab.open(app.port) for _ in range(len(photos) + 3)))
+        await asyncio.gather(*(t.wait_for_panel() for t in tabs))
+        for _ in range(600):  # the panel reaches the tab while its session is still being registered
+            if len(app.sessions) == len(tabs):
+                break
+            await asyncio.sleep(0.05)
+        assert len(app.sessions) == len(tabs)  # one session per tab
+        for s in app.sessions.values():
             assert s.wait_idle(120)
-        served = solvers.queue.served
-        for s, (name, img, *_rest) in zip(sessions, photos):
-            s.receive_upload(name + ".png", cv2.imencode(".png", img)[1].tobytes())
-        for s in closing:
-            s.receive_upload("x.png", cv2.imencode(".png", photos[0][1])[1].tobytes())
-            s.close()
-        for s in sessions:
-            assert s.wait_idle(300), "a tab never finished"
-        for s, (name, _img, ra, dec, fov) in zip(sessions, photos):
-            r = s.run.result
-            assert s.error == "" and r.solved, (name, s.error, r.reason)
-            assert s.run.source.name.startswith(name)  # its own photograph
-            a, d, _ = (math.degrees(x) for x in radec_roll_from_R(r.R))
-            sep = math.degrees(math.acos(min(1.0, math.sin(math.radians(d)) * math.sin(math.radians(dec)) + math.cos(
-                math.radians(d)) * math.cos(math.radians(dec)) * math.cos(math.radians(a - ra)))))
-            assert sep * 3600 < 120, (name, sep * 3600)
-            assert r.camera.fov_deg == pytest.approx(fov, rel=0.01), name
-        # every open tab's upload took a turn; the closed tabs' requests took at most the turns they had begun
-        assert served + len(sessions) <= solvers.queue.served <= served + len(sessions) + len(closing)
-        assert solvers.queue.waiting() == 0 and solvers.queue.running == 0
+        served = app.solvers.queue.served
+        pngs = [cv2.imencode(".png", img)[1].tobytes() for _, img, *_ in photos]
+        solving = asyncio.gather(*(solve_by_upload(t, name + ".png", png)
+                                   for t, (name, *_), png in zip(tabs, photos, pngs)))
+        for t in tabs[len(photos):]:  # three tabs closed while their uploads wait for a turn
+            await t.upload(await t.wait_for_panel(), "x.png", pngs[0])
+            await t.close()
+        for t in await asyncio.gather(*(Tab.open(app.port) for _ in range(5))):
+            await t.close()  # five tabs closed before their panel arrived: their sessions are released too
+        answers = await solving
+        for t in tabs[:len(photos)]:
+            await t.close()
+        return served, answers
+
+    try:
+        served, answers = asyncio.run(drive())
+        for answer, (name, _img, ra, dec, fov) in zip(answers, photos):
+            assert answer["solved"] and answer["image"] == name + ".png", (name, answer.get("reason"))
+            assert _sep_arcsec(answer["ra_deg"], answer["dec_deg"], ra, dec) < 120, name  # its own photograph
+            assert answer["fov_deg"] == pytest.approx(fov, rel=0.01), name
+            assert np.allclose(np.asarray(answer["R"]) @ np.asarray(answer["R"]).T, np.eye(3), atol=1e-9)
+        # every open tab's upload took a turn; a closed tab's request took at most the turn it had begun
+        q = app.solvers.queue
+        assert served + len(photos) <= q.served <= served + len(photos) + 3 + 5
+        deadline = time.monotonic() + 30
+        while (app.sessions or q.waiting() or q.running) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not app.sessions and q.waiting() == 0 and q.running == 0  # every closed tab's session released
     finally:
-        for s in sessions:
-            s.close()
-        with contextlib.redirect_stdout(io.StringIO()):
-            for server in servers:
-                server.stop()
+        app.stop()

@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import Callable
 
@@ -79,8 +80,13 @@ class ViewerApp:
         self.initial = initial
         self.config = (config or SceneConfig()).checked()
         self.sessions: dict[int, Session] = {}
+        self._building: set[int] = set()  # clients whose session is being built
+        self._left: set[int] = set()  # ... of which the tab has already closed
         self._lock = threading.Lock()
         check_host(host)
+        # a tab may close at any moment, its session's last panel and scene updates then go nowhere: viser
+        # warns of each; for a server of many tabs that is the normal course, not a fault to print
+        warnings.filterwarnings("ignore", message=r"Queued a \w+ on a closed connection", category=UserWarning)
         self.solvers.base_catalog  # load once before the first tab arrives
         # astropy (the constellation names of a solved photograph, 0.3 s to import) while nobody waits
         threading.Thread(target=importlib.import_module, args=("astropy.coordinates",), daemon=True).start()
@@ -121,24 +127,39 @@ class ViewerApp:
         gui._websock_interface.register_handler(_messages.FileTransferStartUpload, check)
 
     def _connect(self, client: viser.ClientHandle) -> None:
+        key = client.client_id
+        with self._lock:
+            self._building.add(key)
         layer = None if self.coverage is None else dataclasses.replace(self.coverage, handles=[])
         session = Session(client, self.solvers, initial=self.initial, config=self.config, method=self.method,
                           variant=self.variant, coverage=layer, bench_report=self.bench_report)
         with self._lock:
-            self.sessions[client.client_id] = session
+            self._building.discard(key)
+            left = key in self._left  # the tab closed while its session was being built
+            self._left.discard(key)
+            if not left:
+                self.sessions[key] = session
+        if left:
+            self._release(session)
 
     def _disconnect(self, client: viser.ClientHandle) -> None:
         with self._lock:
             session = self.sessions.pop(client.client_id, None)
+            if session is None and client.client_id in self._building:
+                self._left.add(client.client_id)  # released by _connect once built
         if session is not None:
-            session.close()
-            del session
-            # a session and its panel's callbacks hold each other (a reference cycle), and viser holds the
-            # client until this callback returns: collected a moment later, not at the next full collection,
-            # which a server of numpy arrays may not reach for a long time (~9 MB a closed tab)
-            timer = threading.Timer(RELEASE_AFTER_S, gc.collect)
-            timer.daemon = True
-            timer.start()
+            self._release(session)
+
+    @staticmethod
+    def _release(session: Session) -> None:
+        session.close()
+        del session
+        # a session and its panel's callbacks hold each other (a reference cycle), and viser holds the
+        # client until this callback returns: collected a moment later, not at the next full collection,
+        # which a server of numpy arrays may not reach for a long time (~9 MB a closed tab)
+        timer = threading.Timer(RELEASE_AFTER_S, gc.collect)
+        timer.daemon = True
+        timer.start()
 
     def stop(self) -> None:
         with self._lock:

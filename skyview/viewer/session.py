@@ -286,6 +286,8 @@ class Session:
 
     def load_image(self, image: np.ndarray, fov_deg: float, name: str) -> None:
         """Solve a user's image (upload, or `--image`) instead of the simulation."""
+        if self._closed:  # the tab closed while its upload arrived: nothing to show it on
+            return
         fov = check_fov(fov_deg)
         Camera.from_fov(fov, image.shape[1], image.shape[0])  # validates the size
         self.state.upload = Source(image=image, fov_deg=fov, name=name)

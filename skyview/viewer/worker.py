@@ -99,7 +99,7 @@ class Worker:
             finally:
                 with self._report:
                     shown, self._shown = self._shown, False
-                    if shown and self._on_idle is not None:
+                    if shown and self._on_idle is not None and not self._closed:  # a closed tab's panel is gone
                         with contextlib.suppress(Exception):
                             self._on_idle()
                     with self._cv:
