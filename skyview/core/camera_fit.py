@@ -97,13 +97,23 @@ def _rotvec_matrix(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th ** 2 * (K @ K)
 
 
+def _left_jacobian(v: np.ndarray) -> np.ndarray:
+    """SO(3)'s left Jacobian at the rotation vector v: exp(v + d) = exp(J d) exp(v) to first order in d."""
+    th2 = float(v @ v)
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    if th2 < 1e-16:
+        return np.eye(3) + 0.5 * K
+    th = np.sqrt(th2)
+    return np.eye(3) + (1.0 - np.cos(th)) / th2 * K + (th - np.sin(th)) / (th2 * th) * (K @ K)
+
+
 def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, f_scale: float = 1.0,
-                        max_iter: int = 30, tol: float = 1e-12) -> np.ndarray:
+                        max_iter: int = 30, tol: float = 1e-12, jac=None) -> np.ndarray:
     """Minimise sum rho(fun(p)^2 / f_scale^2) with rho the soft-L1 loss 2 (sqrt(1 + z) - 1) (what
     scipy's least_squares(loss="soft_l1") minimises), p within [lo, hi]: iteratively reweighted
-    Gauss-Newton with a forward-difference Jacobian and step halving. A handful of parameters and
-    a few dozen stars: each iteration is a few small numpy calls (scipy's trust-region solver spends
-    ten times as long in its own bookkeeping here)."""
+    Gauss-Newton with step halving, the Jacobian `jac(p)` when given, else forward differences. A
+    handful of parameters and a few dozen stars: each iteration is a few small numpy calls (scipy's
+    trust-region solver spends ten times as long in its own bookkeeping here)."""
     p = np.clip(np.asarray(p0, dtype=np.float64), lo, hi)
 
     def cost(r):
@@ -113,12 +123,15 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
     c = cost(r)
     for _ in range(max_iter):
         w = 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)  # soft-L1 weights
-        h = 1e-7 * np.maximum(1.0, np.abs(p))
-        J = np.empty((len(r), len(p)))
-        for j in range(len(p)):
-            q = p.copy()
-            q[j] += h[j]
-            J[:, j] = (fun(q) - r) / h[j]
+        if jac is not None:
+            J = jac(p)
+        else:
+            h = 1e-7 * np.maximum(1.0, np.abs(p))
+            J = np.empty((len(r), len(p)))
+            for j in range(len(p)):
+                q = p.copy()
+                q[j] += h[j]
+                J[:, j] = (fun(q) - r) / h[j]
         sw = np.sqrt(w)
         step = -np.linalg.lstsq(J * sw[:, None], r * sw, rcond=None)[0]
         t = 1.0
@@ -198,7 +211,37 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
     if 2 * n <= len(p0):
         d = project(p0) - uv
         return CameraFit(camera, R0, np.hypot(d[:, 0], d[:, 1]), float("nan"), ())
-    x = robust_gauss_newton(lambda p: (project(p) - uv).ravel(), p0, lo, hi)
+    def jacobian(p):
+        """d(project(p))/dp of the pinhole model, rows interleaved as the residuals (u0, v0, u1, ...)."""
+        Rk, f, k1, k2 = unpack(p)
+        v = xyz @ Rk.T
+        z = np.maximum(v[:, 2], 1e-9)
+        x, y = v[:, 0] / z, v[:, 1] / z
+        r2 = x * x + y * y
+        s = 1.0 + k1 * r2 + k2 * r2 * r2
+        ds = 2.0 * (k1 + 2.0 * k2 * r2)  # ds/dx = ds * x, ds/dy = ds * y
+        # d(u, v)/d(x, y), then d(x, y)/d(vector) and d(vector)/d(rotation vector) = -[v]x Jl
+        a = f * (s + ds * x * x)
+        b = f * ds * x * y
+        d = f * (s + ds * y * y)
+        dxy = np.empty((len(v), 2, 3))  # d(u, v)/d(vector)
+        dxy[:, 0, 0], dxy[:, 0, 1], dxy[:, 0, 2] = a / z, b / z, -(a * x + b * y) / z
+        dxy[:, 1, 0], dxy[:, 1, 1], dxy[:, 1, 2] = b / z, d / z, -(b * x + d * y) / z
+        dv = np.cross(v[:, None, :], (-_left_jacobian(p[:3])).T[None, :, :])  # (N, 3 params, 3): -v x Jl[:, j]
+        J = np.empty((len(v), 2, len(p)))
+        J[:, :, :3] = np.einsum("nij,nkj->nik", dxy, dv)
+        i = 3
+        if fit_focal:
+            J[:, 0, i], J[:, 1, i] = f * x * s, f * y * s
+            i += 1
+        if fit_k1:
+            J[:, 0, i], J[:, 1, i] = f * x * r2 / rc2, f * y * r2 / rc2
+            i += 1
+        if fit_k2:
+            J[:, 0, i], J[:, 1, i] = f * x * r2 * r2 / rc2 ** 2, f * y * r2 * r2 / rc2 ** 2
+        return J.reshape(2 * len(v), len(p))
+
+    x = robust_gauss_newton(lambda p: (project(p) - uv).ravel(), p0, lo, hi, jac=None if fisheye else jacobian)
     Rk, f, k1, k2 = unpack(x)
     cam = Camera(camera.width, camera.height, float(f), float(f), camera.cx, camera.cy, float(k1), float(k2),
                  camera.model)

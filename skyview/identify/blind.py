@@ -219,47 +219,49 @@ class BlindIdentifier(CameraRefit):
     # ------------------------------------------------------------------ look-up
     def _lookup(self, uv: np.ndarray, quads_all: np.ndarray, batch: np.ndarray, width: int, height: int,
                 lo: float, hi: float, model: str = PINHOLE) -> dict:
-        """Catalog patterns that agree with quads_all[batch]: (quad index, table row, FOV, ratio error)."""
+        """Catalog patterns that agree with quads_all[batch]: (quad index, table row, FOV, ratio error).
+
+        Every rung of the FOV ladder at once: the quads' ratios through each rung's pinhole, the bins a
+        ratio +- tolerance touches, one hash look-up of the distinct keys of all rungs (neighbouring rungs
+        share most of theirs), each stored pattern's ratios computed once however many rungs hit it."""
         quads = quads_all[batch]
         p, pp = self.params, self.pattern_params
         w, tol = pp.bin_width, p.ratio_tolerance
         # a ratio +- tol spans up to three bins (tol < w)
         offsets = np.array(list(itertools.product((0, 1, 2), repeat=pdb.N_RATIOS)), dtype=np.int64)
-        found_q, found_p, found_f, found_err = [], [], [], []
-        for fa, cover in fov_ladder(lo, hi, p.ladder_deg2 if model == PINHOLE else p.fisheye_ladder_deg2):
-            cam = Camera.from_fov(float(fa), width, height, model=model)
-            vec = cam.unproject(uv)
-            ratios, largest = pdb.edge_ratios(pdb.separations(vec[quads]))
-            qlo = pdb.quantise(ratios - tol, w)
-            qhi = pdb.quantise(ratios + tol, w)
-            span = qhi - qlo
-            ok = np.all(offsets[None, :, :] <= span[:, None, :], axis=2)  # (Q, 3^5)
-            qi, oi = np.nonzero(ok)
-            ni, prow = pdb.lookup(self.keys, self.bucket_start, pdb.pack_key(qlo[qi] + offsets[oi]))
-            if len(prow) == 0:
-                continue
-            qrep = qi[ni]
-            # the FOV a pattern implies is fa * (its largest edge) / (the quad's): a pattern whose level's
-            # band of largest edges cannot put it in this rung's range is dropped before its stars are read
-            f_lo, f_hi = max(lo, fa / cover), min(hi, fa * cover)  # the FOVs this rung accepts
-            fits = self._sizes_fit(prow, largest[qrep] / fa, f_lo, f_hi)
-            if not fits.all():
-                prow, qrep = prow[fits], qrep[fits]
-                if len(prow) == 0:
-                    continue
-            cat_v = self.catalog.xyz[self.rows[prow]]
-            c_ratios, c_largest = pdb.edge_ratios(pdb.separations(cat_v))
-            err = np.abs(c_ratios - ratios[qrep]).max(axis=1)
-            fov = fa * c_largest / largest[qrep]  # small-angle: the scale that maps image onto sky
-            keep = (err <= tol) & (fov >= f_lo) & (fov <= f_hi)
-            found_q.append(batch[qrep[keep]])
-            found_p.append(prow[keep])
-            found_f.append(fov[keep])
-            found_err.append(err[keep])
-        if sum(len(x) for x in found_q) == 0:
-            e = np.zeros(0, dtype=np.int64)
-            return {"quad": e, "pattern": e, "fov": np.zeros(0), "err": np.zeros(0)}
-        q, pr, f, er = (np.concatenate(x) for x in (found_q, found_p, found_f, found_err))
+        ladder = fov_ladder(lo, hi, p.ladder_deg2 if model == PINHOLE else p.fisheye_ladder_deg2)
+        fa = np.array([f for f, _ in ladder])
+        cover = np.array([c for _, c in ladder])
+        f_lo, f_hi = np.maximum(lo, fa / cover), np.minimum(hi, fa * cover)  # the FOVs each rung accepts
+        vec = np.stack([Camera.from_fov(float(f), width, height, model=model).unproject(uv) for f in fa])
+        ratios, largest = pdb.edge_ratios(pdb.separations(vec[:, quads]))  # (rungs, Q, 5), (rungs, Q)
+        qlo = pdb.quantise(ratios - tol, w)
+        span = pdb.quantise(ratios + tol, w) - qlo
+        ri, qi, oi = np.nonzero(np.all(offsets <= span[:, :, None, :], axis=3))  # rung, quad, bin offsets
+        needles = pdb.pack_key(qlo[ri, qi] + offsets[oi])
+        distinct, which = np.unique(needles, return_inverse=True)
+        hit_needle, hit_row = pdb.lookup(self.keys, self.bucket_start, distinct)  # by distinct key, ascending
+        per_key = np.bincount(hit_needle, minlength=len(distinct))
+        first_hit = np.cumsum(per_key) - per_key
+        n_hits = per_key[which]  # every needle's hits, in rung, quad, offset order (as rung by rung)
+        total = int(n_hits.sum())
+        if total == 0:
+            return self._no_candidates()
+        j = np.repeat(np.arange(len(needles)), n_hits)
+        prow = hit_row[np.repeat(first_hit[which] - np.cumsum(n_hits) + n_hits, n_hits) + np.arange(total)]
+        r, q = ri[j], qi[j]
+        # the FOV a pattern implies is fa * (its largest edge) / (the quad's): a pattern whose level's band of
+        # largest edges cannot put it in its rung's range is dropped before its stars are read
+        fits = self._sizes_fit(prow, largest[r, q] / fa[r], f_lo[r], f_hi[r])
+        prow, r, q = prow[fits], r[fits], q[fits]
+        rows, at = np.unique(prow, return_inverse=True)
+        c_ratios, c_largest = pdb.edge_ratios(pdb.separations(self.catalog.xyz[self.rows[rows]]))
+        err = np.abs(c_ratios[at] - ratios[r, q]).max(axis=1)
+        fov = fa[r] * c_largest[at] / largest[r, q]  # small-angle: the scale that maps image onto sky
+        keep = (err <= tol) & (fov >= f_lo[r]) & (fov <= f_hi[r])
+        if not keep.any():
+            return self._no_candidates()
+        q, pr, f, er = batch[q[keep]], prow[keep], fov[keep], err[keep]
         # one entry per (quad, pattern): the one whose assumed FOV was closest
         order = np.lexsort((er, pr, q))
         q, pr, f, er = q[order], pr[order], f[order], er[order]
@@ -267,6 +269,11 @@ class BlindIdentifier(CameraRefit):
         q, pr, f, er = q[first], pr[first], f[first], er[first]
         order = np.lexsort((er, q))  # quads in their brightness order, best agreement first
         return {"quad": q[order], "pattern": pr[order], "fov": f[order], "err": er[order]}
+
+    @staticmethod
+    def _no_candidates() -> dict:
+        e = np.zeros(0, dtype=np.int64)
+        return {"quad": e, "pattern": e, "fov": np.zeros(0), "err": np.zeros(0)}
 
     def _sizes_fit(self, prow: np.ndarray, size: np.ndarray, f_lo: float, f_hi: float) -> np.ndarray:
         """Which table patterns prow can imply an FOV in [f_lo, f_hi] degrees for quads whose largest
