@@ -47,6 +47,7 @@ from skyview.present.image import TEXTURE_FLOOR_SIGMAS, LabelLayout, layout_labe
 PALETTE: dict[str, tuple[int, int, int]] = {
     "grid": (48, 66, 98),
     "grid_main": (78, 100, 140),
+    "constellation": (150, 125, 200),  # constellation figures and names
     "estimated": (255, 184, 48),  # camera / footprint at the estimated attitude
     "true": (70, 215, 255),  # ... at the true attitude
     "observed": (255, 230, 60),  # the stars the step measured (and its pattern)

@@ -275,6 +275,7 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig, 
         checks = {
             "stars": gui.add_checkbox("Catalog stars", initial_value=True),
             "grid": gui.add_checkbox("RA/Dec grid", initial_value=True),
+            "constellations": gui.add_checkbox("Constellation figures", initial_value=True),
             "names": gui.add_checkbox("Bright star names", initial_value=True),
             "image": gui.add_checkbox("Sensor image on the frustum", initial_value=True),
             "numbers": gui.add_checkbox("Centroid numbers", initial_value=True),

@@ -78,14 +78,16 @@ def panel_base(gray8: np.ndarray, size: int = 560) -> np.ndarray:
 
 
 def annotate(base: np.ndarray, source_shape: tuple[int, int], uv: np.ndarray, outcomes: list[str], *,
-             highlight=(), pattern=None, max_numbers: int = 40, grid=None) -> np.ndarray:
+             highlight=(), pattern=None, max_numbers: int = 40, grid=None, figures=None) -> np.ndarray:
     """RGB panel image: centroids ringed in their outcome colour and numbered by brightness.
 
     base: `panel_base` of the image; source_shape: (H, W) of the sensor image the centroids are in;
     highlight: centroid indices the current step uses (thick yellow ring); pattern: (E, 2) centroid
     index pairs joined by a line (the pair / triangle the step measured); grid: the RA/Dec lines of the
     solved image (`skyview.present.sky_grid.image_grid`), drawn under the rings, labelled where they
-    enter the image (labels that would overlap left out).
+    enter the image; figures: the constellation figures over it (`skyview.present.constellations.
+    image_figures`), with their names. Labels that would overlap one placed before them are left out
+    (the constellations' names first, then the grid's).
     """
     img = base
     size = max(img.shape)
@@ -95,8 +97,8 @@ def annotate(base: np.ndarray, source_shape: tuple[int, int], uv: np.ndarray, ou
     p = (uv + 0.5) * s - 0.5  # pixel centres scale about the sensor edge
     hl = {int(i) for i in highlight}
     r = max(5, round(size / 90))
-    if grid:
-        _draw_grid(rgb, grid, s, round(max(0.35, size / 1600), 3))
+    if grid or figures:
+        _draw_sky_lines(rgb, grid or [], figures or [], s, round(max(0.35, size / 1600), 3))
     if pattern is not None:
         for a, b in np.asarray(pattern, dtype=np.int64).reshape(-1, 2):
             if a < len(p) and b < len(p):
@@ -114,29 +116,36 @@ def annotate(base: np.ndarray, source_shape: tuple[int, int], uv: np.ndarray, ou
 
 
 GRID_RGB = (80, 150, 210)
+FIGURE_RGB = (175, 150, 225)
 
 
-def _draw_grid(rgb: np.ndarray, grid, s: float, scale: float) -> None:
-    """The RA/Dec lines (sensor pixels scaled by s) and their labels, inside the image edge."""
+def _draw_sky_lines(rgb: np.ndarray, grid, figures, s: float, scale: float) -> None:
+    """The RA/Dec lines and the constellation figures (sensor pixels scaled by s), then their labels inside
+    the image edge: a constellation's name at its anchor, a grid line's where it enters the image."""
     H, W = rgb.shape[:2]
+    labels = []  # (text, colour, anchor in panel pixels), in the order they claim their place
+    for items, colour, thickness in ((grid, GRID_RGB, 1), (figures, FIGURE_RGB, 1)):
+        for g in items:
+            for run in g.runs:
+                q = np.round((np.asarray(run) + 0.5) * s - 0.5).astype(np.int32)
+                cv2.polylines(rgb, [q.reshape(-1, 1, 2)], False, colour, thickness, cv2.LINE_AA)
+    labels += [(f.name, FIGURE_RGB, f.anchor) for f in figures]
+    labels += [(g.label, GRID_RGB, g.anchor) for g in grid]
+    if not labels:
+        return
     anchors, sizes = [], []
-    for g in grid:
-        for run in g.runs:
-            q = np.round((np.asarray(run) + 0.5) * s - 0.5).astype(np.int32)
-            cv2.polylines(rgb, [q.reshape(-1, 1, 2)], False, GRID_RGB, 1, cv2.LINE_AA)
-        fill, _, top = _text_masks(g.label, scale)
-        x, y = ((np.asarray(g.anchor) + 0.5) * s - 0.5)
+    for text, _, anchor in labels:
+        fill, _, top = _text_masks(text, scale)
+        x, y = ((np.asarray(anchor) + 0.5) * s - 0.5)
         x = float(np.clip(x + 3, 2, W - fill.shape[1] - 2))
         y = float(np.clip(y + top + 3, top + 2, H - 4))
         anchors.append((x, y - top + fill.shape[0] / 2.0))
         sizes.append((fill.shape[1], fill.shape[0]))
-    if not anchors:
-        return
     shown = place_labels(np.array(anchors), np.arange(len(anchors), dtype=np.float64), np.array(sizes), gap=2.0)
-    for g, (x, y), (w, h), ok in zip(grid, anchors, sizes, shown):
+    for (text, colour, _), (x, y), ok in zip(labels, anchors, shown):
         if ok:
-            fill, _, top = _text_masks(g.label, scale)
-            _label(rgb, g.label, int(round(x)), int(round(y - fill.shape[0] / 2.0 + top)), scale, GRID_RGB)
+            fill, _, top = _text_masks(text, scale)
+            _label(rgb, text, int(round(x)), int(round(y - fill.shape[0] / 2.0 + top)), scale, colour)
 
 
 def numbers_placed(p: np.ndarray, r: int, scale: float, highlight: set[int]) -> np.ndarray:

@@ -26,6 +26,7 @@ from skyview.core.sky_geometry import (
     star_color,
     star_radius,
 )
+from skyview.present.constellations import constellations
 from skyview.present.drawables import (
     ARC_POINTS,
     IMAGE_ROLES,
@@ -61,10 +62,12 @@ FINE_GRID_RGB = (40, 56, 84)
 EST_RGB = PALETTE["estimated"]
 TRUE_RGB = PALETTE["true"]
 MATCH_RGB = PALETTE["identified"]
+FIGURE_RGB = PALETTE["constellation"]
 TRACK_RGB = (60, 120, 150)  # the footprints of a sequence's frames
 BACKGROUND_TOP = (10, 13, 30)
 BACKGROUND_BOTTOM = (3, 4, 10)
 
+FIGURE_DEPTH = 0.999  # constellation figures sit just inside the sphere
 IMAGE_DEPTH = 1.003  # the sensor image sits just beyond the sphere: catalog stars draw in front of it
 RING_PX = 9.0  # centroid ring radius in sensor pixels (for a 1024-pixel sensor; scaled with size)
 STAR_SIZE = 0.75  # point size = STAR_SIZE * sky_geometry.star_radius(mag) * zoom factor
@@ -75,6 +78,8 @@ NODES = {
     "grid": "/sky/grid/lines",
     "grid_main": "/sky/grid/main",
     "grid_labels": "/sky/grid/labels",
+    "figures": "/sky/constellations/figures",  # the 88 constellations' stick figures
+    "figure_names": "/sky/constellations/names",
     "fine_grid": "/sky/fine_grid/lines",
     "fine_labels": "/sky/fine_grid/labels",
     "names": "/sky/names",
@@ -118,7 +123,7 @@ class SkyScene:
         self._catalog_key = None
         self._grid_key = None
         self.bytes_catalog = 0
-        self.visible = {"grid": True, "names": True, "image": True, "true": True, "matches": True, "track": True,
+        self.visible = {"grid": True, "constellations": True, "names": True, "image": True, "true": True, "matches": True, "track": True,
                         "numbers": True, "hips": False, "stars": True, "candidates": True}
         self._run: Run | None = None
         self._image_plane_xy, self._ring = np.zeros((0, 2)), 0.0  # centroids on the image plane, ring radius
@@ -152,6 +157,15 @@ class SkyScene:
             s.add_label(f"{NODES['grid_labels']}/{k}", text, position=_f32(p), font_screen_scale=0.8,
                         anchor="bottom-left")
             for k, (text, p) in enumerate(sky_grid_labels())]
+        # the constellations: figures just inside the sphere (in front of the catalog's points), names
+        figs = constellations()
+        self.h["figures"] = s.add_line_segments(
+            NODES["figures"], _f32(polylines_as_segments([ln * FIGURE_DEPTH for c in figs.values() for ln in c.lines])),
+            FIGURE_RGB, thickness=1.2, thickness_units="screen")
+        self.h["figure_names"] = [
+            s.add_label(f"{NODES['figure_names']}/{c.abbr}", c.name, position=_f32(c.label_xyz * FIGURE_DEPTH),
+                        font_screen_scale=0.75, anchor="center-center")
+            for c in figs.values()]
 
     def draw_catalog(self, catalog: GuideCatalog) -> None:
         """The guide catalog on the sphere (one cloud per magnitude bin) and the bright stars' names."""
@@ -500,6 +514,7 @@ class SkyScene:
             self._place_names()
         groups = {
             "grid": ["grid", "grid_main", "grid_labels", "fine_grid", "fine_labels"],
+            "constellations": ["figures", "figure_names"],
             "stars": ["stars"],
             "true": ["true_camera", "true_footprint"],
             "matches": ["matches", "match_stars"] if self.final else [],

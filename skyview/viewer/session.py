@@ -28,6 +28,7 @@ from skyview.core.camera import Camera
 from skyview.core.errors import BadInput
 from skyview.core.jsonable import plain
 from skyview.identify import VARIANTS
+from skyview.present.constellations import image_figures
 from skyview.present.sky_grid import image_grid
 from skyview.viewer import panel as P
 from skyview.viewer.camera_control import CameraControl
@@ -99,6 +100,7 @@ class Session:
         self._closed = False
         self._panel_base: np.ndarray | None = None  # the sensor image of the run on screen, before annotation
         self._panel_grid = None  # its RA/Dec lines (skyview.present.sky_grid), when solved
+        self._panel_figures = None  # the constellation figures over it (skyview.present.constellations)
         self.sky = SkyScene(owner.scene)
         self.panel = p = P.build_panel(owner.gui, list(viewer_methods()), list(VARIANTS), config or SceneConfig(),
                                        photos=tuple(p.name for p in bundled_photographs()),
@@ -414,12 +416,13 @@ class Session:
         base = panel_base(stretch(run.source.image))
         # the RA/Dec grid of a solved image, through the camera of its solve
         grid = image_grid(run.result.camera, run.result.R) if run.result.solved else None
+        figures = image_figures(run.result.camera, run.result.R) if run.result.solved else None
         n = len(run.drawables)
         st, p = self.state, self.panel
         with self.lock, self.atomic():
             self.step_player.reset(n)
             st.run = run
-            self._panel_base, self._panel_grid = base, grid
+            self._panel_base, self._panel_grid, self._panel_figures = base, grid, figures
             if st.forget_stale_comparison():  # a comparison is of one image: it leaves with it
                 p.compare_table.content = ""
             self.clear_error()
@@ -472,7 +475,8 @@ class Session:
         outcomes = run.outcomes if d is None or d.final else ["unidentified"] * len(run.outcomes)
         n = self.rings_drawn
         self.panel.image.image = annotate(self._panel_base, run.source.image.shape, run.result.centroids.uv[:n],
-                                          outcomes[:n], highlight=hl, pattern=pat, grid=self._panel_grid)
+                                          outcomes[:n], highlight=hl, pattern=pat, grid=self._panel_grid,
+                                          figures=self._panel_figures)
         if mark and k is not None:
             self.step_plot.mark(k)
 
