@@ -3,6 +3,7 @@ benchmark figures, not tested."""
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -80,3 +81,43 @@ def test_cli_speed_bench_refuses_other_modes(capsys):
     assert "--bit-depth goes with --speed" in err and len(err.strip().splitlines()) == 1
     assert main(["bench", "--speed", "--bit-depth", "12", "-n", "1"]) == 2  # argparse's choices
     assert "Traceback" not in capsys.readouterr().err
+
+
+def _two_photographs(tmp_path):
+    """Two of the real photographs and their reference attitudes, in a folder as `--real` reads it."""
+    import shutil
+
+    src = Path(__file__).parent / "data" / "real-images"
+    ref = json.loads((src / "reference.json").read_text())
+    names = sorted(ref)[:2]
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for n in names:
+        shutil.copy(src / n, folder / n)
+    (folder / "reference.json").write_text(json.dumps({n: ref[n] for n in names}))
+    return folder, names
+
+
+def test_photo_speed_scores_blind_solves_and_times_whole_processes(tmp_path):
+    from skyview.bench.photo_speed import format_photo_markdown, run_photo_speed
+
+    folder, names = _two_photographs(tmp_path)
+    s = run_photo_speed(folder, rounds=1, process_rounds=1, peers=False, progress=False)
+    sk = s["results"]["skyview"]
+    assert sk["outcomes"] == {"correct": 2, "inconclusive": 0, "incorrect": 0}
+    assert [t["name"] for t in sk["trials"]] == names
+    assert all(t["err_arcsec"] < 120 and t["total"] > 0 for t in sk["trials"])
+    procs = s["processes"]["skyview solve PHOTO --json (wall s)"]
+    assert 0 < procs["min"] <= procs["median"] <= procs["max"]
+    assert "tetra3rs" not in s["results"] and s["ratio_to_tetra3rs"] is None  # peers=False: skyview alone
+    md = format_photo_markdown(s)
+    assert "| skyview blind" in md and "skyview solve PHOTO --json" in md
+
+
+def test_cli_photo_speed_refuses_a_folder_without_reference(tmp_path, capsys):
+    (tmp_path / "x.png").write_bytes(b"")
+    assert main(["bench", "--speed", "--real", str(tmp_path), "--no-peers", "--quiet", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "reference.json" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert main(["bench", "--speed", "--real", str(tmp_path / "none"), "--quiet"]) == 2
+    assert "no such folder" in capsys.readouterr().err

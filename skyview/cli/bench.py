@@ -164,18 +164,38 @@ def _bench_speed(a) -> int:
     if a.blind or a.centroids or a.record_failures or a.jobs != 1 or a.fov_error is not None:
         raise BadInput("--speed times one process with the exact FOV: leave out --blind, --centroids, "
                        "--record-failures, --jobs and --fov-error")
+    if a.rounds < 1:
+        raise BadInput("--rounds must be at least 1")
+    if a.real is not None:
+        return _bench_photo_speed(a)
     a.scenario = a.scenario or "cole8"
     scenario = bench_scenario(a)
     methods = ((a.method, a.variant),) if a.method and a.method != "blind" else DEFAULT_METHODS
     out_dir = check_out_folder(a.out)
-    if a.rounds < 1:
-        raise BadInput("--rounds must be at least 1")
     summary = run_speed_bench(scenario, a.n, seed=a.seed, methods=methods, peers=not a.no_peers,
                               python=a.peers_python, rounds=a.rounds, progress=not a.quiet,
                               bit_depth=a.bit_depth or DEFAULT_BIT_DEPTH)
     md = format_markdown(summary)
     print(md)
     j, m = save_results(summary, out_dir, f"speed-{file_tag(scenario.name)}-n{a.n}-seed{a.seed}", markdown=md)
+    print(f"saved {j} and {m}")
+    return EXIT_SOLVED
+
+
+def _bench_photo_speed(a) -> int:
+    """`bench --speed --real DIR`: skyview blind beside tetra3rs blind on real photographs, and whole processes."""
+    from skyview.bench.photo_speed import format_photo_markdown, run_photo_speed
+    from skyview.bench.runner import save_results
+
+    folder = Path(a.real)
+    if not folder.is_dir():
+        raise BadInput(f"--real {a.real}: no such folder")
+    out_dir = check_out_folder(a.out)
+    summary = run_photo_speed(folder, rounds=a.rounds, peers=not a.no_peers, python=a.peers_python,
+                              progress=not a.quiet)
+    md = format_photo_markdown(summary)
+    print(md)
+    j, m = save_results(summary, out_dir, f"speed-real-{file_tag(folder.resolve().name)}", markdown=md)
     print(f"saved {j} and {m}")
     return EXIT_SOLVED
 
@@ -258,6 +278,9 @@ def add_parsers(sub) -> None:
     b.add_argument("--no-peers", action="store_true", help="with --speed: skyview alone")
     b.add_argument("--rounds", type=int, default=2, help="with --speed: passes over the images, the solvers "
                    "taking turns; each image keeps its fastest (default 2)")
+    b.add_argument("--real", default=None, metavar="DIR",
+                   help="with --speed: the photographs in DIR (and its reference.json, as tests/data/real-images): "
+                        "skyview blind beside tetra3rs blind, and `skyview solve PHOTO` as a whole process")
     b.add_argument("--bit-depth", type=int, choices=(8, 16), default=None,
                    help="with --speed: bits per pixel of the rendered images, 16 (default: the frames tetra3rs's "
                         "centroider is made for) or 8 (as `skyview simulate` writes them)")

@@ -262,6 +262,11 @@ class GuideCatalog:
         return ra, dec
 
     @cached_property
+    def mag_sorted(self) -> np.ndarray:
+        """Every star's magnitude, ascending (made once: the depth an image asks for is read from it)."""
+        return np.sort(self.mag)
+
+    @cached_property
     def tree(self):
         """A scipy cKDTree on the unit vectors (imported here: scipy.spatial costs ~0.25 s to import, and a
         solve that never asks for neighbours does not pay it)."""

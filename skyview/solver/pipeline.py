@@ -160,7 +160,7 @@ def auto_mag_limit(catalog: GuideCatalog, camera: Camera, n_stars: int, *, per_s
     to a quarter magnitude)."""
     frac = camera.solid_angle_sr / (4.0 * np.pi)
     want = max(per_star * max(int(n_stars), 1), 8.0) / frac
-    mags = np.sort(catalog.mag)
+    mags = catalog.mag_sorted
     m = float(mags[min(int(want), len(mags) - 1)])
     return float(np.clip(np.ceil(m * 4.0) / 4.0, lo, hi))
 
