@@ -144,6 +144,34 @@ def test_a_faint_8bit_frame_is_searched_through_the_matched_filter(catalog):
     assert sum(found) >= 2 * sum(found_plain), (found, found_plain)
 
 
+def test_the_faint_search_deferred_finds_what_detect_stars_finds_at_once(catalog):
+    """A solver asks for the stars it can have cheaply first (`faint_search=False`) and for the matched filter's
+    only when those do not solve: the stars it then gets are detect_stars' own, bit for bit; a frame with
+    enough stars has nothing deferred."""
+    from skyview.detect.stars import fainter_stars
+
+    for seed in range(3):
+        fr, _ = _faint_frame(catalog, seed)
+        first = detect_stars(fr.image, faint_search=False)
+        assert first.params["faint_search"] == "deferred" and "matched_filter_sigma_px" not in first.params
+        later, at_once = fainter_stars(fr.image, first), detect_stars(fr.image)
+        assert later is not None and len(later) > len(first)
+        assert np.array_equal(later.uv, at_once.uv) and np.array_equal(later.brightness, at_once.brightness)
+    dense = _frame(catalog, "blind8", seed=3).image
+    c = detect_stars(dense, faint_search=False)
+    assert "faint_search" not in c.params and fainter_stars(dense, c) is None
+
+
+def test_solve_image_reaches_a_faint_frames_stars_when_its_first_stars_do_not_solve(catalog):
+    from skyview.solver.pipeline import solve_image
+
+    fr, R = _faint_frame(catalog, 1)
+    assert len(detect_stars(fr.image, faint_search=False)) < 8  # too few to solve on
+    res = solve_image(fr.image)
+    assert res.solved and attitude_error_arcsec(res.R, R)["boresight"] < 10.0
+    assert res.centroids.params.get("matched_filter_sigma_px", 0) > 0  # solved on the matched filter's stars
+
+
 def test_a_frame_with_enough_stars_never_goes_through_the_matched_filter(catalog):
     fr = _frame(catalog, "blind8", seed=3)
     c = detect_stars(fr.image)

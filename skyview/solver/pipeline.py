@@ -24,7 +24,7 @@ from skyview.core.camera import EQUIDISTANT, EQUISOLID, FISHEYE_FOV_RANGE_DEG, P
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, finite_image, load_image, to_gray
-from skyview.detect.stars import detect_stars
+from skyview.detect.stars import detect_stars, fainter_stars
 from skyview.identify import make_identifier
 from skyview.io.fits import undeclared_row_order
 from skyview.solver.result import NOT_SOLVED, SOLVED, SolveResult, observation, result_from_identification
@@ -212,25 +212,34 @@ class BlindSolver:
                     fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
         img = as_image(image)
         t0 = time.perf_counter()
-        centroids = detect_stars(img, k_sigma=self.k_sigma)
-        t1 = time.perf_counter()
+        centroids = detect_stars(img, k_sigma=self.k_sigma, faint_search=False)
+        t_cent = (time.perf_counter() - t0) * 1e3
         result = self.solve_centroids(centroids, img.shape[1], img.shape[0], fov_deg=fov_deg, fov_error=fov_error)
-        result.time_ms = {"centroid": (t1 - t0) * 1e3, **result.time_ms}
+        if not result.solved:  # a sparse frame: the stars the matched filter finds, searched too
+            t1 = time.perf_counter()
+            fainter = fainter_stars(img, centroids, k_sigma=self.k_sigma)
+            t_cent += (time.perf_counter() - t1) * 1e3
+            if fainter is not None:
+                result = _with_time_of(self.solve_centroids(fainter, img.shape[1], img.shape[0], fov_deg=fov_deg,
+                                                            fov_error=fov_error, checks_before=_checks(result)),
+                                       result)
+        result.time_ms = {"centroid": t_cent, **result.time_ms}
         result.time_ms["total"] = result.time_ms["centroid"] + result.time_ms["solve"]
         return result
 
     def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
-                        fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
+                        fov_error: float = DEFAULT_FOV_ERROR, checks_before: int = 0) -> SolveResult:
+        """checks_before: the hypotheses earlier searches of the same image checked (counted in the verification)."""
         kw = dict(fov_deg=fov_deg, fov_error=fov_error)
         if fov_deg is not None and fov_deg * (1 - fov_error) > self.fov_range_deg[1]:
             result = None  # wider than the pinhole search reaches: a fisheye only
         else:
-            result = self._pinhole(centroids, width, height, **kw)
+            result = self._pinhole(centroids, width, height, checks_before=checks_before, **kw)
             if result.solved or not self._fisheye_may_solve(centroids, fov_deg, fov_error):
                 return result
         # a fisheye (all-sky, meteor cameras): the equidistant lens searched, its k1 and k2 fitted (an equisolid
         # lens is an equidistant one with k1 = -1/24, k2 = 1/1920)
-        checks = _checks(result) if result is not None else 0
+        checks = _checks(result) if result is not None else checks_before
         fres = None
         for lens in (EQUIDISTANT, EQUISOLID):
             # each lens searched until one fits its stars as a lens should (an equisolid lens seen through an
@@ -266,15 +275,17 @@ class BlindSolver:
         return fov_deg is None or fov_deg * (1.0 + fov_error) >= FISHEYE_FOV_RANGE_DEG[0]
 
     def _pinhole(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None,
-                 fov_error: float) -> SolveResult:
+                 fov_error: float, checks_before: int = 0) -> SolveResult:
         """The pinhole searches: the guide catalog's, and the deep catalog's for a narrow field."""
         if not _narrow_field_may_solve(self.deep, centroids, fov_deg, fov_error):
-            return self._solve_centroids(centroids, width, height, fov_deg=fov_deg, fov_error=fov_error)
+            return self._solve_centroids(centroids, width, height, fov_deg=fov_deg, fov_error=fov_error,
+                                         checks_before=checks_before)
         # the guide catalog's search first, with a short budget of hypotheses (what a field it covers
         # nearly always needs); then the narrow fields; then, if the first search was cut short, the whole
         # of it again: a narrow field is not made to wait for the guide catalog's full budget
         kw = dict(fov_deg=fov_deg, fov_error=fov_error)
-        first = self._solve_centroids(centroids, width, height, max_checks=NARROW_AFTER_CHECKS, slide=False, **kw)
+        first = self._solve_centroids(centroids, width, height, max_checks=NARROW_AFTER_CHECKS, slide=False,
+                                      checks_before=checks_before, **kw)
         if first.solved:
             return first
         narrow = narrow_field_solver(self.epoch, **self._narrow_kwargs)
@@ -526,47 +537,69 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         res.mag_limit = depth
         return res
 
-    t0 = time.perf_counter()
-    centroids = detect_stars(img, k_sigma=k_sigma)
-    t_cent = (time.perf_counter() - t0) * 1e3
     exact = fov_deg is not None and fov_error == 0.0 and not wide
-    result = None
-    fitted = None
     blind_depth = None
-    fast = None
-    if method is None and fov_deg is not None and not wide:
-        # the fastest path that can answer runs first: the improved angle method at the FOV given, on
-        # the brightest stars (what `bench --speed` times); the blind search over +-fov_error only when
-        # that does not verify (a wrong FOV, a distorted lens), and never for the calibrated mode
-        fast = calibrated("angle", Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2), "improved", centroids,
-                          first_try=not exact)
-        if fast.solved and not exact:
-            result = (_refit_camera(fast, centroids, epoch, max_stars, estimator) if _camera_is_off(fast)
-                      else fast)
-        elif exact:
-            result = fast
-    if result is None and not exact:
-        blind = blind_solver(epoch, memory_mb=memory_mb, progress=progress, deep=deep, **common)
-        result = blind.solve_centroids(centroids, W, H, fov_deg=fov_deg, fov_error=fov_error)
-        if result.solved:
-            fitted = result.camera
-            blind_depth = result.mag_limit
-        if fast is not None:  # the time of the first try counts; its reason too when nothing solved
-            _with_time_of(result, fast)
+
+    def needs_fov(blind: SolveResult | None) -> None:
+        raise BadInput(f"the {method} method needs the field of view: give --fov-deg (an estimate will do), "
+                       f"or leave out --method to solve blind" + (f" (the blind search failed: {blind.reason})"
+                                                                  if blind is not None else ""))
+
+    def solve_stars(centroids: Centroids, checks_before: int, last: bool) -> SolveResult:
+        """The default pipeline (or `method`) on these centroids; last: no other set of stars follows (a
+        method that needs the FOV the blind search did not find says so only then)."""
+        nonlocal blind_depth
+        result = None
+        fitted = None
+        fast = None
+        if method is None and fov_deg is not None and not wide:
+            # the fastest path that can answer runs first: the improved angle method at the FOV given, on
+            # the brightest stars (what `bench --speed` times); the blind search over +-fov_error only when
+            # that does not verify (a wrong FOV, a distorted lens), and never for the calibrated mode
+            fast = calibrated("angle", Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2), "improved", centroids,
+                              first_try=not exact)
+            if fast.solved and not exact:
+                result = (_refit_camera(fast, centroids, epoch, max_stars, estimator) if _camera_is_off(fast)
+                          else fast)
+            elif exact:
+                result = fast
+        if result is None and not exact:
+            blind = blind_solver(epoch, memory_mb=memory_mb, progress=progress, deep=deep, **common)
+            result = blind.solve_centroids(centroids, W, H, fov_deg=fov_deg, fov_error=fov_error,
+                                            checks_before=checks_before)
             if result.solved:
-                result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) did not "
-                                    f"verify ({fast.reason}): solved by the blind search over +-{100 * fov_error:g} %")
-            else:
-                result.reason = f"the improved angle method at {fov_deg:g} deg: {fast.reason}; then {result.reason}"
-    if method is not None:
-        if fov_deg is None and fitted is None:
-            raise BadInput(f"the {method} method needs the field of view: give --fov-deg (an estimate will do), "
-                           f"or leave out --method to solve blind" + (f" (the blind search failed: {result.reason})"
-                                                                      if result is not None else ""))
-        camera = fitted if fitted is not None else Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2)
-        mres = calibrated(method, camera, variant, centroids)
-        mres.camera_fitted = fitted is not None
-        result = mres
+                fitted = result.camera
+                blind_depth = result.mag_limit
+            if fast is not None:  # the time of the first try counts; its reason too when nothing solved
+                _with_time_of(result, fast)
+                if result.solved:
+                    result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) did not "
+                                        f"verify ({fast.reason}): solved by the blind search over +-{100 * fov_error:g} %")
+                else:
+                    result.reason = f"the improved angle method at {fov_deg:g} deg: {fast.reason}; then {result.reason}"
+        if method is not None:
+            if fov_deg is None and fitted is None:
+                if not last:
+                    return result
+                needs_fov(result)
+            camera = fitted if fitted is not None else Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2)
+            mres = calibrated(method, camera, variant, centroids)
+            mres.camera_fitted = fitted is not None
+            result = mres
+        return result
+
+    t0 = time.perf_counter()
+    stars = detect_stars(img, k_sigma=k_sigma, faint_search=False)
+    t_cent = (time.perf_counter() - t0) * 1e3
+    result = solve_stars(stars, 0, last=stars.params.get("faint_search") != "deferred")
+    if not result.solved:  # a sparse frame: the stars the matched filter finds, searched too
+        t1 = time.perf_counter()
+        fainter = fainter_stars(img, stars, k_sigma=k_sigma)
+        t_cent += (time.perf_counter() - t1) * 1e3
+        if fainter is not None:
+            result = _with_time_of(solve_stars(fainter, _checks(result), last=True), result)
+    if method is not None and fov_deg is None and result.method != method:
+        needs_fov(result)  # the blind search found no FOV for the method, with either set of stars
     if try_flipped_rows is None:
         try_flipped_rows = isinstance(image, (str, Path)) and undeclared_row_order(image)
     if not result.solved and try_flipped_rows:
