@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from skyview.core.errors import BadInput
-from skyview.detect.centroids import Centroids, detect_centroids, to_gray
+from skyview.detect.centroids import Centroids, detect_centroids, row_median, to_gray
 from skyview.detect.trails import trail_members
 
 TARGET_SIGMA_PX = 1.1  # the PSF sigma the centroider is made for: bin by floor(sigma / this)
@@ -73,7 +73,7 @@ def star_moments(image: np.ndarray, c: Centroids, idx: np.ndarray, radius: int =
     win = img[rows, cols].astype(np.float64)
     border = np.concatenate([win[:, [0, -1], :].reshape(len(uv), -1), win[:, 1:-1, [0, -1]].reshape(len(uv), -1)],
                             axis=1)
-    win -= np.median(border, axis=1)[:, None, None]  # the local background (vignetting, glow)
+    win -= row_median(border)[:, None, None]  # the local background (vignetting, glow)
     peak = win[:, radius - 1: radius + 2, radius - 1: radius + 2].max(axis=(1, 2))
     floor = np.maximum(c.threshold, PEAK_FRACTION * peak)[:, None, None]
     above = np.where(win > floor, win, 0.0)
@@ -97,7 +97,7 @@ def psf_sigma_from_moments(image: np.ndarray, c: Centroids, brightest: int = 15)
     detections; NaN when fewer than three could be measured."""
     sigma = star_moments(image, c, np.arange(min(brightest, len(c))))[0]
     sigma = sigma[np.isfinite(sigma)]
-    return float(np.median(sigma)) if len(sigma) >= 3 else math.nan
+    return float(row_median(sigma[None])[0]) if len(sigma) >= 3 else math.nan
 
 
 def binning_for(sigma: float) -> int:

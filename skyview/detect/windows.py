@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skyview.detect.centroids import Centroids
+from skyview.detect.centroids import Centroids, row_median
 
 PSF_REACH_SIGMAS = 3.0  # a star's light reaches this many PSF sigmas: the window grows by it
 MAX_HALF_PX = 100  # a bound wider than this (pixels) is no tracking: lost-in-space instead
@@ -83,16 +83,6 @@ def _clamp(a, lo, hi):
     return np.minimum(np.maximum(a, lo), hi)  # np.clip, without its dispatch cost on small arrays
 
 
-def _row_median(a: np.ndarray) -> np.ndarray:
-    """Median of each row of a 2-D array (np.median's value, through one partition)."""
-    n = a.shape[1]
-    h = n // 2
-    if n % 2:
-        return np.partition(a, h, axis=1)[:, h]
-    p = np.partition(a, (h - 1, h), axis=1)
-    return 0.5 * (p[:, h - 1] + p[:, h])
-
-
 def _sub_side(psf_sigma_px: float) -> int:
     s_eff = math.sqrt(psf_sigma_px ** 2 + 1.0 / 12.0)
     return 2 * int(math.ceil(2.5 * s_eff)) + 1
@@ -120,9 +110,9 @@ def measure_windows(image: np.ndarray, centers: np.ndarray, half: int, *, psf_si
 
     # background and noise from the border
     border = np.concatenate([stack[:, 0, :], stack[:, -1, :], stack[:, 1:-1, 0], stack[:, 1:-1, -1]], axis=1)
-    bkg = _row_median(border)
-    noise = _MAD_TO_SIGMA * _row_median(np.abs(border - bkg[:, None]))
-    floor = 0.5 * float(_row_median(noise[None])[0]) if K else 0.0
+    bkg = row_median(border)
+    noise = _MAD_TO_SIGMA * row_median(np.abs(border - bkg[:, None]))
+    floor = 0.5 * float(row_median(noise[None])[0]) if K else 0.0
     if floor <= 0:
         floor = 1.0 if img.dtype.kind in "ui" else max(float(np.median(np.abs(bkg))) * 1e-6, 1e-12)
     noise = np.maximum(noise, floor)
@@ -217,12 +207,12 @@ def centroid_windows(image: np.ndarray, centers: np.ndarray, half: int, pixel_sc
     idx = idx[np.sort(first)]
     idx = idx[np.argsort(-ws.brightness[idx], kind="stable")]
     n = len(idx)
-    noise = float(_row_median(ws.noise[None])[0])
+    noise = float(row_median(ws.noise[None])[0])
     psf = float(psf_sigma_px) if psf_sigma_px and np.isfinite(psf_sigma_px) else DEFAULT_PSF_SIGMA_PX
     cents = Centroids(uv=ws.uv[idx], brightness=ws.brightness[idx], peak=ws.peak[idx],
                       n_pixels=ws.n_pixels[idx].astype(np.int64), saturated=ws.saturated[idx],
                       elongated=np.zeros(n, dtype=bool), edge=ws.edge[idx], blended=np.zeros(n, dtype=bool),
-                      axis_ratio=np.full(n, np.nan), background_level=float(_row_median(ws.background[None])[0]),
+                      axis_ratio=np.full(n, np.nan), background_level=float(row_median(ws.background[None])[0]),
                       noise_sigma=noise, threshold=k_sigma * noise,
                       psf_sigma_px=psf, estimator="window-gauss", image_shape=(H, W), params=params)
     b = boxes[idx]
