@@ -235,9 +235,12 @@ class BlindIdentifier(CameraRefit):
         f_lo, f_hi = np.maximum(lo, fa / cover), np.minimum(hi, fa * cover)  # the FOVs each rung accepts
         vec = np.stack([Camera.from_fov(float(f), width, height, model=model).unproject(uv) for f in fa])
         ratios, largest = pdb.edge_ratios(pdb.separations(vec[:, quads]))  # (rungs, Q, 5), (rungs, Q)
+        # a quad with a star a lens cannot see at a rung (beyond a fisheye's image circle) has no ratios there
+        seen = np.isfinite(ratios).all(axis=2) & np.isfinite(largest) & (largest > 0)
+        ratios = np.where(seen[:, :, None], ratios, 0.0)
         qlo = pdb.quantise(ratios - tol, w)
         span = pdb.quantise(ratios + tol, w) - qlo
-        ri, qi, oi = np.nonzero(np.all(offsets <= span[:, :, None, :], axis=3))  # rung, quad, bin offsets
+        ri, qi, oi = np.nonzero(np.all(offsets <= span[:, :, None, :], axis=3) & seen[:, :, None])
         needles = pdb.pack_key(qlo[ri, qi] + offsets[oi])
         distinct, which = np.unique(needles, return_inverse=True)
         hit_needle, hit_row = pdb.lookup(self.keys, self.bucket_start, distinct)  # by distinct key, ascending
