@@ -44,7 +44,7 @@ from skyview.present import drawables as present
 from skyview.simulate.scoring import centroid_outcomes
 from skyview.viewer import picture
 from skyview.viewer.geometry import frustum_scale, local_grid, nearest_star, pose_wxyz, ray_to_sphere
-from skyview.viewer.panel import result_markdown, step_markdown
+from skyview.viewer.panel import result_markdown, status_markdown, step_markdown
 from skyview.viewer.run import SceneConfig, Solvers, compare, simulate, solve
 from skyview.viewer.scene import NODES
 from skyview.viewer.sequence_run import SequenceConfig, solve_sequence_run
@@ -734,7 +734,9 @@ def test_result_and_step_text_for_a_failure():
     src = simulate(SceneConfig(ra_deg=10.0, dec_deg=80.0, fov_deg=2.0, mag_limit=4.0), solvers.base_catalog)
     run = solve(src, "angle", "paper", 4.0, solvers)
     assert not run.result.solved
-    assert "Not solved" in result_markdown(run) and "reason" in result_markdown(run)
+    md = result_markdown(run)
+    assert "Not solved" in md and "**Why:**" in md and "the solver's own words" in md
+    assert run.result.reason.split(":")[0] in md
     text = step_markdown(run, run.drawables[0] if run.drawables else None)
     assert text
 
@@ -1436,3 +1438,31 @@ def test_the_progress_line_is_restored_before_wait_idle_returns():
             events.clear()
     finally:
         w.close()
+
+
+def test_a_photograph_that_does_not_solve_says_what_was_tried_in_words():
+    """25 bright blobs on a flat grey frame (no sky): the status line stays one short line naming the
+    searches; the Result tab lists each search (what, over which FOVs, how many candidate attitudes, why it
+    failed) and what to try; the solver's own words are kept below."""
+    import cv2
+
+    from skyview.present.text import blind_searches, why_not
+    from skyview.viewer.run import Source
+
+    rng = np.random.default_rng(1)
+    img = rng.normal(100, 5, (600, 800)).clip(0, 255).astype(np.uint8)
+    for _ in range(25):
+        cv2.circle(img, (int(rng.uniform(0, 800)), int(rng.uniform(0, 600))), 2, 250, -1)
+    solvers = Solvers()
+    run = solve(Source(image=img, fov_deg=10.0, name="blobs.png"), "blind", "improved", 6.0, solvers)
+    r = run.result
+    assert not r.solved
+    searches = blind_searches(r.reason)
+    assert [s["fov"] for s in searches] == ["2.5-81°", "0.7-3.1°", "70-240°"]
+    assert searches[0]["hypotheses"] > 100 and all("chance" in s["outcome"] for s in searches)
+    status = status_markdown(run)
+    assert "not solved" in status and "pinhole 2.5-81°" in status and len(status) < 320
+    story = why_not(r)
+    assert story.count("\n- ") == 3 and "What to try" in story and "crop them out" in story
+    md = result_markdown(run)
+    assert "- a fisheye lens" in md and "the solver's own words" in md

@@ -49,8 +49,8 @@ def result_lines(result) -> list[tuple[str, str]]:
     from skyview.core.attitude import radec_roll_from_R
 
     rows = [("status", f"{'solved' if result.solved else 'not solved'} by {result.method} ({result.variant})")]
-    if not result.solved:
-        rows.append(("why", why_not(result)))
+    if not result.solved:  # one line (a table cell): the bullets of a blind solve's story run on
+        rows.append(("why", why_not(result).replace("\n- ", " • ").replace("\n", " ")))
     c = result.centroids
     rows.append(("centroids / matched", f"{len(c)} / {len(result.matches)}"
                  + (f" (of {c.n_detected} detected, the brightest measured)" if c.n_unmeasured else "")))
@@ -70,8 +70,75 @@ def result_lines(result) -> list[tuple[str, str]]:
     return rows
 
 
+def blind_searches(reason: str) -> list[dict]:
+    """The searches a failed blind solve ran, read from its reason (`skyview.solver.pipeline`: the guide
+    catalog's pinhole search, then "as a narrow field in the deep catalog: ...", "as a fisheye (A-B deg):
+    ..."): each as {"what", "fov" (the range searched, or ""), "hypotheses" (int or None), "outcome"}."""
+    import re
+
+    out = []
+    for k, part in enumerate(re.split(r"; as (?:a )?", reason or "")):
+        part = part.strip()
+        if not part:
+            continue
+        if k == 0:
+            what = "patterns of four stars in the guide catalog (Hipparcos-2), a pinhole lens"
+        elif part.startswith("narrow field"):
+            what = "a narrow field: patterns in the deep catalog (Hipparcos-2 and Gaia DR3 to G 10)"
+            part = part.split(":", 1)[1].strip() if ":" in part else part
+        elif part.startswith("fisheye"):
+            what = "a fisheye lens (equidistant and equisolid, their distortion fitted)"
+        else:
+            what = part.split(":", 1)[0]
+        fov = re.search(r"(?:searched FOVs?|fisheye \()\s*([0-9.]+)-([0-9.]+) deg", part)
+        hyp = re.search(r"after (\d+) hypotheses", part)
+        if "not confirmed" in part or "chance" in part:
+            outcome = "every candidate attitude was checked against the other stars: too few of them fell on catalog " \
+                      "stars to rule out chance"
+        elif "no catalog pattern" in part or "too few" in part:
+            outcome = "no catalog pattern matched the brightest stars"
+        else:
+            outcome = part.split(";")[0]
+        out.append({"what": what, "fov": f"{float(fov[1]):g}-{float(fov[2]):g}°" if fov else "",
+                    "hypotheses": int(hyp[1]) if hyp else None, "outcome": outcome})
+    return out
+
+
+def blind_story(result) -> str:
+    """Why the default pipeline (blind) did not solve a user's image, in words: what it found, what it
+    tried and what to try next (Markdown bullets)."""
+    n = len(result.centroids)
+    if n < 4:
+        return (f"Only {n} star{'s' if n != 1 else ''} found in the image: a pattern needs four, and a confirmation "
+                f"several more. Try a longer exposure, or a photograph with more sky in it.")
+    lines = [f"skyview found {n} stars, formed patterns of four from the brightest and looked them up:"]
+    for srch in blind_searches(result.reason):
+        fov = f" over {srch['fov']}" if srch["fov"] else ""
+        hyp = f" ({srch['hypotheses']:,} candidate attitudes)" if srch["hypotheses"] else ""
+        lines.append(f"- {srch['what']}{fov}{hyp}: {srch['outcome']}.")
+    lines.append("What to try: if you know the camera's field of view, give it (the FOV hint, or `--fov-deg`); if "
+                 "the brightest spots are not stars (street lamps, a lit roof, the Moon, a planet, hot pixels), crop "
+                 "them out; fields narrower than 0.7° or wider than 81° through an ordinary (not fisheye) lens are "
+                 "outside what skyview searches.")
+    return "\n".join(lines)
+
+
+def blind_summary(result) -> str:
+    """A failed blind solve in one short line (the status line; `blind_story` tells the rest)."""
+    n = len(result.centroids)
+    if n < 4:
+        return f"only {n} star{'s' if n != 1 else ''} found: too few for a pattern"
+    searches = blind_searches(result.reason)
+    hyp = sum(s_["hypotheses"] or 0 for s_ in searches)
+    kinds = ", ".join(f"{w} {s_['fov']}".strip() for w, s_ in zip(("pinhole", "narrow fields", "fisheye"), searches))
+    return (f"no candidate attitude was confirmed by the other stars ({n} stars; searched {kinds}"
+            + (f"; {hyp:,} hypotheses" if hyp else "") + "): the Result tab says what to try")
+
+
 def why_not(result) -> str:
     """Why a solve failed, in one sentence a student understands, and what to try."""
+    if result.method == "blind":
+        return blind_story(result)
     ident = result.identification
     n = len(result.centroids)
     reason = (result.reason or (ident.reason if ident is not None else "")).strip()

@@ -27,7 +27,7 @@ from viser import (
 from skyview.core.attitude import radec_roll_from_R
 from skyview.core.catalog import GAIA_ID_MIN, designation
 from skyview.present.drawables import LEGEND, OUTCOME_RGB, PALETTE, StepView
-from skyview.present.text import format_number, step_summary, why_not
+from skyview.present.text import blind_summary, format_number, step_summary, why_not
 from skyview.viewer.geometry import STAR_NAMES, constellations_in_view
 from skyview.viewer.plot_control import add_frame_plot, add_step_plot
 from skyview.viewer.run import FOV_RANGE_DEG, RESOLUTIONS, SEQUENCE_NOTE, Run, SceneConfig, needs_sequence
@@ -331,7 +331,8 @@ def status_markdown(run: Run) -> str:
                 f"roll {roll:+.2f}°{err} · {len(r.matches)}/{len(r.centroids)} stars{where}")
     note = (" (one image only: this method identifies over a sequence of frames, which the viewer runs on "
             "simulated scenes)") if needs_sequence(r.method) else ""
-    return f"<span style='color:rgb(255,150,40)'>● not solved</span> by {head}: {r.reason}{note}"
+    why = _escape(blind_summary(r)) if r.method == "blind" else r.reason
+    return f"<span style='color:rgb(255,150,40)'>● not solved</span> by {head}: {why}{note}"
 
 
 def _fov_text(run) -> str:
@@ -349,8 +350,8 @@ def result_markdown(run: Run, viewer_ms: dict | None = None) -> str:
     lines = [f"**{'Solved' if r.solved else 'Not solved'}** by **{r.method}** ({r.variant})  ",
              f"image: {run.source.name}, FOV {_fov_text(run)} ({r.camera.width}×{r.camera.height})  "]
     if not r.solved:
-        lines.append(f"reason: {r.reason}  ")
         lines.append(f"**Why:** {why_not(r)}  ")
+        lines.append(f"\n<small>the solver's own words: {_escape(r.reason)}</small>  ")
     rows = [("centroids", f"{len(r.centroids)} (brightest {run.n_used} used)"),
             ("matched", f"{len(r.matches)}")]
     if r.R is not None:
