@@ -82,6 +82,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 from itertools import combinations, permutations
 
 import numpy as np
@@ -95,6 +96,7 @@ from skyview.identify import database
 from skyview.identify.base import Hypothesis, Identifier, Search, Step
 from skyview.identify.layers import Attitudes, Hypotheses
 from skyview.identify.params import MethodParams, positive
+from skyview.identify.steps import LazyStep
 from skyview.identify.verify import angular_distance
 
 # the paper's parameters (section 3)
@@ -412,20 +414,16 @@ class EllipticityMethod(Identifier):
             within = hit_pos[bounds[m]:bounds[m + 1]]
             stats["patterns"] += 1
             stats["candidates"].append(int(len(within)))
-            steps.append(Step("pattern", f"pattern of pivot {p} with adjacent {o[1:]}: eps = {eps[m]:.5f}, theta = "
-                                         + ", ".join(f"{np.degrees(t):.3f}" for t in th) + " deg",
-                              observed=o,
-                              numbers={"eps": float(eps[m]), "sigma1": float(s[m, 0]), "sigma2": float(s[m, 1]),
-                                       "sigma3": float(s[m, 2]), "theta_p1_deg": float(np.degrees(th[0])),
-                                       "theta_p2_deg": float(np.degrees(th[1])),
-                                       "theta_p3_deg": float(np.degrees(th[2]))}))
-            steps.append(Step("lookup", f"{len(window)} pattern(s) with eps within +-{tol_eps[m]:.5f}, "
-                                        f"{len(within)} of them with all angles within +-{np.degrees(tol_theta):.4f} deg",
-                              observed=o, catalog=_distinct(self.stars[within]), groups=_groups(window),
-                              numbers={"eps": float(eps[m]), "eps_threshold": float(tol_eps[m]),
-                                       "angle_threshold_deg": float(np.degrees(tol_theta)),
-                                       "eps_window": len(window), "candidates": len(within)},
-                              layers=(Hypotheses.sample(o, self.stars[within]),)))
+            # the steps are read by the viewer and the recordings, not by a sweep: made when first read
+            steps.append(LazyStep("pattern", observed=o, note_of=partial(_pattern_note, p, o, float(eps[m]), th),
+                                  numbers_of=partial(_pattern_numbers, float(eps[m]), s[m], th)))
+            steps.append(LazyStep("lookup", observed=o,
+                                  note_of=partial(_lookup_note, len(window), float(tol_eps[m]), len(within), tol_theta),
+                                  catalog_of=partial(_distinct_at, self.stars, within),
+                                  groups_of=partial(_groups, window),
+                                  numbers_of=partial(_lookup_numbers, float(eps[m]), float(tol_eps[m]), tol_theta,
+                                                     len(window), len(within)),
+                                  layers_of=partial(_lookup_layers, o, self.stars, within)))
             if stats["first_chain"]["outcome"] == "none":
                 stats["first_chain"] = (
                     {"outcome": "unique", "matches": dict(zip(o, self.stars[within[0]].tolist()))} if len(within) == 1
@@ -480,6 +478,35 @@ def _eps_sigma_stacked(A: np.ndarray, U: np.ndarray, s: np.ndarray, Vt: np.ndarr
     g = U[:, :, 2, None] * Vt[:, 2, None, :] - eps[:, None, None] * U[:, :, 1, None] * Vt[:, 1, None, :]
     gt = g - A * np.sum(g * A, axis=1, keepdims=True)
     return sigma_rad * np.sqrt(np.sum(gt * gt, axis=(1, 2))) / s[:, 1]
+
+
+def _pattern_note(p: int, o: list[int], eps: float, theta: np.ndarray) -> str:
+    return (f"pattern of pivot {p} with adjacent {o[1:]}: eps = {eps:.5f}, theta = "
+            + ", ".join(f"{np.degrees(t):.3f}" for t in theta) + " deg")
+
+
+def _pattern_numbers(eps: float, s: np.ndarray, theta: np.ndarray) -> dict[str, float]:
+    return {"eps": eps, "sigma1": float(s[0]), "sigma2": float(s[1]), "sigma3": float(s[2]),
+            "theta_p1_deg": float(np.degrees(theta[0])), "theta_p2_deg": float(np.degrees(theta[1])),
+            "theta_p3_deg": float(np.degrees(theta[2]))}
+
+
+def _lookup_note(n_window: int, tol_eps: float, n_within: int, tol_theta: float) -> str:
+    return (f"{n_window} pattern(s) with eps within +-{tol_eps:.5f}, "
+            f"{n_within} of them with all angles within +-{np.degrees(tol_theta):.4f} deg")
+
+
+def _lookup_numbers(eps: float, tol_eps: float, tol_theta: float, n_window: int, n_within: int) -> dict[str, float]:
+    return {"eps": eps, "eps_threshold": tol_eps, "angle_threshold_deg": float(np.degrees(tol_theta)),
+            "eps_window": n_window, "candidates": n_within}
+
+
+def _distinct_at(stars: np.ndarray, within: np.ndarray) -> list[int]:
+    return _distinct(stars[within])
+
+
+def _lookup_layers(o: list[int], stars: np.ndarray, within: np.ndarray) -> tuple:
+    return (Hypotheses.sample(o, stars[within]),)
 
 
 def _distinct(stars: np.ndarray) -> list[int]:
