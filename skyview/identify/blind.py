@@ -32,6 +32,7 @@ from __future__ import annotations
 import itertools
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -41,6 +42,7 @@ from skyview.identify import database
 from skyview.identify import patterns as pdb
 from skyview.identify.base import FAILED, INCONCLUSIVE, Step
 from skyview.identify.camera_refit import CAP, BlindParams, BlindResult, CameraRefit, NearestPixels
+from skyview.identify.steps import LazyStep
 
 PERMUTATIONS = np.array(list(itertools.permutations(range(4))))
 # the pair index (in PAIRS_OF_FOUR order) of each ordered pair of the four stars
@@ -51,6 +53,14 @@ PERM_EDGES = np.array([[_PAIR_INDEX[(int(p[a]), int(p[b]))] for a, b in pdb.PAIR
 WIDE_FROM_DEG = 54.0  # FOVs above this are searched after the narrower ones (see BlindIdentifier.identify)
 PATTERN_SLIDE = 8  # when the brightest stars' patterns do not verify, the window of pattern stars moves this far
 MAX_SLIDE_DEPTH = 40  # down to this many stars (the verification's own depth)
+
+
+def _distinct_rows(shown: np.ndarray) -> list[int]:
+    return sorted({int(r) for r in shown.ravel()})
+
+
+def _row_groups(shown: np.ndarray) -> list[tuple[int, ...]]:
+    return [tuple(int(r) for r in g) for g in shown]
 
 
 def fov_ladder(lo: float, hi: float, ladder_deg2: float) -> list[tuple[float, float]]:
@@ -196,14 +206,14 @@ class BlindIdentifier(CameraRefit):
                 cands = self._lookup(uv[pat], quads, batch, width, height, s_lo, s_hi, state.model)
                 n_cands += len(cands["pattern"])
                 shown = self.rows[cands["pattern"][:CAP]]
-                steps.append(Step("lookup", f"patterns of four among the {upto} brightest stars ({len(batch)} new), "
-                                            f"FOV {s_lo:.2f}-{s_hi:.2f} deg: {len(cands['pattern'])} catalog patterns "
-                                            "agree",
-                                  observed=pat[:upto].tolist(),
-                                  catalog=sorted({int(r) for r in shown.ravel()}),
-                                  groups=[tuple(int(r) for r in g) for g in shown],
-                                  numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
-                                           "fov_min_deg": s_lo, "fov_max_deg": s_hi}))
+                # the rows drawn (up to CAP patterns) listed when the step is first read: a solve reads none
+                steps.append(LazyStep("lookup", f"patterns of four among the {upto} brightest stars ({len(batch)} new), "
+                                                f"FOV {s_lo:.2f}-{s_hi:.2f} deg: {len(cands['pattern'])} catalog "
+                                                "patterns agree",
+                                      observed=pat[:upto].tolist(),
+                                      catalog_of=partial(_distinct_rows, shown), groups_of=partial(_row_groups, shown),
+                                      numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
+                                               "fov_min_deg": s_lo, "fov_max_deg": s_hi}))
                 before = state.checks
                 res = self._check(uv, quads_uv, cands, state, steps, t0, max_checks=budget - spent[k])
                 spent[k] += state.checks - before
