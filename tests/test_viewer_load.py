@@ -165,3 +165,35 @@ def test_thirty_tabs_uploading_at_once_over_the_websocket_each_get_their_own_ans
         assert not app.sessions and q.waiting() == 0 and q.running == 0  # every closed tab's session released
     finally:
         app.stop()
+
+
+@pytest.mark.slow
+def test_an_idle_tab_is_sent_nothing_after_its_answer():
+    """A solved photograph on screen and nobody touching it: the server sends the tab no message at all (viser's
+    client renders on demand, so a tab that is sent nothing stays idle)."""
+    import asyncio
+
+    from viser_protocol import Tab, solve_by_upload
+
+    from skyview.viewer.app import ViewerApp
+
+    name, img, *_ = _variants()[0]
+    app = ViewerApp(port=0)
+
+    async def drive():
+        tab = await Tab.open(app.port)
+        answer = await solve_by_upload(tab, name + ".png", cv2.imencode(".png", img)[1].tobytes())
+        await asyncio.sleep(1.0)  # the answer's last windows
+        seen = []
+        take = tab._take
+        tab._take = lambda m: (seen.append(m["type"]), take(m))
+        await asyncio.sleep(4.0)
+        await tab.close()
+        return answer, seen
+
+    try:
+        answer, seen = asyncio.run(drive())
+        assert answer["solved"]
+        assert seen == []
+    finally:
+        app.stop()

@@ -143,8 +143,13 @@ class Tab:
                 pass
 
     async def wait_for_panel(self, timeout: float = 60.0) -> str:
-        """The panel is built: the uuid of its upload button."""
-        return await self.wait_until(lambda: self.find("GuiUploadButtonMessage", ""), timeout)
+        """The panel is up and takes uploads (its upload button enabled, as a browser's user can click it
+        only then): the uuid of its upload button."""
+        def ready():
+            key = self.find("GuiUploadButtonMessage", "")
+            return key if key is not None and not self.gui[key].props.get("disabled") else None
+
+        return await self.wait_until(ready, timeout)
 
     async def upload(self, button: str, name: str, content: bytes, mime: str = "image/png") -> None:
         """Send a file through an upload button, in parts, as the frontend does."""

@@ -190,8 +190,11 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig, 
     gui.main_panel.set_width(400)
     gui.add_markdown("**skyview** &nbsp;·&nbsp; where is the camera pointing?")
     # a user's own photograph first: the upload is the first thing on the page
+    # disabled until the session behind it is ready (`Session.__init__` enables it): an upload sent before its
+    # callback is wired would be dropped
     upload = gui.add_upload_button("Upload and solve", icon="upload", mime_type="image/png,image/jpeg",
-                                   hint="your own star photograph (PNG / JPEG): solved blind, no FOV needed")
+                                   hint="your own star photograph (PNG / JPEG): solved blind, no FOV needed",
+                                   disabled=True)
     upload_fov = gui.add_number("FOV hint (deg)", initial_value=cfg.fov_deg, min=FOV_RANGE_DEG[0],
                                 max=FOV_RANGE_DEG[1], step=0.1,
                                 hint="a hint only (horizontal field of view): the FOV is fitted to the stars")

@@ -124,6 +124,7 @@ class Session:
         p.back.visible = initial is not None
         self.worker = Worker(self._show_exception)
         self.worker.watch(p.show_busy, self._show_idle)
+        p.upload.disabled = False  # wired and with a worker: an upload is taken from now on
         self.request_solve()
         if coverage is not None:
             self.show_coverage(True)
