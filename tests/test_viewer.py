@@ -789,6 +789,22 @@ def _stop_view(p: subprocess.Popen) -> None:
     assert "stopped" in out
 
 
+def test_two_stop_signals_at_once_stop_the_viewer_once_without_a_traceback():
+    """`kill` through a wrapper (timeout, a supervisor) delivers SIGTERM twice; a user presses Ctrl-C twice. A
+    signal the kernel hands to one of viser's threads is answered too (the main thread naps WAKE_S at most)."""
+    p, _url = _start_view()
+    for sig in (signal.SIGTERM, signal.SIGTERM, signal.SIGINT):  # the kernel may hand each to any thread
+        p.send_signal(sig)
+    try:
+        out, err = p.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.communicate()
+        raise
+    assert p.returncode == 0 and "Traceback" not in err, err
+    assert "stopped" in out
+
+
 # ============================================================================ the browser
 
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -194,7 +194,12 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
     if config is None:
         config = SceneConfig(fov_deg=check_fov(fov_deg)) if fov_deg is not None and image is None else None
 
+    stopping = []
+
     def _terminate(_signum, _frame):
+        if stopping:  # a second Ctrl-C (or a `kill` and its wrapper's) while stopping: the stop is under way
+            return
+        stopping.append(True)
         raise KeyboardInterrupt
 
     # Ctrl-C (SIGINT) and a plain `kill` (SIGTERM) both stop it cleanly. SIGINT is set explicitly: a
@@ -212,15 +217,19 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
             say(f"listening on {host}: other machines can reach it")
             say(NO_AUTH_WARNING.format(host=host))
         while True:
-            time.sleep(3600)
+            # short naps: a signal the kernel hands to another thread (viser's event loop) only marks itself
+            # pending, and the main thread runs its handler when its nap ends (a 3600 s sleep once left a
+            # `kill` unanswered for an hour)
+            time.sleep(WAKE_S)
     except KeyboardInterrupt:
         pass
     finally:
         clean = True
         if app is not None:
             clean = _stop_within(app, STOP_TIMEOUT_S)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        if not stopping:  # stopped by a signal, the process is on its way out: later ones stay ignored
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     say("skyview viewer stopped" if clean else
         f"skyview viewer stopped (the server did not shut down within {STOP_TIMEOUT_S:g} s; exiting anyway)")
     if not clean:  # a server thread that will not end must not keep the process alive
@@ -231,6 +240,7 @@ def serve(host: str = "127.0.0.1", port: int = 8080, image: str | None = None, f
 
 
 STOP_TIMEOUT_S = 10.0
+WAKE_S = 0.25  # the main thread's longest nap while serving: a stop signal is answered within this
 
 
 def _stop_within(app: ViewerApp, timeout_s: float) -> bool:

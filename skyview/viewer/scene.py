@@ -131,6 +131,7 @@ class SkyScene:
         self.detail = True  # centroid numbers and fine-grid labels: only when the field fills the view
         self.final = True  # the identification is on screen (last step, or no step selected)
         self._names: tuple | None = None  # star names: (positions, magnitudes, lengths) for their placement
+        self._figure_names: tuple | None = None  # the constellations' names: (positions, lengths)
         self._name_keep, self._name_xyz = None, np.zeros((0, 3))  # the names shown, where they are
         self._grid_labels: list[tuple[str, np.ndarray]] = []  # the fine grid's degrees: (text, position)
         self._measured: frozenset[int] = frozenset()  # the stars the step shown measured
@@ -164,8 +165,15 @@ class SkyScene:
             FIGURE_RGB, thickness=1.2, thickness_units="screen")
         self.h["figure_names"] = [
             s.add_label(f"{NODES['figure_names']}/{c.abbr}", c.name, position=_f32(c.label_xyz * FIGURE_DEPTH),
-                        font_screen_scale=0.75, anchor="center-center")
+                        font_screen_scale=0.75, anchor="center-center", visible=False)
             for c in figs.values()]
+        # placed with the star names (`_place_names`): a constellation's name first, a star's name that would
+        # overlap it hidden
+        xyz = np.array([c.label_xyz for c in figs.values()])
+        ra, dec = vec_to_radec(xyz)
+        self._figure_names = (np.stack([np.asarray(ra) * np.cos(dec), np.asarray(dec)], axis=1),
+                              np.array([len(c.name) for c in figs.values()], dtype=np.float64))
+        self._place_names()
 
     def draw_catalog(self, catalog: GuideCatalog) -> None:
         """The guide catalog on the sphere (one cloud per magnitude bin) and the bright stars' names."""
@@ -209,16 +217,40 @@ class SkyScene:
         self._place_names()
 
     def _place_names(self) -> None:
-        """Show the star names that do not overlap a brighter one's at this zoom (`present.place_labels`)."""
+        """Show the constellations' names and the star names that do not overlap one placed before them at
+        this zoom: the constellations' first, then the stars' by brightness (`present.place_labels`)."""
         hds = self.h.get("names", [])
-        if not hds or self._names is None:
-            return
-        xy, mag, n_chars = self._names
+        fig_hds = self.h.get("figure_names", []) if self.visible["constellations"] else []
         span = REFERENCE_TAN * self.zoom ** (1.0 / 0.85)  # half-height of the view at the sphere (Session zoom)
         per_px = 2.0 * span / VIEW_HEIGHT_PX  # sphere units per screen pixel
+        xy_parts, prio_parts, chars_parts = [], [], []
+        if fig_hds and self._figure_names is not None:
+            fxy, fchars = self._figure_names
+            xy_parts.append(fxy)
+            prio_parts.append(np.full(len(fxy), -1e6) + np.arange(len(fxy)))
+            chars_parts.append(fchars)
+        if hds and self._names is not None:
+            xy, mag, n_chars = self._names
+            xy_parts.append(xy)
+            prio_parts.append(np.asarray(mag, dtype=np.float64))
+            chars_parts.append(n_chars)
+        if not xy_parts:
+            for hd in self.h.get("figure_names", []):
+                hd.visible = False
+            return
+        n_chars = np.concatenate(chars_parts)
         w = (n_chars * NAME_CHAR_PX + NAME_PAD_PX) * per_px
         sizes = np.stack([w, np.full_like(w, NAME_HEIGHT_PX * per_px)], axis=1)
-        keep = place_labels(xy, mag, sizes, gap=0.0)
+        keep = place_labels(np.concatenate(xy_parts), np.concatenate(prio_parts), sizes, gap=0.0)
+        n_fig = len(fig_hds) if (fig_hds and self._figure_names is not None) else 0
+        for hd, k in zip(fig_hds, keep[:n_fig]):
+            hd.visible = bool(k)
+        if not fig_hds:
+            for hd in self.h.get("figure_names", []):
+                hd.visible = False
+        keep = keep[n_fig:]
+        if not hds or self._names is None:
+            return
         for hd, k in zip(hds, keep):
             hd.visible = bool(k) and self.visible["names"]
         self._name_keep = keep
@@ -510,11 +542,11 @@ class SkyScene:
                     self.h[key].visible = False
         if what in ("hips", "matches"):
             self._draw_match_labels()
-        if what == "names":  # the names that do not collide at this zoom
+        if what in ("names", "constellations"):  # the names that do not collide at this zoom
             self._place_names()
         groups = {
             "grid": ["grid", "grid_main", "grid_labels", "fine_grid", "fine_labels"],
-            "constellations": ["figures", "figure_names"],
+            "constellations": ["figures"],  # its names: placed with the star names
             "stars": ["stars"],
             "true": ["true_camera", "true_footprint"],
             "matches": ["matches", "match_stars"] if self.final else [],
