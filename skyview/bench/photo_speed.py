@@ -84,17 +84,10 @@ def _time_skyview(solver, photos, decoded) -> list[dict]:
 
 
 def _time_tetra3rs(photos, python: str, fov_range: tuple[float, float], cache_dir: Path) -> tuple[list[dict], dict]:
-    from skyview.bench.speed import PEERS_WORKER
+    from skyview.bench.speed import run_peers_worker
 
-    job = {"images": [{k: im[k] for k in ("name", "path", "width", "height")} for im in photos],
-           "cache_dir": str(cache_dir), "fov_deg": None, "blind_fov_range_deg": list(fov_range),
-           "solvers": ["tetra3rs-blind"]}
-    env = dict(os.environ, PYTHONNOUSERSITE="1", OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
-    proc = subprocess.run([python, str(PEERS_WORKER)], input=json.dumps(job), text=True, stdout=subprocess.PIPE,
-                          env=env)
-    if proc.returncode != 0:
-        raise BadInput(f"the peers worker failed (exit {proc.returncode}); see its messages above")
-    answer = json.loads(proc.stdout)
+    answer = run_peers_worker(photos, python, cache_dir, ["tetra3rs-blind"], fov_deg=None,
+                              blind_fov_range_deg=fov_range)
     by_name = {r["name"]: r for r in answer["results"].get("tetra3rs-blind", [])}
     trials = []
     for im in photos:

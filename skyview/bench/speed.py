@@ -137,11 +137,19 @@ def peers_python(explicit: str | None = None) -> str | None:
 def run_tetra3rs(images: list[dict], python: str, fov_deg: float, cache_dir: Path) -> dict:
     """tetra3rs (calibrated: database for the true FOV +-2 %, told the true FOV) on the image files,
     in benchmarks/peers_worker.py inside the peers virtualenv; its answer as JSON."""
+    return run_peers_worker(images, python, cache_dir, ["tetra3rs-fov"], fov_deg=float(fov_deg),
+                            blind_fov_range_deg=[fov_deg, fov_deg])
+
+
+def run_peers_worker(images: list[dict], python: str, cache_dir: Path, solvers: list[str], *,
+                     fov_deg: float | None, blind_fov_range_deg) -> dict:
+    """benchmarks/peers_worker.py in the peers virtualenv on the image files (its job format there); its
+    answer as JSON."""
     if not PEERS_WORKER.exists():
         raise BadInput(f"the peers worker {PEERS_WORKER} is missing (it ships with the repository, not the wheel)")
     job = {"images": [{k: im[k] for k in ("name", "path", "width", "height")} for im in images],
-           "cache_dir": str(cache_dir), "fov_deg": float(fov_deg), "blind_fov_range_deg": [fov_deg, fov_deg],
-           "solvers": ["tetra3rs-fov"]}
+           "cache_dir": str(cache_dir), "fov_deg": fov_deg, "blind_fov_range_deg": list(blind_fov_range_deg),
+           "solvers": list(solvers)}
     env = dict(os.environ, PYTHONNOUSERSITE="1", OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
     proc = subprocess.run([python, str(PEERS_WORKER)], input=json.dumps(job), text=True, stdout=subprocess.PIPE,
                           env=env)
