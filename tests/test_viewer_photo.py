@@ -1,6 +1,6 @@
 """A user's own photograph in the viewer: drawn with the camera its solve fitted, so that every catalog star
-sits on its blob — on the frustum's image plane, on the undistorted texture and in the panel — and the
-Scenario tab shows what was found. Real photographs of two fields of view (an 11.4 deg lens with barrel
+sits on its blob — on the frustum's image plane, on the undistorted texture and in the panel, checked both
+in the session and from what the page receives over the websocket — and the Scenario tab shows what was found. Real photographs of two fields of view (an 11.4 deg lens with barrel
 distortion, and a crop of it: 5.7 deg)."""
 
 from __future__ import annotations
@@ -197,3 +197,63 @@ def test_a_telescope_field_and_an_all_sky_frame_are_drawn_from_what_solved_them(
                     run.outcomes[:n])
     assert panel.shape == bare.shape and np.count_nonzero(np.any(panel != bare, axis=2)) > 500
     assert image_grid(run.result.camera, run.result.R)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("crop", [False, True], ids=["11.4deg", "5.7deg-crop"])
+def test_what_the_page_receives_puts_the_identified_stars_on_the_photographs_stars(crop):
+    """The check a browser's user makes by eye, from what the page itself receives over the websocket
+    (tests/viser_protocol.py): the photograph uploaded through the panel, then the frustum's pose, field of
+    view and texture (the JPEG the page draws) and the identified stars' points on the sphere; each identified
+    star, projected through that frustum, falls on a bright blob of that texture within 1.5 texture pixels."""
+    import asyncio
+
+    from skyview.viewer.app import ViewerApp
+    from viser_protocol import Tab, solve_by_upload
+
+    image = load_image(REAL / PHOTO)
+    if crop:
+        image = _crop(image)
+    app = ViewerApp(port=0)
+
+    async def drive():
+        tab = await Tab.open(app.port)
+        answer = await solve_by_upload(tab, "mine.png", cv2.imencode(".png", image)[1].tobytes())
+        await asyncio.sleep(1.0)  # the scene's last windows after the answer
+        nodes = {k: tab.scene.get(NODES[k]) for k in ("camera", "frustum", "match_stars")}
+        await tab.close()
+        return answer, nodes
+
+    try:
+        answer, nodes = asyncio.run(drive())
+    finally:
+        app.stop()
+    assert answer["solved"] and all(nodes.values())
+    frame, frustum, stars = nodes["camera"], nodes["frustum"]["props"], nodes["match_stars"]["props"]
+    w, x, y, z = frame["wxyz"]  # camera -> world (viser's T_world_camera), OpenCV axes: +z along the boresight
+    R_wc = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    p = np.asarray(stars["points"], dtype=np.float64).reshape(-1, 3) @ R_wc  # world -> camera
+    assert len(p) >= 10 and np.all(p[:, 2] > 0)
+    tex = cv2.imdecode(np.frombuffer(frustum["_image_data"], np.uint8), cv2.IMREAD_GRAYSCALE).astype(np.float64)
+    Ht, Wt = tex.shape
+    tan_v = np.tan(frustum["fov"] / 2.0)
+    assert frustum["aspect"] == pytest.approx(image.shape[1] / image.shape[0], rel=1e-6)
+    u = (p[:, 0] / p[:, 2] / (frustum["aspect"] * tan_v) + 1.0) * Wt / 2.0 - 0.5
+    v = (p[:, 1] / p[:, 2] / tan_v + 1.0) * Ht / 2.0 - 0.5
+    background = np.median(tex)
+    noise = 1.4826 * np.median(np.abs(tex - background))
+    off, lit = [], []
+    for uu, vv in zip(u, v):
+        i, j = int(round(vv)), int(round(uu))
+        if not (4 <= i < Ht - 4 and 4 <= j < Wt - 4):
+            continue
+        win = tex[i - 3:i + 4, j - 3:j + 4] - background
+        lit.append(win.max() > background + 5 * noise - background)
+        wgt = np.clip(win - 3 * noise, 0, None)
+        if wgt.sum() > 0:
+            yy, xx = np.mgrid[-3:4, -3:4]
+            off.append(np.hypot((wgt * xx).sum() / wgt.sum() + j - uu, (wgt * yy).sum() / wgt.sum() + i - vv))
+    assert len(lit) >= 10 and np.mean(lit) > 0.9, lit
+    assert np.median(off) < 1.0 and np.percentile(off, 90) < 1.5, off

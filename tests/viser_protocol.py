@@ -43,6 +43,7 @@ class Tab:
 
     ws: object
     gui: dict[str, Component] = field(default_factory=dict)
+    scene: dict[str, dict] = field(default_factory=dict)  # scene node name -> {"kind", "props", "wxyz", "position"}
     downloads: list[tuple[str, bytes]] = field(default_factory=list)
     changed: asyncio.Event = field(default_factory=asyncio.Event)
     closed: bool = False
@@ -78,8 +79,13 @@ class Tab:
             async for raw in self.ws:
                 n, c = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
                 window = msgspec.msgpack.decode(unzstd.decompress(raw[16:16 + c], max_output_size=n))
+                buffers, at = [], 16 + c
+                for length in window.get("binaryBufferLengths", ()):
+                    at += (8 - at % 8) % 8  # each buffer 8-byte aligned after the compressed metadata
+                    buffers.append(raw[at:at + length])
+                    at += length
                 for m in window["messages"]:
-                    self._take(m)
+                    self._take(_with_arrays(m, buffers))
                 self.changed.set()
         except websockets.ConnectionClosed:
             pass
@@ -100,6 +106,16 @@ class Tab:
                     c.props[key] = v
         elif kind == "GuiRemoveMessage":
             self.gui.pop(m["uuid"], None)
+        elif "name" in m and kind in ("SetOrientationMessage", "SetPositionMessage"):
+            node = self.scene.setdefault(m["name"], {"kind": None, "props": {}})
+            node["wxyz" if kind == "SetOrientationMessage" else "position"] = m.get("wxyz", m.get("position"))
+        elif kind == "SceneNodeUpdateMessage" and m["name"] in self.scene:
+            self.scene[m["name"]]["props"].update(m["updates"])
+        elif kind == "RemoveSceneNodeMessage":
+            self.scene.pop(m["name"], None)
+        elif "name" in m and "props" in m:  # a scene node made (or made again)
+            self.scene[m["name"]] = {"kind": kind, "props": dict(m["props"]), "wxyz": (1.0, 0.0, 0.0, 0.0),
+                                     "position": (0.0, 0.0, 0.0)}
         elif kind == "FileTransferStartDownload":
             self._incoming[m["transfer_uuid"]] = {"name": m["filename"], "count": m["part_count"], "parts": {}}
             self._finish_download(m["transfer_uuid"])
@@ -195,6 +211,20 @@ async def wait_for_idle(tab: Tab, timeout: float = 300.0, unlike: str | None = N
         return text if text != unlike and not text.startswith(BUSY) else None
 
     return await tab.wait_until(idle, timeout)
+
+
+def _with_arrays(value, buffers: list[bytes]):
+    """A message with viser's binary placeholders ({"__binary_index": i, "dtype": ...}) replaced by 1-D numpy
+    arrays over the window's buffers (a point cloud's points come as (3N,): reshape where the shape is known)."""
+    import numpy as np
+
+    if isinstance(value, dict):
+        if "__binary_index" in value and "dtype" in value:
+            return np.frombuffer(buffers[value["__binary_index"]], dtype=np.dtype(value["dtype"]))
+        return {k: _with_arrays(v, buffers) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_with_arrays(v, buffers) for v in value]
+    return value
 
 
 async def solve_by_upload(tab: Tab, name: str, content: bytes, timeout: float = 300.0) -> dict:
