@@ -121,3 +121,9 @@ def test_cli_photo_speed_refuses_a_folder_without_reference(tmp_path, capsys):
     assert "reference.json" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert main(["bench", "--speed", "--real", str(tmp_path / "none"), "--quiet"]) == 2
     assert "no such folder" in capsys.readouterr().err
+    for bad in ('[1, 2]', '{"x.png": {"fov_deg": 11}}', '{"x.png": {"R": [1, 2], "fov_deg": 1, "width": 2, "height": 2}}'):
+        (tmp_path / "reference.json").write_text(bad)
+        assert main(["bench", "--speed", "--real", str(tmp_path), "--no-peers", "--quiet", "--out",
+                     str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err
+        assert "reference.json" in err and "internal error" not in err and len(err.strip().splitlines()) == 1

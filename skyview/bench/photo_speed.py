@@ -47,15 +47,25 @@ def reference_photographs(folder: Path) -> list[dict]:
         ref = json.loads(ref_path.read_text())
     except (OSError, ValueError) as exc:
         raise BadInput(f"{ref_path} is not a readable JSON file: {exc}") from None
+    if not isinstance(ref, dict):
+        raise BadInput(f"{ref_path} must map each photograph's file name to its reference (R, fov_deg, width, "
+                       f"height), as tests/data/real-images/reference.json does")
     out = []
     for name in sorted(ref):
         path = Path(folder) / name
         if not path.is_file():
             raise BadInput(f"{path} is listed in reference.json but missing")
         r = ref[name]
-        out.append({"name": name, "path": str(path.resolve()), "width": int(r["width"]),
-                    "height": int(r["height"]), "R": np.asarray(r["R"], dtype=np.float64),
-                    "fov_deg": float(r["fov_deg"])})
+        try:
+            R = np.asarray(r["R"], dtype=np.float64)
+            item = {"name": name, "path": str(path.resolve()), "width": int(r["width"]), "height": int(r["height"]),
+                    "R": R, "fov_deg": float(r["fov_deg"])}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise BadInput(f"{ref_path}: the entry of {name} needs R (3 x 3), fov_deg, width and height "
+                           f"({type(exc).__name__}: {exc})") from None
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+            raise BadInput(f"{ref_path}: the R of {name} is not a 3 x 3 rotation matrix")
+        out.append(item)
     if not out:
         raise BadInput(f"{ref_path} lists no photographs")
     return out
