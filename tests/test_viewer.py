@@ -1473,9 +1473,12 @@ def test_a_photograph_that_does_not_solve_says_what_was_tried_in_words():
     run = solve(Source(image=img, fov_deg=10.0, name="blobs.png"), "blind", "improved", 6.0, solvers)
     r = run.result
     assert not r.solved
-    searches = blind_searches(r.reason)
+    searches = blind_searches(r)
     assert [s["fov"] for s in searches] == ["2.5-81°", "0.7-3.1°", "70-240°"]
     assert searches[0]["hypotheses"] > 100 and all("chance" in s["outcome"] for s in searches)
+    # each search's own hypotheses: the pinhole and narrow ones together are the count the pinhole search's last
+    # verification was corrected for (the fisheye's came after it)
+    assert sum(s["hypotheses"] for s in r.searches if s["kind"] != "fisheye") == r.identification.stats["checks"]
     status = status_markdown(run)
     assert "not solved" in status and "pinhole 2.5-81°" in status and len(status) < 320
     story = why_not(r)

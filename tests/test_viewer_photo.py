@@ -208,8 +208,9 @@ def test_what_the_page_receives_puts_the_identified_stars_on_the_photographs_sta
     star, projected through that frustum, falls on a bright blob of that texture within 1.5 texture pixels."""
     import asyncio
 
-    from skyview.viewer.app import ViewerApp
     from viser_protocol import Tab, solve_by_upload
+
+    from skyview.viewer.app import ViewerApp
 
     image = load_image(REAL / PHOTO)
     if crop:

@@ -226,7 +226,8 @@ def format_photo_markdown(s: dict) -> str:
              f"Milliseconds per photograph (median / p95; each photograph's fastest of {s['rounds']} rounds, the "
              f"solvers taking turns), decoded image to attitude in one process. Correct: boresight within "
              f"{MAX_ERROR_ARCSEC:g}\" of the reference.", "",
-             "| solver | correct | inconclusive | incorrect | centroid | identify | total |", "|---|---|---|---|---|---|---|"]
+             "| solver | correct | inconclusive | incorrect | centroid | identify | total |",
+             "|---|---|---|---|---|---|---|"]
     for name, r in s["results"].items():
         st, o = r["stages_ms"], r["outcomes"]
         cells = [f"{_f(st[k]['median'])} / {_f(st[k]['p95'])}" if k in st else "—"
@@ -238,7 +239,8 @@ def format_photo_markdown(s: dict) -> str:
         lines.append(f"skyview's median total over tetra3rs's: {s['ratio_to_tetra3rs']:.2f}x.")
     elif s.get("peer_note"):
         lines.append(s["peer_note"] + ".")
-    lines += ["", "Whole processes (seconds, wall clock from start to exit):", "", "| process | median | p95 | min | max |",
+    lines += ["", "Whole processes (seconds, wall clock from start to exit):", "",
+              "| process | median | p95 | min | max |",
               "|---|---|---|---|---|"]
     for name, st in s["processes"].items():
         lines.append(f"| {name} | {_f(st['median'])} | {_f(st['p95'])} | {_f(st['min'])} | {_f(st['max'])} |")

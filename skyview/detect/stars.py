@@ -125,8 +125,9 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     fragments. faint_search: a frame of fewer than FEW_STARS stars is searched again through the
     matched filter (`matched_filter_stars`), after a width check when its stars look compact; False
     leaves those for later (`params["faint_search"]` is then "deferred" and `fainter_stars` runs them:
-    a solver tries the stars it has first, ~7.5 ms saved on a sparse frame that solves). Other keyword arguments go to `detect_centroids`. The binning used
-    and the number of trail fragments taken out are in `params["binning"]` and `params["n_trail_rejected"]`.
+    a solver tries the stars it has first, ~7.5 ms saved on a sparse frame that solves). Other keyword
+    arguments go to `detect_centroids`. The binning used and the number of trail fragments taken out are in
+    `params["binning"]` and `params["n_trail_rejected"]`.
     """
     if binning is not None and (int(binning) != binning or binning < 1):
         raise BadInput(f"binning={binning} must be a positive integer")
@@ -172,7 +173,16 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
                     c = cm
             else:
                 c.params["faint_search"] = "deferred"
-    return _finished(binned, c, b, reject_trails)
+    c = _saturated_by_aperture(binned, c, b)
+    n_trail = 0
+    if reject_trails and len(c):
+        width = max(1.5, 0.75 * c.psf_sigma_px) if math.isfinite(c.psf_sigma_px) else 1.5
+        trail = trail_members(c.uv, max_width_px=width)
+        n_trail = int(trail.sum())
+        if n_trail:
+            c = take(c, ~trail)
+    c.params["n_trail_rejected"] = n_trail
+    return c
 
 
 def fainter_stars(image: np.ndarray, c: Centroids, *, k_sigma: float = 5.0, reject_trails: bool = True,
@@ -186,20 +196,6 @@ def fainter_stars(image: np.ndarray, c: Centroids, *, k_sigma: float = 5.0, reje
     if full.params.get("binning", 1) == 1 and "matched_filter_sigma_px" not in full.params:
         return None
     return full
-
-
-def _finished(binned: np.ndarray, c: Centroids, b: int, reject_trails: bool) -> Centroids:
-    """Saturated stars' brightness from their disks, and trail fragments taken out."""
-    c = _saturated_by_aperture(binned, c, b)
-    n_trail = 0
-    if reject_trails and len(c):
-        width = max(1.5, 0.75 * c.psf_sigma_px) if math.isfinite(c.psf_sigma_px) else 1.5
-        trail = trail_members(c.uv, max_width_px=width)
-        n_trail = int(trail.sum())
-        if n_trail:
-            c = take(c, ~trail)
-    c.params["n_trail_rejected"] = n_trail
-    return c
 
 
 def patch_hot_pixels(img: np.ndarray, level: float, sigma: float) -> tuple[np.ndarray, int]:

@@ -50,6 +50,8 @@ _PAIR_INDEX = {(int(a), int(b)): k for k, (a, b) in enumerate(pdb.PAIRS_OF_FOUR)
 _PAIR_INDEX.update({(b, a): k for (a, b), k in list(_PAIR_INDEX.items())})
 # for each permutation p, the catalog edge that lands on each image edge
 PERM_EDGES = np.array([[_PAIR_INDEX[(int(p[a]), int(p[b]))] for a, b in pdb.PAIRS_OF_FOUR] for p in PERMUTATIONS])
+# a ratio +- the tolerance spans up to three bins (tolerance < bin width): every bin offset of the five ratios
+BIN_OFFSETS = np.array(list(itertools.product((0, 1, 2), repeat=pdb.N_RATIOS)), dtype=np.int64)
 WIDE_FROM_DEG = 54.0  # FOVs above this are searched after the narrower ones (see BlindIdentifier.identify)
 PATTERN_SLIDE = 8  # when the brightest stars' patterns do not verify, the window of pattern stars moves this far
 MAX_SLIDE_DEPTH = 40  # down to this many stars (the verification's own depth)
@@ -134,7 +136,8 @@ class BlindIdentifier(CameraRefit):
                  checks_before: int = 0) -> BlindResult:
         """Identify centroids uv (N, 2), brightest first, of a width x height image; max_checks: the quick
         checks allowed (None: params.max_checks); slide: when no pattern of the brightest
-        params.pattern_stars verifies, search the next ones after them too; every centroid verifies. model: the lens the image is searched through
+        params.pattern_stars verifies, search the next ones after them too; every centroid verifies. model:
+        the lens the image is searched through
         (`skyview.core.camera`: a fisheye over FISHEYE_FOV_RANGE_DEG, its k1 and k2 fitted like a
         pinhole's). checks_before: hypotheses already checked on this image by earlier searches (another
         database, another lens): the verification counts them with its own (Bonferroni)."""
@@ -207,9 +210,9 @@ class BlindIdentifier(CameraRefit):
                 n_cands += len(cands["pattern"])
                 shown = self.rows[cands["pattern"][:CAP]]
                 # the rows drawn (up to CAP patterns) listed when the step is first read: a solve reads none
-                steps.append(LazyStep("lookup", f"patterns of four among the {upto} brightest stars ({len(batch)} new), "
-                                                f"FOV {s_lo:.2f}-{s_hi:.2f} deg: {len(cands['pattern'])} catalog "
-                                                "patterns agree",
+                steps.append(LazyStep("lookup", f"patterns of four among the {upto} brightest stars "
+                                                f"({len(batch)} new), FOV {s_lo:.2f}-{s_hi:.2f} deg: "
+                                                f"{len(cands['pattern'])} catalog patterns agree",
                                       observed=pat[:upto].tolist(),
                                       catalog_of=partial(_distinct_rows, shown), groups_of=partial(_row_groups, shown),
                                       numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
@@ -237,8 +240,6 @@ class BlindIdentifier(CameraRefit):
         quads = quads_all[batch]
         p, pp = self.params, self.pattern_params
         w, tol = pp.bin_width, p.ratio_tolerance
-        # a ratio +- tol spans up to three bins (tol < w)
-        offsets = np.array(list(itertools.product((0, 1, 2), repeat=pdb.N_RATIOS)), dtype=np.int64)
         ladder = fov_ladder(lo, hi, p.ladder_deg2 if model == PINHOLE else p.fisheye_ladder_deg2)
         fa = np.array([f for f, _ in ladder])
         cover = np.array([c for _, c in ladder])
@@ -250,8 +251,8 @@ class BlindIdentifier(CameraRefit):
         ratios = np.where(seen[:, :, None], ratios, 0.0)
         qlo = pdb.quantise(ratios - tol, w)
         span = pdb.quantise(ratios + tol, w) - qlo
-        ri, qi, oi = np.nonzero(np.all(offsets <= span[:, :, None, :], axis=3) & seen[:, :, None])
-        needles = pdb.pack_key(qlo[ri, qi] + offsets[oi])
+        ri, qi, oi = np.nonzero(np.all(BIN_OFFSETS <= span[:, :, None, :], axis=3) & seen[:, :, None])
+        needles = pdb.pack_key(qlo[ri, qi] + BIN_OFFSETS[oi])
         distinct, which = np.unique(needles, return_inverse=True)
         hit_needle, hit_row = pdb.lookup(self.keys, self.bucket_start, distinct)  # by distinct key, ascending
         per_key = np.bincount(hit_needle, minlength=len(distinct))

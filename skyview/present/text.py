@@ -70,38 +70,36 @@ def result_lines(result) -> list[tuple[str, str]]:
     return rows
 
 
-def blind_searches(reason: str) -> list[dict]:
-    """The searches a failed blind solve ran, read from its reason (`skyview.solver.pipeline`: the guide
-    catalog's pinhole search, then "as a narrow field in the deep catalog: ...", "as a fisheye (A-B deg):
-    ..."): each as {"what", "fov" (the range searched, or ""), "hypotheses" (int or None), "outcome"}."""
-    import re
+SEARCH_WHAT = {  # a blind search's kind (`SolveResult.searches`), in words
+    "pinhole": "patterns of four stars in the guide catalog (Hipparcos-2), a pinhole lens",
+    "narrow": "a narrow field: patterns in the deep catalog (Hipparcos-2 and Gaia DR3 to G 10)",
+    "fisheye": "a fisheye lens (equidistant and equisolid, their distortion fitted)",
+}
 
-    out = []
-    for k, part in enumerate(re.split(r"; as (?:a )?", reason or "")):
-        part = part.strip()
-        if not part:
-            continue
-        if k == 0:
-            what = "patterns of four stars in the guide catalog (Hipparcos-2), a pinhole lens"
-        elif part.startswith("narrow field"):
-            what = "a narrow field: patterns in the deep catalog (Hipparcos-2 and Gaia DR3 to G 10)"
-            part = part.split(":", 1)[1].strip() if ":" in part else part
-        elif part.startswith("fisheye"):
-            what = "a fisheye lens (equidistant and equisolid, their distortion fitted)"
-        else:
-            what = part.split(":", 1)[0]
-        fov = re.search(r"(?:searched FOVs?|fisheye \()\s*([0-9.]+)-([0-9.]+) deg", part)
-        hyp = re.search(r"after (\d+) hypotheses", part)
-        if "not confirmed" in part or "chance" in part:
-            outcome = "every candidate attitude was checked against the other stars: too few of them fell on catalog " \
-                      "stars to rule out chance"
-        elif "no catalog pattern" in part or "too few" in part:
-            outcome = "no catalog pattern matched the brightest stars"
-        else:
-            outcome = part.split(";")[0]
-        out.append({"what": what, "fov": f"{float(fov[1]):g}-{float(fov[2]):g}°" if fov else "",
-                    "hypotheses": int(hyp[1]) if hyp else None, "outcome": outcome})
+
+def blind_searches(result) -> list[dict]:
+    """The searches a blind solve ran (`SolveResult.searches`), one per kind and set of stars (a fisheye's two
+    lenses together), in the order they ran: {"kind", "what", "fov" (e.g. "2.5-81°"), "stars",
+    "hypotheses", "outcome"} in words."""
+    out: list[dict] = []
+    for srch in getattr(result, "searches", None) or []:
+        same = next((o for o in out if o["kind"] == srch["kind"] and o["stars"] == srch["stars"]), None)
+        if same is None:
+            same = {"kind": srch["kind"], "what": SEARCH_WHAT.get(srch["kind"], srch["kind"]), "stars": srch["stars"],
+                    "lo": srch["fov_deg"][0], "hi": srch["fov_deg"][1], "hypotheses": 0}
+            out.append(same)
+        same["lo"], same["hi"] = min(same["lo"], srch["fov_deg"][0]), max(same["hi"], srch["fov_deg"][1])
+        same["hypotheses"] += srch["hypotheses"]
+    for o in out:
+        o["fov"] = f"{_deg1(o.pop('lo'))}-{_deg1(o.pop('hi'))}°"
+        o["outcome"] = ("every candidate attitude was checked against the other stars: too few of them fell on "
+                        "catalog stars to rule out chance") if o["hypotheses"] else \
+            "no catalog pattern matched the brightest stars"
     return out
+
+
+def _deg1(x: float) -> str:
+    return f"{x:.1f}".rstrip("0").rstrip(".")
 
 
 def blind_story(result) -> str:
@@ -112,10 +110,10 @@ def blind_story(result) -> str:
         return (f"Only {n} star{'s' if n != 1 else ''} found in the image: a pattern needs four, and a confirmation "
                 f"several more. Try a longer exposure, or a photograph with more sky in it.")
     lines = [f"skyview found {n} stars, formed patterns of four from the brightest and looked them up:"]
-    for srch in blind_searches(result.reason):
-        fov = f" over {srch['fov']}" if srch["fov"] else ""
+    for srch in blind_searches(result):
         hyp = f" ({srch['hypotheses']:,} candidate attitudes)" if srch["hypotheses"] else ""
-        lines.append(f"- {srch['what']}{fov}{hyp}: {srch['outcome']}.")
+        more = f", with the {srch['stars']} stars a deeper look found" if srch["stars"] != n else ""
+        lines.append(f"- {srch['what']} over {srch['fov']}{more}{hyp}: {srch['outcome']}.")
     lines.append("What to try: if you know the camera's field of view, give it (the FOV hint, or `--fov-deg`); if "
                  "the brightest spots are not stars (street lamps, a lit roof, the Moon, a planet, hot pixels), crop "
                  "them out; fields narrower than 0.7° or wider than 81° through an ordinary (not fisheye) lens are "
@@ -128,9 +126,10 @@ def blind_summary(result) -> str:
     n = len(result.centroids)
     if n < 4:
         return f"only {n} star{'s' if n != 1 else ''} found: too few for a pattern"
-    searches = blind_searches(result.reason)
-    hyp = sum(s_["hypotheses"] or 0 for s_ in searches)
-    kinds = ", ".join(f"{w} {s_['fov']}".strip() for w, s_ in zip(("pinhole", "narrow fields", "fisheye"), searches))
+    searches = blind_searches(result)
+    hyp = sum(s_["hypotheses"] for s_ in searches)
+    named = {"pinhole": "pinhole", "narrow": "narrow fields", "fisheye": "fisheye"}
+    kinds = ", ".join(dict.fromkeys(f"{named.get(s_['kind'], s_['kind'])} {s_['fov']}" for s_ in searches))
     return (f"no candidate attitude was confirmed by the other stars ({n} stars; searched {kinds}"
             + (f"; {hyp:,} hypotheses" if hyp else "") + "): the Result tab says what to try")
 

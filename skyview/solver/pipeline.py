@@ -183,7 +183,7 @@ class BlindSolver:
     def __init__(self, *, epoch: float = DEFAULT_EPOCH, catalog: GuideCatalog | None = None,
                  max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd",
                  memory_mb: float | None = None, progress=None, params=None, pattern_params=None,
-                 deep: bool | None = None, fisheye: bool | None = None):
+                 deep: bool | None = None, fisheye: bool | None = None, kind: str = "pinhole"):
         from skyview.identify.blind import BlindIdentifier
         from skyview.identify.patterns import DEFAULT_BUDGET_MB
 
@@ -201,6 +201,7 @@ class BlindSolver:
         self.epoch = float(self.catalog.epoch)
         self.deep = deep
         self.fisheye = fisheye
+        self.kind = kind  # what its pinhole searches are called in a result's `searches` ("narrow": the deep one's)
         self._narrow_kwargs = dict(max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
                                    progress=progress, params=params)
 
@@ -211,18 +212,9 @@ class BlindSolver:
     def solve_array(self, image: np.ndarray, *, fov_deg: float | None = None,
                     fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
         img = as_image(image)
-        t0 = time.perf_counter()
-        centroids = detect_stars(img, k_sigma=self.k_sigma, faint_search=False)
-        t_cent = (time.perf_counter() - t0) * 1e3
-        result = self.solve_centroids(centroids, img.shape[1], img.shape[0], fov_deg=fov_deg, fov_error=fov_error)
-        if not result.solved:  # a sparse frame: the stars the matched filter finds, searched too
-            t1 = time.perf_counter()
-            fainter = fainter_stars(img, centroids, k_sigma=self.k_sigma)
-            t_cent += (time.perf_counter() - t1) * 1e3
-            if fainter is not None:
-                result = _with_time_of(self.solve_centroids(fainter, img.shape[1], img.shape[0], fov_deg=fov_deg,
-                                                            fov_error=fov_error, checks_before=_checks(result)),
-                                       result)
+        H, W = img.shape
+        result, t_cent = _plain_then_fainter(img, self.k_sigma, lambda stars, before, _last: self.solve_centroids(
+            stars, W, H, fov_deg=fov_deg, fov_error=fov_error, checks_before=before))
         result.time_ms = {"centroid": t_cent, **result.time_ms}
         result.time_ms["total"] = result.time_ms["centroid"] + result.time_ms["solve"]
         return result
@@ -264,8 +256,8 @@ class BlindSolver:
         if fres.solved:
             return _with_time_of(fres, result)
         result = _with_time_of(result, fres)
-        result.reason = f"{result.reason}; as a fisheye ({FISHEYE_FOV_RANGE_DEG[0]:g}-{FISHEYE_FOV_RANGE_DEG[1]:g} deg): " \
-                        f"{_short(fres.reason)}"
+        lo, hi = FISHEYE_FOV_RANGE_DEG
+        result.reason = f"{result.reason}; as a fisheye ({lo:g}-{hi:g} deg): {_short(fres.reason)}"
         return result
 
     def _fisheye_may_solve(self, centroids: Centroids, fov_deg: float | None, fov_error: float) -> bool:
@@ -340,6 +332,11 @@ class BlindSolver:
             database_key=self.identifier.database_key, identify_ms=identify_ms)
         result.mag_limit = br.mag_limit
         result.camera_fitted = br.camera is not None
+        lo, hi = span if fov_deg is None else (max(span[0], fov_deg * (1 - fov_error)),
+                                               min(span[1], fov_deg * (1 + fov_error)))
+        result.searches = [{"kind": "fisheye" if model != PINHOLE else self.kind, "fov_deg": [float(lo), float(hi)],
+                            "stars": len(centroids), "hypotheses": max(0, _checks(result) - checks_before),
+                            "solved": result.solved, "started": t0}]
         if not result.solved and n:
             result.reason = explain_failure(result.reason, len(centroids), fov_deg, fov_error, self.fov_range_deg)
         return result
@@ -448,7 +445,8 @@ def narrow_field_solver(epoch: float = DEFAULT_EPOCH, **kwargs) -> BlindSolver:
 
     return _SOLVERS.get_or_make(("narrow", epoch, repr(sorted(kwargs.items()))),
                                 lambda: BlindSolver(epoch=epoch, catalog=load_deep_catalog(epoch),
-                                                    pattern_params=NARROW_FIELD_PARAMS, deep=False, **kwargs))
+                                                    pattern_params=NARROW_FIELD_PARAMS, deep=False, kind="narrow",
+                                                    **kwargs))
 
 
 FISHEYE_MIN_STARS = 8  # the fisheye search runs on an image that shows at least this many stars
@@ -574,7 +572,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                 _with_time_of(result, fast)
                 if result.solved:
                     result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) did not "
-                                        f"verify ({fast.reason}): solved by the blind search over +-{100 * fov_error:g} %")
+                                        f"verify ({fast.reason}): solved by the blind search over "
+                                        f"+-{100 * fov_error:g} %")
                 else:
                     result.reason = f"the improved angle method at {fov_deg:g} deg: {fast.reason}; then {result.reason}"
         if method is not None:
@@ -589,15 +588,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         return result
 
     t0 = time.perf_counter()
-    stars = detect_stars(img, k_sigma=k_sigma, faint_search=False)
-    t_cent = (time.perf_counter() - t0) * 1e3
-    result = solve_stars(stars, 0, last=stars.params.get("faint_search") != "deferred")
-    if not result.solved:  # a sparse frame: the stars the matched filter finds, searched too
-        t1 = time.perf_counter()
-        fainter = fainter_stars(img, stars, k_sigma=k_sigma)
-        t_cent += (time.perf_counter() - t1) * 1e3
-        if fainter is not None:
-            result = _with_time_of(solve_stars(fainter, _checks(result), last=True), result)
+    result, t_cent = _plain_then_fainter(img, k_sigma, solve_stars)
     if method is not None and fov_deg is None and result.method != method:
         needs_fov(result)  # the blind search found no FOV for the method, with either set of stars
     if try_flipped_rows is None:
@@ -619,10 +610,30 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     return result
 
 
+def _plain_then_fainter(img: np.ndarray, k_sigma: float, solve) -> tuple[SolveResult, float]:
+    """The stars a frame shows, solved by `solve(centroids, checks_before, last)`; when they do not solve, the
+    stars `detect_stars` left for later on a sparse frame (`fainter_stars`: its width check, binning, the
+    matched filter), their search counting the first one's hypotheses; `last` tells `solve` whether another
+    set of stars may follow. (the result, the detection's milliseconds)"""
+    t0 = time.perf_counter()
+    stars = detect_stars(img, k_sigma=k_sigma, faint_search=False)
+    t_cent = (time.perf_counter() - t0) * 1e3
+    result = solve(stars, 0, stars.params.get("faint_search") != "deferred")
+    if not result.solved:
+        t1 = time.perf_counter()
+        fainter = fainter_stars(img, stars, k_sigma=k_sigma)
+        t_cent += (time.perf_counter() - t1) * 1e3
+        if fainter is not None:
+            result = _with_time_of(solve(fainter, _checks(result), True), result)
+    return result, t_cent
+
+
 def _with_time_of(result: SolveResult, other: SolveResult) -> SolveResult:
-    """`result` with the identify / solve time of `other` (a search run before it) added."""
+    """`result` with the identify / solve time of `other` (another search of the same image) added, and its
+    searches listed with result's, in the order they ran."""
     for stage in ("identify", "solve"):
         result.time_ms[stage] = result.time_ms.get(stage, 0.0) + other.time_ms.get(stage, 0.0)
+    result.searches = sorted(other.searches + result.searches, key=lambda srch: srch["started"])
     return result
 
 

@@ -107,6 +107,9 @@ class SolveResult:
     notes: list[str] = field(default_factory=list)  # how the input was read, when it matters (FITS rows)
     rows_reversed: bool = False  # solved with the image's rows turned over (try_flipped_rows)
     catalog: GuideCatalog | None = field(default=None, repr=False)  # the solver's: the step rows index it
+    # the blind searches that ran, in order: {"kind": "pinhole" | "narrow" | "fisheye", "fov_deg": [lo, hi],
+    # "stars": centroids searched, "hypotheses": candidate attitudes checked, "solved": bool}
+    searches: list[dict] = field(default_factory=list)
 
     @property
     def solved(self) -> bool:

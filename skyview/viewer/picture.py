@@ -123,14 +123,13 @@ def _draw_sky_lines(rgb: np.ndarray, grid, figures, s: float, scale: float) -> N
     """The RA/Dec lines and the constellation figures (sensor pixels scaled by s), then their labels inside
     the image edge: a constellation's name at its anchor, a grid line's where it enters the image."""
     H, W = rgb.shape[:2]
-    labels = []  # (text, colour, anchor in panel pixels), in the order they claim their place
-    for items, colour, thickness in ((grid, GRID_RGB, 1), (figures, FIGURE_RGB, 1)):
+    for items, colour in ((grid, GRID_RGB), (figures, FIGURE_RGB)):
         for g in items:
             for run in g.runs:
                 q = np.round((np.asarray(run) + 0.5) * s - 0.5).astype(np.int32)
-                cv2.polylines(rgb, [q.reshape(-1, 1, 2)], False, colour, thickness, cv2.LINE_AA)
-    labels += [(f.name, FIGURE_RGB, f.anchor) for f in figures]
-    labels += [(g.label, GRID_RGB, g.anchor) for g in grid]
+                cv2.polylines(rgb, [q.reshape(-1, 1, 2)], False, colour, 1, cv2.LINE_AA)
+    # (text, colour, anchor in sensor pixels), in the order they claim their place
+    labels = [(f.name, FIGURE_RGB, f.anchor) for f in figures] + [(g.label, GRID_RGB, g.anchor) for g in grid]
     if not labels:
         return
     anchors, sizes = [], []

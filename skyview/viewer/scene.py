@@ -108,6 +108,12 @@ NODES = {
 }
 
 
+def _name_plane(xyz: np.ndarray) -> np.ndarray:
+    """Where names are placed against each other: (RA cos Dec, Dec), radians."""
+    ra, dec = vec_to_radec(xyz)
+    return np.stack([np.asarray(ra) * np.cos(dec), np.asarray(dec)], axis=1)
+
+
 def _f32(a) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(a, dtype=np.float32))
 
@@ -123,8 +129,9 @@ class SkyScene:
         self._catalog_key = None
         self._grid_key = None
         self.bytes_catalog = 0
-        self.visible = {"grid": True, "constellations": True, "names": True, "image": True, "true": True, "matches": True, "track": True,
-                        "numbers": True, "hips": False, "stars": True, "candidates": True}
+        self.visible = {"grid": True, "constellations": True, "names": True, "image": True, "true": True,
+                        "matches": True, "track": True, "numbers": True, "hips": False, "stars": True,
+                        "candidates": True}
         self._run: Run | None = None
         self._image_plane_xy, self._ring = np.zeros((0, 2)), 0.0  # centroids on the image plane, ring radius
         self._tex: np.ndarray | None = None
@@ -169,9 +176,7 @@ class SkyScene:
             for c in figs.values()]
         # placed with the star names (`_place_names`): a constellation's name first, a star's name that would
         # overlap it hidden
-        xyz = np.array([c.label_xyz for c in figs.values()])
-        ra, dec = vec_to_radec(xyz)
-        self._figure_names = (np.stack([np.asarray(ra) * np.cos(dec), np.asarray(dec)], axis=1),
+        self._figure_names = (_name_plane(np.array([c.label_xyz for c in figs.values()])),
                               np.array([len(c.name) for c in figs.values()], dtype=np.float64))
         self._place_names()
 
@@ -210,8 +215,7 @@ class SkyScene:
             names.append(s.add_label(f"{NODES['names']}/{hip}", texts[-1], position=_f32(catalog.xyz[i] * 1.0),
                                      font_screen_scale=0.85, anchor="top-left", visible=False))
         self.h["names"] = names
-        ra, dec = vec_to_radec(catalog.xyz[rows])
-        self._names = (np.stack([np.asarray(ra) * np.cos(dec), np.asarray(dec)], axis=1), catalog.mag[rows],
+        self._names = (_name_plane(catalog.xyz[rows]), catalog.mag[rows],
                        np.array([len(t) for t in texts], dtype=np.float64))
         self._name_xyz = catalog.xyz[rows]
         self._place_names()
@@ -219,42 +223,30 @@ class SkyScene:
     def _place_names(self) -> None:
         """Show the constellations' names and the star names that do not overlap one placed before them at
         this zoom: the constellations' first, then the stars' by brightness (`present.place_labels`)."""
-        hds = self.h.get("names", [])
-        fig_hds = self.h.get("figure_names", []) if self.visible["constellations"] else []
-        span = REFERENCE_TAN * self.zoom ** (1.0 / 0.85)  # half-height of the view at the sphere (Session zoom)
-        per_px = 2.0 * span / VIEW_HEIGHT_PX  # sphere units per screen pixel
-        xy_parts, prio_parts, chars_parts = [], [], []
-        if fig_hds and self._figure_names is not None:
+        figs = self.h.get("figure_names", []) if self._figure_names is not None else []
+        stars = self.h.get("names", []) if self._names is not None else []
+        fig_on = self.visible["constellations"] and bool(figs)
+        parts = []  # (anchors, priority, lengths) of the names placed, constellations first
+        if fig_on:
             fxy, fchars = self._figure_names
-            xy_parts.append(fxy)
-            prio_parts.append(np.full(len(fxy), -1e6) + np.arange(len(fxy)))
-            chars_parts.append(fchars)
-        if hds and self._names is not None:
-            xy, mag, n_chars = self._names
-            xy_parts.append(xy)
-            prio_parts.append(np.asarray(mag, dtype=np.float64))
-            chars_parts.append(n_chars)
-        if not xy_parts:
-            for hd in self.h.get("figure_names", []):
-                hd.visible = False
-            return
-        n_chars = np.concatenate(chars_parts)
-        w = (n_chars * NAME_CHAR_PX + NAME_PAD_PX) * per_px
-        sizes = np.stack([w, np.full_like(w, NAME_HEIGHT_PX * per_px)], axis=1)
-        keep = place_labels(np.concatenate(xy_parts), np.concatenate(prio_parts), sizes, gap=0.0)
-        n_fig = len(fig_hds) if (fig_hds and self._figure_names is not None) else 0
-        for hd, k in zip(fig_hds, keep[:n_fig]):
-            hd.visible = bool(k)
-        if not fig_hds:
-            for hd in self.h.get("figure_names", []):
-                hd.visible = False
-        keep = keep[n_fig:]
-        if not hds or self._names is None:
-            return
-        for hd, k in zip(hds, keep):
-            hd.visible = bool(k) and self.visible["names"]
-        self._name_keep = keep
-        self._place_field_labels()
+            parts.append((fxy, np.arange(len(fxy)) - 1e6, fchars))
+        if stars:
+            parts.append(self._names)
+        keep = np.zeros(0, dtype=bool)
+        if parts:
+            span = REFERENCE_TAN * self.zoom ** (1.0 / 0.85)  # half-height of the view at the sphere (Session zoom)
+            per_px = 2.0 * span / VIEW_HEIGHT_PX  # sphere units per screen pixel
+            xy, priority, n_chars = (np.concatenate(a) for a in zip(*parts))
+            w = (n_chars * NAME_CHAR_PX + NAME_PAD_PX) * per_px
+            keep = place_labels(xy, priority, np.stack([w, np.full_like(w, NAME_HEIGHT_PX * per_px)], axis=1), gap=0.0)
+        n_fig = len(figs) if fig_on else 0
+        for k, hd in enumerate(figs):
+            hd.visible = fig_on and bool(keep[k])
+        if stars:
+            self._name_keep = keep[n_fig:]
+            for hd, k in zip(stars, self._name_keep):
+                hd.visible = bool(k) and self.visible["names"]
+            self._place_field_labels()
 
     def _place_field_labels(self) -> None:
         """Show the centroid numbers and the fine grid's degrees that overlap no label shown before them:
