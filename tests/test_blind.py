@@ -373,6 +373,31 @@ def test_lookup_drops_only_patterns_of_sizes_it_cannot_use(blind, monkeypatch):
     assert 0 < kept.sum() < 0.8 * len(kept)
 
 
+def test_the_lookup_steps_tell_how_the_hits_thin_to_the_verified_pattern(blind):
+    """A real photograph's blind steps: the pattern table's hits across the sky (their patterns' centres,
+    in both hemispheres), those of a size that fits, those whose ratios agree (one per quad and pattern),
+    each stage keeping fewer; the verified hypothesis's four catalog stars are a candidate the thinning kept."""
+    from skyview.identify.layers import SkyPlaces
+
+    res = blind.solve_array(load_image(REAL / sorted(REFERENCE)[0]))
+    assert res.solved
+    steps = res.identification.steps
+    assert [st.kind for st in steps[:3]] == ["lookup", "prune", "prune"] and steps[3].kind == "hypothesis"
+    hits, sized, agree = steps[:3]
+    n = [st.numbers["candidates"] for st in steps[:3]]
+    assert n[0] == hits.numbers["hits"] > n[1] > n[2] >= 1 and agree.numbers["agree"] >= n[2]
+    assert f"{n[0]:.0f} hits" in hits.note and f"{n[1]:.0f} are of a size" in sized.note
+    places = [st.layer(SkyPlaces) for st in steps[:3]]
+    assert places[2] is None and places[0].total > places[1].total >= 1
+    assert places[0].total <= n[0] and places[1].total <= n[1]  # distinct patterns, each drawn once
+    xyz = places[0].xyz
+    assert xyz.dtype == np.float32 and np.allclose(np.linalg.norm(xyz, axis=1), 1.0, atol=1e-5)
+    assert (xyz[:, 2] > 0.3).any() and (xyz[:, 2] < -0.3).any()  # across the sky
+    assert 1 <= len(agree.groups) <= min(200, n[2]) and all(len(g) == 4 for g in agree.groups)
+    verified = next(st for st in reversed(steps) if st.kind == "hypothesis")
+    assert set(verified.catalog) in [set(g) for g in agree.groups]
+
+
 # ---------------------------------------------------------------------------------- FOV given: fast path first
 
 def _frame(catalog, fov, seed):

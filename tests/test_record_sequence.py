@@ -9,7 +9,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 from rerun.chunk import RrdReader
-from test_record import REPO, _open, needs_lavapipe, one_line_error, read, strict_rerun, viewer  # noqa: F401
+from test_record import REPO, _open, needs_lavapipe, one_line_error, read, strict_rerun, viewer  # noqa: F401, F811
 
 from skyview.cli import main
 from skyview.core.errors import BadInput
@@ -177,7 +177,6 @@ def test_designated_hypotheses_and_truth(paper):
 def test_result_document(paper):
     case, _, _, ents = paper
     text = [b.column("TextDocument:text").to_pylist() for b in ents["/result"]["batches"]][0][0][0]
-    ids = case.result.identifications
     assert text.startswith("# stochastic (paper): sequence of 5 frames, identified at frame 4")
     for piece in ("10 arcsec", "the paper's \"10\" read as arcseconds", "## Frames", "## Attitude (estimated, frame 4)",
                   "## Truth", "wrong matches: **0**", "error: boresight", "Betelgeuse", "run 0 of skyview bench-sequence",
@@ -347,7 +346,7 @@ def test_committed_sequence_example():
 # ============================================================================ the viewer
 
 @needs_lavapipe
-def test_viewer_opens_the_sequence_example(viewer, tmp_path):
+def test_viewer_opens_the_sequence_example(viewer, tmp_path):  # noqa: F811 (the fixture imported above)
     from PIL import Image
 
     state = _open(viewer, EXAMPLE)

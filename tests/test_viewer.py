@@ -1285,6 +1285,79 @@ def test_browser_tells_each_methods_story_step_by_step(tmp_path):
         _stop_view(proc)
 
 
+def _doc_shot(pg, shot: Path) -> None:
+    """A screenshot kept in test-artifacts/, and in docs/images as a JPEG when SKYVIEW_UPDATE_DOC_IMAGES=1."""
+    pg.screenshot(path=str(shot))
+    _keep(shot)
+    if os.environ.get("SKYVIEW_UPDATE_DOC_IMAGES") == "1":
+        DOC_IMAGES.mkdir(exist_ok=True)
+        cv2.imwrite(str(DOC_IMAGES / shot.with_suffix(".jpg").name), cv2.imread(str(shot)),
+                    [cv2.IMWRITE_JPEG_QUALITY, 85])
+
+
+@pytest.mark.browser
+@pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no chromium at {CHROMIUM} (apt-get install chromium)")
+def test_browser_tells_a_photographs_blind_story_step_by_step(tmp_path):
+    """`skyview view PHOTO` opens on the photograph solved blind; its steps read from first to last: the
+    pattern table's hits across the sky, how they thin, the hypothesis, the camera fit, the verification.
+    On screen the hit patterns' places on the sky thin from the first step to the second, the candidates'
+    arcs follow, and the identification is drawn only once it is made. A screenshot of each step (copied into docs/images when
+    SKYVIEW_UPDATE_DOC_IMAGES=1)."""
+    pw = pytest.importorskip("playwright.sync_api")
+    from skyview.detect.centroids import load_image
+    from skyview.identify.layers import SkyPlaces
+    from skyview.solver.pipeline import blind_solver
+
+    real = Path(__file__).parent / "data" / "real-images"
+    name = sorted(json.loads((real / "reference.json").read_text()))[0]
+    steps = blind_solver().solve_array(load_image(real / name)).identification.steps  # the viewer's, seeded alike
+    kinds = [st.kind for st in steps]
+    assert kinds[:3] == ["lookup", "prune", "prune"] and kinds[-2:] == ["fit", "verify"]
+    proc, url = _start_view(str(real / name))
+    try:
+        with pw.sync_playwright() as p:
+            browser = _chromium(p, tmp_path)
+            try:
+                pg = _open(browser, url)
+                pg.get_by_text("by blind", exact=False).first.wait_for(timeout=120000)
+                pg.get_by_role("tab", name="Steps").click()
+                places, arcs, drawn = [], [], []
+                for k, kind in enumerate(kinds):
+                    _type(pg, "Step", k)
+                    pg.get_by_text(f"Step {k + 1} / {len(kinds)} · {kind}", exact=False).first.wait_for(timeout=60000)
+                    pg.wait_for_timeout(500)
+                    places.append(pg.evaluate(JS_GEOMETRY, NODES["points"])[0])
+                    arcs.append(pg.evaluate(JS_GEOMETRY, NODES["candidates"])[0])
+                    drawn.append(pg.evaluate(JS_VISIBLE, NODES["match_stars"]))
+                    pg.evaluate(JS_PANEL_TOP)
+                    pg.mouse.move(5, 5)
+                    _settle(pg)
+                    _doc_shot(pg, tmp_path / f"steps-blind-photo-{k + 1}-{kind}.png")
+                # the wide sky: the hits across the whole sky, then the ones whose size fits
+                pg.get_by_role("tab", name="View").click()
+                pg.get_by_role("button", name="Wide sky").click()
+                pg.get_by_role("tab", name="Steps").click()
+                for k in (0, 1):
+                    _type(pg, "Step", k)
+                    pg.get_by_text(f"Step {k + 1} / {len(kinds)} · {kinds[k]}", exact=False).first.wait_for(
+                        timeout=60000)
+                    pg.wait_for_timeout(500)
+                    pg.evaluate(JS_PANEL_TOP)
+                    pg.mouse.move(5, 5)
+                    _settle(pg)
+                    _doc_shot(pg, tmp_path / f"steps-blind-photo-wide-{k + 1}-{kinds[k]}.png")
+            finally:
+                browser.close()
+    finally:
+        _stop_view(proc)
+    FIGURES["blind_photo_story"] = {"places": places, "arcs": arcs}
+    _save_figures()
+    n = [st.layer(SkyPlaces).total for st in steps[:2]]
+    assert places[:2] == n and n[0] > n[1] > 0 and places[2] == 0, (places, n)  # the hits thinning, all drawn
+    assert arcs[:2] == [0, 0] and arcs[2] > 0, arcs  # then the candidates' patterns
+    assert drawn[0] is False and drawn[-1] is True, drawn
+
+
 def test_view_command_serves_locally_and_stops_on_ctrl_c():
     proc, url = _start_view("--fov-deg", "12")
     try:
@@ -1380,7 +1453,8 @@ def test_an_oversized_upload_is_refused_when_it_starts_not_after_it_arrived():
 
 def test_the_blind_pipeline_is_a_method_of_the_viewer():
     """The default pipeline (no FOV, the camera fitted) in the Method menu: its steps are the look-up of
-    patterns (drawn across the sky), the hypotheses, the camera fit and the verification."""
+    patterns (its hits drawn across the sky, then thinned to the candidates), the hypotheses, the camera fit
+    and the verification."""
     solvers = Solvers()
     src = simulate(SceneConfig(ra_deg=83.8, dec_deg=-5.4, roll_deg=30.0, fov_deg=12.0, mag_limit=6.5),
                    solvers.base_catalog)
@@ -1388,8 +1462,10 @@ def test_the_blind_pipeline_is_a_method_of_the_viewer():
     assert run.result.solved and run.result.method == "blind" and run.result.camera_fitted
     assert run.result.camera.fov_deg == pytest.approx(12.0, rel=0.005) and run.wrong_matches == 0
     kinds = [st.kind for st in run.result.identification.steps]
-    assert kinds[0] == "lookup" and "hypothesis" in kinds and kinds[-2:] == ["fit", "verify"]
-    assert run.result.identification.steps[0].groups  # the candidate patterns, drawn on the sphere
+    assert kinds[:3] == ["lookup", "prune", "prune"] and "hypothesis" in kinds and kinds[-2:] == ["fit", "verify"]
+    views = run.drawables
+    assert len(views[0].drawables["points"].xyz) > len(views[1].drawables["points"].xyz) > 0  # the hits thinning
+    assert "candidates" in views[2].drawables  # the candidate patterns, drawn on the sphere
     assert "fitted to the stars" in result_markdown(run)
 
 

@@ -42,6 +42,7 @@ from skyview.identify import database
 from skyview.identify import patterns as pdb
 from skyview.identify.base import FAILED, INCONCLUSIVE, Step
 from skyview.identify.camera_refit import CAP, BlindParams, BlindResult, CameraRefit, NearestPixels
+from skyview.identify.layers import SkyPlaces, even_sample
 from skyview.identify.steps import LazyStep
 
 PERMUTATIONS = np.array(list(itertools.permutations(range(4))))
@@ -55,14 +56,17 @@ BIN_OFFSETS = np.array(list(itertools.product((0, 1, 2), repeat=pdb.N_RATIOS)), 
 WIDE_FROM_DEG = 54.0  # FOVs above this are searched after the narrower ones (see BlindIdentifier.identify)
 PATTERN_SLIDE = 8  # when the brightest stars' patterns do not verify, the window of pattern stars moves this far
 MAX_SLIDE_DEPTH = 40  # down to this many stars (the verification's own depth)
+PLACES_CAP = 20_000  # a look-up step draws at most this many of its hit patterns (an even sample)
 
 
-def _distinct_rows(shown: np.ndarray) -> list[int]:
-    return sorted({int(r) for r in shown.ravel()})
+def _candidate_rows(table_rows: np.ndarray, patterns: np.ndarray) -> list[int]:
+    """The catalog rows of the first CAP candidate patterns, each once."""
+    return sorted({int(r) for r in table_rows[patterns[:CAP]].ravel()})
 
 
-def _row_groups(shown: np.ndarray) -> list[tuple[int, ...]]:
-    return [tuple(int(r) for r in g) for g in shown]
+def _candidate_groups(table_rows: np.ndarray, patterns: np.ndarray) -> list[tuple[int, ...]]:
+    """The first CAP candidate patterns as groups of four catalog rows."""
+    return [tuple(int(r) for r in g) for g in table_rows[patterns[:CAP]]]
 
 
 def fov_ladder(lo: float, hi: float, ladder_deg2: float) -> list[tuple[float, float]]:
@@ -208,15 +212,7 @@ class BlindIdentifier(CameraRefit):
                     continue
                 cands = self._lookup(uv[pat], quads, batch, width, height, s_lo, s_hi, state.model)
                 n_cands += len(cands["pattern"])
-                shown = self.rows[cands["pattern"][:CAP]]
-                # the rows drawn (up to CAP patterns) listed when the step is first read: a solve reads none
-                steps.append(LazyStep("lookup", f"patterns of four among the {upto} brightest stars "
-                                                f"({len(batch)} new), FOV {s_lo:.2f}-{s_hi:.2f} deg: "
-                                                f"{len(cands['pattern'])} catalog patterns agree",
-                                      observed=pat[:upto].tolist(),
-                                      catalog_of=partial(_distinct_rows, shown), groups_of=partial(_row_groups, shown),
-                                      numbers={"stars": upto, "quads": len(batch), "candidates": len(cands["pattern"]),
-                                               "fov_min_deg": s_lo, "fov_max_deg": s_hi}))
+                self._record_lookup(steps, cands, pat[:upto].tolist(), upto, len(batch), s_lo, s_hi)
                 before = state.checks
                 res = self._check(uv, quads_uv, cands, state, steps, t0, max_checks=budget - spent[k])
                 spent[k] += state.checks - before
@@ -230,6 +226,42 @@ class BlindIdentifier(CameraRefit):
         return None, n_cands
 
     # ------------------------------------------------------------------ look-up
+    def _record_lookup(self, steps, cands: dict, observed: list[int], upto: int, n_quads: int,
+                       s_lo: float, s_hi: float) -> None:
+        """Three steps per look-up, the hits thinning: the pattern table's hits across the sky ("lookup"),
+        those of a size that can give an FOV in the range, those whose ratios agree and whose FOV lies in it,
+        one per quad and pattern ("prune" twice). What a step draws (the hit patterns' centres, an even
+        sample; the first CAP candidates, in the order they are checked) is made when it is first read:
+        a solve reads none."""
+        n = cands["counts"]
+        fov = f"FOV {s_lo:.2f}-{s_hi:.2f} deg"
+        where = {"stars": upto, "quads": n_quads, "fov_min_deg": s_lo, "fov_max_deg": s_hi}
+        steps.append(LazyStep("lookup", f"patterns of four among the {upto} brightest stars ({n_quads} new), {fov}: "
+                                        f"{n['hits']} hits in the pattern table, from {n['needles']} bins looked up",
+                              observed=observed,
+                              layers_of=partial(self._places, cands["hit_rows"], "patterns the look-up hit"),
+                              numbers={**where, "bins": n["needles"], "hits": n["hits"], "candidates": n["hits"]}))
+        steps.append(LazyStep("prune", f"of the {n['hits']} hits, {n['sized']} are of a size that can give an FOV "
+                                       f"of {s_lo:.2f}-{s_hi:.2f} deg",
+                              observed=observed,
+                              layers_of=partial(self._places, cands["sized_rows"], "patterns of a size that fits"),
+                              numbers={**where, "hits": n["hits"], "candidates": n["sized"]}))
+        steps.append(LazyStep("prune", f"of those {n['sized']}, {n['agree']} have ratios that agree within the "
+                                       f"tolerance and an FOV in the range: {len(cands['pattern'])} candidates, "
+                                       f"one per quad and catalog pattern, to check best first",
+                              observed=observed,
+                              catalog_of=partial(_candidate_rows, self.rows, cands["pattern"]),
+                              groups_of=partial(_candidate_groups, self.rows, cands["pattern"]),
+                              numbers={**where, "agree": n["agree"], "candidates": len(cands["pattern"])}))
+
+    def _places(self, patterns: np.ndarray, name: str) -> tuple[SkyPlaces]:
+        """The distinct table patterns as a `SkyPlaces` layer: their centres, an even sample of PLACES_CAP."""
+        distinct = np.unique(patterns)
+        drawn = distinct[even_sample(len(distinct), PLACES_CAP)]
+        centre = self.catalog.xyz[self.rows[drawn]].sum(axis=1)
+        centre /= np.linalg.norm(centre, axis=1, keepdims=True)
+        return (SkyPlaces(centre.astype(np.float32), len(distinct), name),)
+
     def _lookup(self, uv: np.ndarray, quads_all: np.ndarray, batch: np.ndarray, width: int, height: int,
                 lo: float, hi: float, model: str = PINHOLE) -> dict:
         """Catalog patterns that agree with quads_all[batch]: (quad index, table row, FOV, ratio error).
@@ -259,22 +291,27 @@ class BlindIdentifier(CameraRefit):
         first_hit = np.cumsum(per_key) - per_key
         n_hits = per_key[which]  # every needle's hits, in rung, quad, offset order (as rung by rung)
         total = int(n_hits.sum())
+        counts = {"needles": len(distinct), "hits": total, "sized": 0, "agree": 0}
         if total == 0:
-            return self._no_candidates()
+            return self._no_candidates(counts)
         j = np.repeat(np.arange(len(needles)), n_hits)
         prow = hit_row[np.repeat(first_hit[which] - np.cumsum(n_hits) + n_hits, n_hits) + np.arange(total)]
         r, q = ri[j], qi[j]
         # the FOV a pattern implies is fa * (its largest edge) / (the quad's): a pattern whose level's band of
         # largest edges cannot put it in its rung's range is dropped before its stars are read
         fits = self._sizes_fit(prow, largest[r, q] / fa[r], f_lo[r], f_hi[r])
+        hit_rows = prow
         prow, r, q = prow[fits], r[fits], q[fits]
+        counts["sized"] = len(prow)
+        sized_rows = prow
         rows, at = np.unique(prow, return_inverse=True)
         c_ratios, c_largest = pdb.edge_ratios(pdb.separations(self.catalog.xyz[self.rows[rows]]))
         err = np.abs(c_ratios[at] - ratios[r, q]).max(axis=1)
         fov = fa[r] * c_largest[at] / largest[r, q]  # small-angle: the scale that maps image onto sky
         keep = (err <= tol) & (fov >= f_lo[r]) & (fov <= f_hi[r])
+        counts["agree"] = int(keep.sum())
         if not keep.any():
-            return self._no_candidates()
+            return self._no_candidates(counts, hit_rows, sized_rows)
         q, pr, f, er = batch[q[keep]], prow[keep], fov[keep], err[keep]
         # one entry per (quad, pattern): the one whose assumed FOV was closest
         order = np.lexsort((er, pr, q))
@@ -282,12 +319,16 @@ class BlindIdentifier(CameraRefit):
         first = np.r_[True, (q[1:] != q[:-1]) | (pr[1:] != pr[:-1])]
         q, pr, f, er = q[first], pr[first], f[first], er[first]
         order = np.lexsort((er, q))  # quads in their brightness order, best agreement first
-        return {"quad": q[order], "pattern": pr[order], "fov": f[order], "err": er[order]}
+        return {"quad": q[order], "pattern": pr[order], "fov": f[order], "err": er[order], "counts": counts,
+                "hit_rows": hit_rows, "sized_rows": sized_rows}
 
     @staticmethod
-    def _no_candidates() -> dict:
+    def _no_candidates(counts: dict, hit_rows: np.ndarray | None = None, sized_rows: np.ndarray | None = None) -> dict:
+        """No candidate; counts: how many each stage of the look-up kept; hit_rows, sized_rows: the table
+        patterns the look-up hit, and those of them whose size fits."""
         e = np.zeros(0, dtype=np.int64)
-        return {"quad": e, "pattern": e, "fov": np.zeros(0), "err": np.zeros(0)}
+        return {"quad": e, "pattern": e, "fov": np.zeros(0), "err": np.zeros(0), "counts": counts,
+                "hit_rows": e if hit_rows is None else hit_rows, "sized_rows": e if sized_rows is None else sized_rows}
 
     def _sizes_fit(self, prow: np.ndarray, size: np.ndarray, f_lo: float, f_hi: float) -> np.ndarray:
         """Which table patterns prow can imply an FOV in [f_lo, f_hi] degrees for quads whose largest

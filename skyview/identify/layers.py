@@ -11,6 +11,7 @@ them into drawables, so the viewer and the recorder show a new layer in the same
     Attitudes       candidate attitudes (3x3 rotations, v_cam = R @ v_icrs)
     SearchRegion    a region of the sky being searched (a GA's box: a square, a roll circle, the sky)
     StarSets        named sets of observed stars (the stars within a radius, the ones a rule deleted)
+    SkyPlaces       the places on the sky a step's candidates lie (a look-up's hits: their patterns' centres)
 
 Nothing here imports a viewer or a recorder; arrays are numpy, angles in radians.
 """
@@ -183,6 +184,17 @@ class StarSets:
     @classmethod
     def of(cls, **sets) -> StarSets:
         return cls({k: tuple(int(i) for i in v) for k, v in sets.items()})
+
+
+@dataclass(frozen=True)
+class SkyPlaces:
+    """Where on the sky a step's candidates lie, one ICRS unit vector each (float32): e.g. the centres of the
+    catalog patterns a look-up hit. total: how many candidates in all (>= len(xyz): an even sample is drawn);
+    name: what they are, in words."""
+
+    xyz: np.ndarray
+    total: int
+    name: str
 
 
 def posterior_figures(steps, n_hypotheses_floor: int = 1) -> dict | None:

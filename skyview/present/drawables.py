@@ -38,6 +38,7 @@ from skyview.identify.layers import (
     Population,
     Posterior,
     SearchRegion,
+    SkyPlaces,
     StarSets,
     posterior_figures,
 )
@@ -70,7 +71,7 @@ LEGEND = {  # what each colour on screen means (the viewer's and the recording's
     "observed": "stars measured at this step",
     "known": "stars measured at earlier steps",
     "candidates": "surviving candidates (arcs between their catalog stars)",
-    "points": "GA population / posterior stars (bright: best)",
+    "points": "GA population / posterior stars (bright: best) / look-up hits",
     "attitudes": "candidate attitude (its sensor footprint)",
     "outline": "region searched",
     "identified": "identified stars (last step)",
@@ -321,6 +322,13 @@ def step_views(steps, catalog_xyz: np.ndarray, n_observed: int, *, camera=None,
             lead = ", ".join(f"HIP {int(hip[r])} {m:.3f}" if hip is not None else f"row {int(r)} {m:.3f}"
                              for r, m in zip(post.top_rows[:3], post.top_mass[:3]))
             v.text.append(f"posterior over {len(post.weights)} hypotheses; {len(stars)} stars lit; leading: {lead}")
+        places = st.layer(SkyPlaces)
+        if places is not None and "points" not in dr:
+            n = len(places.xyz)
+            dr["points"] = SkyPoints("points", np.asarray(places.xyz, np.float32), _flat("points", n),
+                                     float(sg.star_radius(0.5)))
+            v.text.append(f"{places.name}: {places.total} on the sky" + (f" ({n} drawn, an even sample)"
+                                                                          if n < places.total else ""))
         # --- candidate attitudes, the region searched, star sets
         att = st.layer(Attitudes)
         if att is not None:
