@@ -53,10 +53,24 @@ _PAIR_INDEX.update({(b, a): k for (a, b), k in list(_PAIR_INDEX.items())})
 PERM_EDGES = np.array([[_PAIR_INDEX[(int(p[a]), int(p[b]))] for a, b in pdb.PAIRS_OF_FOUR] for p in PERMUTATIONS])
 # a ratio +- the tolerance spans up to three bins (tolerance < bin width): every bin offset of the five ratios
 BIN_OFFSETS = np.array(list(itertools.product((0, 1, 2), repeat=pdb.N_RATIOS)), dtype=np.int64)
+# the bins a quad's ratios touch, by the span of each ratio (0, 1 or 2 bins past its lowest): the span's
+# code (base 3, the first ratio most significant) indexes the offsets that fit in it, packed as keys (a
+# key is linear in its quantised ratios, and the lowest bin plus an offset never passes the highest)
+_SPAN_WEIGHTS = 3 ** np.arange(pdb.N_RATIOS - 1, -1, -1)
+_CODE_OFFSETS = [np.flatnonzero(np.all(BIN_OFFSETS <= BIN_OFFSETS[c], axis=1)) for c in range(len(BIN_OFFSETS))]
+CODE_COUNT = np.array([len(o) for o in _CODE_OFFSETS], dtype=np.int64)
+CODE_START = np.r_[0, np.cumsum(CODE_COUNT)]
+CODE_KEYS = pdb.pack_key(BIN_OFFSETS[np.concatenate(_CODE_OFFSETS)])
 WIDE_FROM_DEG = 54.0  # FOVs above this are searched after the narrower ones (see BlindIdentifier.identify)
 PATTERN_SLIDE = 8  # when the brightest stars' patterns do not verify, the window of pattern stars moves this far
 MAX_SLIDE_DEPTH = 40  # down to this many stars (the verification's own depth)
 PLACES_CAP = 20_000  # a look-up step draws at most this many of its hit patterns (an even sample)
+
+
+def _ranges(start: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """The indices start[k], ..., start[k] + count[k] - 1 of every k, one after the other."""
+    total = int(count.sum())
+    return np.repeat(start - np.cumsum(count) + count, count) + np.arange(total)
 
 
 def _candidate_rows(table_rows: np.ndarray, patterns: np.ndarray) -> list[int]:
@@ -282,20 +296,28 @@ class BlindIdentifier(CameraRefit):
         seen = np.isfinite(ratios).all(axis=2) & np.isfinite(largest) & (largest > 0)
         ratios = np.where(seen[:, :, None], ratios, 0.0)
         qlo = pdb.quantise(ratios - tol, w)
-        span = pdb.quantise(ratios + tol, w) - qlo
-        ri, qi, oi = np.nonzero(np.all(BIN_OFFSETS <= span[:, :, None, :], axis=3) & seen[:, :, None])
-        needles = pdb.pack_key(qlo[ri, qi] + BIN_OFFSETS[oi])
+        span = np.minimum(pdb.quantise(ratios + tol, w) - qlo, 2)
+        ri, qi = np.nonzero(seen)  # the (rung, quad) pairs, in rung then quad order
+        # the pairs whose lowest bins and spans agree (neighbouring rungs, mostly) share their needles
+        combo = pdb.pack_key(qlo[ri, qi]) * len(BIN_OFFSETS) + span[ri, qi] @ _SPAN_WEIGHTS
+        combos, member_combo = np.unique(combo, return_inverse=True)
+        base, code = np.divmod(combos, len(BIN_OFFSETS))
+        needles = np.repeat(base, CODE_COUNT[code]) + CODE_KEYS[_ranges(CODE_START[code], CODE_COUNT[code])]
         distinct, which = np.unique(needles, return_inverse=True)
         hit_needle, hit_row = pdb.lookup(self.keys, self.bucket_start, distinct)  # by distinct key, ascending
         per_key = np.bincount(hit_needle, minlength=len(distinct))
         first_hit = np.cumsum(per_key) - per_key
-        n_hits = per_key[which]  # every needle's hits, in rung, quad, offset order (as rung by rung)
+        # each combination's hits (its needles' in offset order), then each pair's: its combination's
+        combo_rows = hit_row[_ranges(first_hit[which], per_key[which])]
+        per_combo = np.bincount(np.repeat(np.arange(len(combos)), CODE_COUNT[code]), weights=per_key[which],
+                                minlength=len(combos)).astype(np.int64)
+        n_hits = per_combo[member_combo]
         total = int(n_hits.sum())
         counts = {"needles": len(distinct), "hits": total, "sized": 0, "agree": 0}
         if total == 0:
             return self._no_candidates(counts)
-        j = np.repeat(np.arange(len(needles)), n_hits)
-        prow = hit_row[np.repeat(first_hit[which] - np.cumsum(n_hits) + n_hits, n_hits) + np.arange(total)]
+        prow = combo_rows[_ranges((np.cumsum(per_combo) - per_combo)[member_combo], n_hits)]
+        j = np.repeat(np.arange(len(ri)), n_hits)
         r, q = ri[j], qi[j]
         # the FOV a pattern implies is fa * (its largest edge) / (the quad's): a pattern whose level's band of
         # largest edges cannot put it in its rung's range is dropped before its stars are read
