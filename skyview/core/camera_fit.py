@@ -62,8 +62,10 @@ def fit_camera(uv: np.ndarray, xyz: np.ndarray, camera: Camera, R: np.ndarray, *
     if auto_k2:
         fit_k2 = bool(fit_k1) and n >= MIN_STARS_K2 and spread >= 0.33
     best = _fit(uv, xyz, camera, R, fit_focal and n >= 3, False, False) if (auto_k1 and fit_k1) else None
-    if fit_k1:
-        with_k1 = _fit(uv, xyz, camera, R, fit_focal and n >= 3, True, False)
+    if fit_k1:  # from the undistorted fit when there is one (the same minimum, fewer steps to it)
+        start = best if best is not None else None
+        with_k1 = _fit(uv, xyz, start.camera if start else camera, start.R if start else R, fit_focal and n >= 3,
+                       True, False)
         best = with_k1 if best is None or _better(with_k1, best) else best
         if fit_k2 and "k1" in best.fitted:
             with_k2 = _fit(uv, xyz, best.camera, best.R, fit_focal and n >= 3, True, True)
@@ -108,44 +110,59 @@ def _left_jacobian(v: np.ndarray) -> np.ndarray:
 
 
 def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, f_scale: float = 1.0,
-                        max_iter: int = 30, tol: float = 1e-12, jac=None) -> np.ndarray:
+                        max_iter: int = 30, tol: float = 1e-10, jac=None, fun_jac=None) -> np.ndarray:
     """Minimise sum rho(fun(p)^2 / f_scale^2) with rho the soft-L1 loss 2 (sqrt(1 + z) - 1) (what
     scipy's least_squares(loss="soft_l1") minimises), p within [lo, hi]: iteratively reweighted
-    Gauss-Newton with step halving, the Jacobian `jac(p)` when given, else forward differences. A
-    handful of parameters and a few dozen stars: each iteration is a few small numpy calls (scipy's
-    trust-region solver spends ten times as long in its own bookkeeping here)."""
+    Gauss-Newton with step halving (each step from the weighted normal equations), the Jacobian
+    `jac(p)` when given, else forward differences; `fun_jac(p)` -> (fun(p), jac(p)) computes both at
+    once, sharing their work (each trial point's Jacobian is the next step's). A handful of parameters
+    and a few dozen stars: each iteration is a few small numpy calls (scipy's trust-region solver spends
+    ten times as long in its own bookkeeping here). It stops when no parameter moves by more than `tol`
+    (radians of attitude, the log of the focal length, the corner's stretch: 1e-10 is far below any
+    noise, and the reweighting's slow last steps below it change the answer by ~1e-14)."""
     p = np.clip(np.asarray(p0, dtype=np.float64), lo, hi)
 
-    def cost(r):
-        return float(np.sum(2.0 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)))
+    def soft(r):  # the weights and the cost
+        t = np.sqrt(1.0 + (r / f_scale) ** 2)
+        return 1.0 / t, float(2.0 * np.sum(t - 1.0))
 
-    r = fun(p)
-    c = cost(r)
-    for _ in range(max_iter):
-        w = 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)  # soft-L1 weights
+    def jacobian(q, rq):
         if jac is not None:
-            J = jac(p)
-        else:
-            h = 1e-7 * np.maximum(1.0, np.abs(p))
-            J = np.empty((len(r), len(p)))
-            for j in range(len(p)):
-                q = p.copy()
-                q[j] += h[j]
-                J[:, j] = (fun(q) - r) / h[j]
-        sw = np.sqrt(w)
-        step = -np.linalg.lstsq(J * sw[:, None], r * sw, rcond=None)[0]
+            return jac(q)
+        h = 1e-7 * np.maximum(1.0, np.abs(q))
+        J = np.empty((len(rq), len(q)))
+        for j in range(len(q)):
+            e = q.copy()
+            e[j] += h[j]
+            J[:, j] = (fun(e) - rq) / h[j]
+        return J
+
+    if fun_jac is not None:
+        r, J = fun_jac(p)
+    else:
+        r = fun(p)
+        J = None
+    w, c = soft(r)
+    for _ in range(max_iter):
+        if J is None:
+            J = jacobian(p, r)
+        Jw = J * w[:, None]
+        try:
+            step = -np.linalg.solve(Jw.T @ J, Jw.T @ r)
+        except np.linalg.LinAlgError:  # a parameter the stars do not constrain: the least-norm step
+            step = -np.linalg.lstsq(J * np.sqrt(w)[:, None], r * np.sqrt(w), rcond=None)[0]
         t = 1.0
         for _halve in range(8):
             q = np.clip(p + t * step, lo, hi)
-            rq = fun(q)
-            cq = cost(rq)
+            rq, Jq = fun_jac(q) if fun_jac is not None else (fun(q), None)
+            wq, cq = soft(rq)
             if cq <= c:
                 break
             t *= 0.5
         else:
             break  # no step lowers the cost: at the minimum
         moved = float(np.max(np.abs(q - p)))
-        p, r, c = q, rq, cq
+        p, r, J, w, c = q, rq, Jq, wq, cq
         if moved < tol:
             break
     return p
@@ -211,25 +228,29 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
     if 2 * n <= len(p0):
         d = project(p0) - uv
         return CameraFit(camera, R0, np.hypot(d[:, 0], d[:, 1]), float("nan"), ())
-    def jacobian(p):
-        """d(project(p))/dp of the pinhole model, rows interleaved as the residuals (u0, v0, u1, ...)."""
+    def residuals_and_jacobian(p):
+        """The residuals (u0 - uv, v0 - uv, u1 - ...) of the pinhole model and their derivatives by p."""
         Rk, f, k1, k2 = unpack(p)
         v = xyz @ Rk.T
-        z = np.maximum(v[:, 2], 1e-9)
-        x, y = v[:, 0] / z, v[:, 1] / z
+        iz = 1.0 / np.maximum(v[:, 2], 1e-9)
+        x, y = v[:, 0] * iz, v[:, 1] * iz
         r2 = x * x + y * y
         s = 1.0 + k1 * r2 + k2 * r2 * r2
+        res = np.empty((len(v), 2))
+        res[:, 0] = f * x * s + (camera.cx - uv[:, 0])
+        res[:, 1] = f * y * s + (camera.cy - uv[:, 1])
         ds = 2.0 * (k1 + 2.0 * k2 * r2)  # ds/dx = ds * x, ds/dy = ds * y
-        # d(u, v)/d(x, y), then d(x, y)/d(vector) and d(vector)/d(rotation vector) = -[v]x Jl
-        a = f * (s + ds * x * x)
-        b = f * ds * x * y
-        d = f * (s + ds * y * y)
-        dxy = np.empty((len(v), 2, 3))  # d(u, v)/d(vector)
-        dxy[:, 0, 0], dxy[:, 0, 1], dxy[:, 0, 2] = a / z, b / z, -(a * x + b * y) / z
-        dxy[:, 1, 0], dxy[:, 1, 1], dxy[:, 1, 2] = b / z, d / z, -(b * x + d * y) / z
-        dv = np.cross(v[:, None, :], (-_left_jacobian(p[:3])).T[None, :, :])  # (N, 3 params, 3): -v x Jl[:, j]
+        # d(u, v)/d(vector) rows (a, b, c) / z; by the rotation vector: (row x v) (-Jl) (the triple product)
+        a = f * (s + ds * x * x) * iz
+        b = f * ds * x * y * iz
+        d = f * (s + ds * y * y) * iz
+        cu, cv = -(a * x + b * y), -(b * x + d * y)
+        vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+        rows = np.empty((len(v), 2, 3))
+        rows[:, 0, 0], rows[:, 0, 1], rows[:, 0, 2] = b * vz - cu * vy, cu * vx - a * vz, a * vy - b * vx
+        rows[:, 1, 0], rows[:, 1, 1], rows[:, 1, 2] = d * vz - cv * vy, cv * vx - b * vz, b * vy - d * vx
         J = np.empty((len(v), 2, len(p)))
-        J[:, :, :3] = np.einsum("nij,nkj->nik", dxy, dv)
+        J[:, :, :3] = rows @ -_left_jacobian(p[:3])
         i = 3
         if fit_focal:
             J[:, 0, i], J[:, 1, i] = f * x * s, f * y * s
@@ -239,9 +260,10 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
             i += 1
         if fit_k2:
             J[:, 0, i], J[:, 1, i] = f * x * r2 * r2 / rc2 ** 2, f * y * r2 * r2 / rc2 ** 2
-        return J.reshape(2 * len(v), len(p))
+        return res.ravel(), J.reshape(2 * len(v), len(p))
 
-    x = robust_gauss_newton(lambda p: (project(p) - uv).ravel(), p0, lo, hi, jac=None if fisheye else jacobian)
+    x = robust_gauss_newton(lambda p: (project(p) - uv).ravel(), p0, lo, hi,
+                            fun_jac=None if fisheye else residuals_and_jacobian)
     Rk, f, k1, k2 = unpack(x)
     cam = Camera(camera.width, camera.height, float(f), float(f), camera.cx, camera.cy, float(k1), float(k2),
                  camera.model)

@@ -197,11 +197,13 @@ class CameraRefit:
         sigma_px = max(fit.rms_px if np.isfinite(fit.rms_px) else 0.5, 0.25)
         sigma_rad = sigma_px * cam.pixel_scale_rad
         vectors = cam.unproject(uv[:n_obs])
-        hyp = {int(o): int(cat.index_of(self.catalog.hip[c])) for o, c in zip(obs4, rows4)
-               if self.catalog.mag[c] <= cat.mag.max()}
+        deep_enough = [(int(o), int(c)) for o, c in zip(obs4, rows4) if self.catalog.mag[c] <= cat.mag.max()]
+        hyp = dict(zip([o for o, _ in deep_enough],
+                       cat.rows_of(self.catalog.hip[[c for _, c in deep_enough]]).tolist())) if deep_enough else {}
         ver = verify(vectors, hyp, cat, cam, sigma_rad, n_hypotheses=checks)
         # the steps and the result refer to rows of the full catalog, the verification to the depth's
-        to_full = {int(c): int(self.catalog.index_of(cat.hip[c])) for c in set(hyp.values()) | set(ver.matches.values())}
+        rows = np.array(sorted(set(hyp.values()) | set(ver.matches.values())), dtype=np.int64)
+        to_full = dict(zip(rows.tolist(), self.catalog.rows_of(cat.hip[rows]).tolist()))
         shown = copy.copy(ver)
         shown.matches = {o: to_full[c] for o, c in ver.matches.items()}
         steps.append(verification_step(shown, {o: to_full[c] for o, c in hyp.items()},
