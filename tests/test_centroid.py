@@ -775,11 +775,11 @@ def test_solver_measures_only_the_stars_it_identifies_with(cat):
     """The calibrated solver measures its max_stars brightest stars only; the identification is the same
     as with every star measured (what the viewer asks for), and it is right."""
     from skyview.simulate.scoring import score_trial
-    from skyview.solver.pipeline import Solver
+    from skyview.solver.pipeline import MethodSolver
     cam = Camera.from_fov(20.0, 1024, 1024)
     frame = simulate_image(cat, cam, random_attitudes(1, np.random.default_rng(4))[0], SensorModel(), seed=2,
                            mag_limit=8.5)
-    solver = Solver(cam, "angle", variant="improved", catalog=cat, max_stars=30)
+    solver = MethodSolver(cam, "angle", variant="improved", catalog=cat, max_stars=30)
     res, res_all = solver.solve_array(frame.image), solver.solve_array(frame.image, measure_all=True)
     assert len(res.centroids) == 30 and res_all.centroids.n_unmeasured == 0
     assert res.centroids.n_detected == len(res_all.centroids) > 100

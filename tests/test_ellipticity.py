@@ -32,7 +32,7 @@ from skyview.identify.ellipticity import (
 from skyview.identify.synthetic import add_noise, synthetic_frame
 from skyview.identify.verify import angular_distance
 from skyview.simulate.render import SensorModel, simulate_image
-from skyview.solver.pipeline import Solver
+from skyview.solver.pipeline import MethodSolver
 
 SIGMA = 10e-6
 
@@ -261,8 +261,8 @@ def test_end_to_end_images_with_a_false_star(cat):
     cam = Camera.from_fov(20.0, 1024)
     # a 20 deg field at Hp 6 holds 30-80 stars: keep them all (the default max_stars=40 drops the faint
     # ones, and with them the adjacent stars of the patterns)
-    solver = Solver(cam, "ellipticity", mag_limit=6.0, sigma_rad=36e-6, catalog=load_guide_catalog(),
-                    variant="improved", max_stars=200)
+    solver = MethodSolver(cam, "ellipticity", mag_limit=6.0, sigma_rad=36e-6, catalog=load_guide_catalog(),
+                          variant="improved", max_stars=200)
     assert "ellipticity" in METHODS
     rng = np.random.default_rng(2017)
     Rs = random_attitudes(4, rng)

@@ -318,14 +318,14 @@ def test_end_to_end_simulated_image_identified_means_all_matches_correct(cache, 
     from skyview.bench.runner import score_trial
     from skyview.simulate.render import simulate_image
     from skyview.simulate.scenarios import Scenario
-    from skyview.solver.pipeline import Solver
+    from skyview.solver.pipeline import MethodSolver
 
     full = load_guide_catalog()
     sc = Scenario("sun20", "20 x 20 deg, Hp <= 6", fov_deg=20.0, width=1024, height=1024, mag_limit=6.0,
                   noise_rad=10e-6)
     cam = sc.camera()
-    solver = Solver(cam, "genetic", mag_limit=sc.mag_limit, sigma_rad=sc.sigma_rad, catalog=full,
-                    variant="improved", method_params={"seed": 1})
+    solver = MethodSolver(cam, "genetic", mag_limit=sc.mag_limit, sigma_rad=sc.sigma_rad, catalog=full,
+                          variant="improved", method_params={"seed": 1})
     rng = np.random.default_rng(2025)
     solved = 0
     for k in range(2):

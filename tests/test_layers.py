@@ -149,7 +149,7 @@ def test_the_stages_import_no_sink(stage):
 def test_the_checker_sees_lazy_and_type_checking_imports(tmp_path):
     probe = tmp_path / "probe.py"
     probe.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from skyview.core import camera\n"
-                     "def f():\n    from skyview.solver.pipeline import Solver\n    import skyview.io.wcs\n"
+                     "def f():\n    from skyview.solver.pipeline import MethodSolver\n    import skyview.io.wcs\n"
                      "if __name__ == '__main__':\n    from skyview.cli import main\n")
     assert {t for t, _ in _imports("skyview.core.probe", probe)} == {
         "skyview.core.camera", "skyview.solver.pipeline", "skyview.io.wcs"}

@@ -212,11 +212,11 @@ def test_random_sequences_never_wrong(ident, cat, cam):
 
 def test_single_frame_through_the_solver(cache, full_catalog):
     from skyview.simulate.render import R_pointing_at, simulate_image
-    from skyview.solver.pipeline import Solver
+    from skyview.solver.pipeline import MethodSolver
 
     camera = Camera.from_fov(30.0, 1024)
-    solver = Solver(camera, "stochastic", mag_limit=4.5, catalog=full_catalog,
-                    method_params={"mag_zero_point": zero_point(PAPER_SENSOR), "verify_top": 3})
+    solver = MethodSolver(camera, "stochastic", mag_limit=4.5, catalog=full_catalog,
+                          method_params={"mag_zero_point": zero_point(PAPER_SENSOR), "verify_top": 3})
     frame = simulate_image(full_catalog, camera, R_pointing_at(full_catalog, 27989), PAPER_SENSOR, seed=2,
                            mag_limit=4.5)
     res = solver.solve_array(frame.image)

@@ -31,7 +31,7 @@ from skyview.identify.svd import (
 from skyview.identify.synthetic import add_noise, synthetic_frame
 from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scenarios import get_scenario
-from skyview.solver.pipeline import Solver
+from skyview.solver.pipeline import MethodSolver
 
 SIGMA = 88e-6
 
@@ -383,7 +383,7 @@ def _images(n, seed, false_stars=0):
 @pytest.mark.parametrize("variant", ["paper", "improved"])
 def test_simulated_images_identified_means_correct(variant):
     sc = get_scenario("juang8")
-    solver = Solver(sc.camera(), "svd", mag_limit=sc.mag_limit, sigma_rad=sc.sigma_rad, variant=variant)
+    solver = MethodSolver(sc.camera(), "svd", mag_limit=sc.mag_limit, sigma_rad=sc.sigma_rad, variant=variant)
     solved = 0
     for R, frame in _images(6, seed=2003):
         res = solver.solve_array(frame.image)
@@ -405,7 +405,7 @@ def test_simulated_images_identified_means_correct(variant):
 
 def test_simulated_image_with_a_false_star():
     sc = get_scenario("juang8")
-    solver = Solver(sc.camera(), "svd", mag_limit=sc.mag_limit, sigma_rad=sc.sigma_rad, variant="improved")
+    solver = MethodSolver(sc.camera(), "svd", mag_limit=sc.mag_limit, sigma_rad=sc.sigma_rad, variant="improved")
     n_false_in_a_set = 0
     for R, frame in _images(4, seed=7, false_stars=1):
         res = solver.solve_array(frame.image)

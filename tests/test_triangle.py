@@ -22,7 +22,7 @@ from skyview.identify.triangle_database import _triangle_chunks, catalog_triangl
 from skyview.identify.verify import angular_distance
 from skyview.simulate.render import simulate_image
 from skyview.simulate.truth import wrong_matches
-from skyview.solver.pipeline import Solver
+from skyview.solver.pipeline import MethodSolver
 
 SIGMA = 87e-6
 RNG_SEED = 31
@@ -640,7 +640,7 @@ def test_rotation_invariance_of_the_identification(improved, region, cam):
 def test_end_to_end_on_simulated_images(cache, region, cam):
     rng = np.random.default_rng(11)
     sigma = float(np.hypot(SIGMA, 0.1 * cam.pixel_scale_rad))  # the cole8 scenario's identifier sigma
-    solvers = {v: Solver(cam, "triangle", mag_limit=6.0, sigma_rad=sigma, catalog=region, variant=v)
+    solvers = {v: MethodSolver(cam, "triangle", mag_limit=6.0, sigma_rad=sigma, catalog=region, variant=v)
                for v in ("paper", "improved")}
     solved = {v: 0 for v in solvers}
     for k, R in enumerate(region_attitudes(rng, 4, cam, region, n_min=7)):

@@ -35,7 +35,7 @@ from skyview.core.errors import BadInput
 from skyview.identify import METHODS, VARIANTS
 from skyview.simulate.render import SensorModel
 from skyview.simulate.scenarios import Scenario
-from skyview.solver.pipeline import Solver
+from skyview.solver.pipeline import MethodSolver
 
 
 def method_order() -> tuple[str, ...]:
@@ -122,8 +122,8 @@ def run_simulated(scenario: Scenario, n: int, seed: int, *, n_slow: int, methods
         m_n = min(n, n_slow) if method in slow else n
         for variant in variants:
             t0 = time.perf_counter()
-            solver = Solver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
-                            catalog=catalog, variant=variant, max_stars=scenario.max_stars)
+            solver = MethodSolver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
+                                  catalog=catalog, variant=variant, max_stars=scenario.max_stars)
             setup_ms = (time.perf_counter() - t0) * 1e3
             ctx = TrialContext(solver=solver, catalog=catalog, camera=camera, scenario=scenario,
                                 sensor=SensorModel(), attitudes=attitudes[:m_n], seeds=seeds[:m_n])

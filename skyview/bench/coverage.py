@@ -68,7 +68,7 @@ class CoverageConfig:
     noise_urad: float | None = None  # None: DEFAULT_NOISE_PX pixels
     seed: int = 0
     chunk: int = DEFAULT_CHUNK
-    max_stars: int = 40  # the brightest stars of a field given to the identifier (as `Solver`'s default)
+    max_stars: int = 40  # the brightest stars of a field given to the identifier (as `MethodSolver`'s default)
     sample: int | None = None  # a seeded random subset of this many orientations of the grid (None: all)
     frames: int | None = None  # frames per orientation (a sequence); None: 1, SEQUENCE_FRAMES for a sequence method
 

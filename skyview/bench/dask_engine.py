@@ -30,16 +30,16 @@ def _context(method: str, scenario: Scenario, n: int, seed: int, method_params: 
     from skyview.bench.trials import TrialContext
     from skyview.core.attitude import random_attitudes
     from skyview.core.catalog import load_guide_catalog
-    from skyview.solver.pipeline import Solver
+    from skyview.solver.pipeline import MethodSolver
 
     key = (method, repr(scenario), n, seed, repr(sorted((method_params or {}).items())), variant, repr(sensor))
     if _STATE.get("key") != key:
         rng = np.random.default_rng(seed)  # the draws of run_bench, in its order
         catalog = load_guide_catalog()
         camera = scenario.camera()
-        solver = Solver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
-                        catalog=catalog, method_params=method_params, variant=variant,
-                        max_stars=scenario.max_stars)
+        solver = MethodSolver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
+                              catalog=catalog, method_params=method_params, variant=variant,
+                              max_stars=scenario.max_stars)
         ctx = TrialContext(solver=solver, catalog=catalog, camera=camera, scenario=scenario, sensor=sensor,
                             attitudes=random_attitudes(n, rng), seeds=rng.integers(0, 2**31 - 1, size=n))
         _STATE.clear()

@@ -5,7 +5,7 @@ pipeline and slews (tracking), in one section each, sharing one trial runner, on
 pool and one result format.
 
 Every trial renders a full sensor image with the simulator (random attitude, uniform on SO(3)),
-runs the same `Solver` that `skyview solve` uses, and scores the result against the truth sidecar:
+runs the same `MethodSolver` that `skyview solve` uses, and scores the result against the truth sidecar:
 
 - correct: solved, and every reported match is the star that was rendered there;
 - incorrect: solved, and at least one match is wrong (the outcome that must never happen);
@@ -40,7 +40,7 @@ from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scenarios import SLEW, SLEW_AXIS, SLEW_FRAMES, SLEW_STEP_DEG, Scenario
 from skyview.simulate.scoring import score_trial  # noqa: F401  (scoring against truth lives in one module)
 from skyview.simulate.truth import wrong_matches
-from skyview.solver.pipeline import BlindSolver, Solver, check_fov_error
+from skyview.solver.pipeline import BlindSolver, MethodSolver, check_fov_error
 
 OUTCOMES = ("correct", "inconclusive", "incorrect")
 BLIND_MAX_ERROR_PX = 5.0  # blind bench: a boresight error beyond this many pixels is incorrect
@@ -114,8 +114,8 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     catalog = load_guide_catalog()
     camera = scenario.camera()
     t0 = time.perf_counter()
-    solver = Solver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
-                    catalog=catalog, method_params=method_params, variant=variant, max_stars=scenario.max_stars)
+    solver = MethodSolver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
+                          catalog=catalog, method_params=method_params, variant=variant, max_stars=scenario.max_stars)
     setup_ms = (time.perf_counter() - t0) * 1e3
     ctx = TrialContext(solver=solver, catalog=catalog, camera=camera, scenario=scenario,
                         sensor=sensor or SensorModel(), attitudes=random_attitudes(n, rng),
@@ -709,7 +709,7 @@ def run_slew_bench(method: str | None, scenario: Scenario, n: int, *, seed: int 
     t0 = time.perf_counter()
     tracker = Tracker(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad, variant=variant,
                       catalog=catalog, max_stars=scenario.max_stars, method_params=method_params)
-    lis = tracker._solver  # the same Solver the tracker falls back to (None: the default pipeline)
+    lis = tracker._solver  # the same MethodSolver the tracker falls back to (None: the default pipeline)
     setup_ms = (time.perf_counter() - t0) * 1e3
     attitudes = random_attitudes(n, rng)
     seeds = rng.integers(0, 2**31 - 1, size=n)

@@ -12,7 +12,7 @@ has jpeg_quality) into a work folder, then times, one image after the other, in 
 - decode: `skyview.detect.centroids.load_image` of the file (reported apart; the totals below exclude it,
   and "total + decode" includes it);
 - for each calibrated method (default: the improved angle and triangle methods, issue 11's pair;
-  `methods=` or the CLI's `--method/--variant` choose others), one `Solver` for the scenario's
+  `methods=` or the CLI's `--method/--variant` choose others), one `MethodSolver` for the scenario's
   camera, exact FOV, `solve_array` on the decoded
   image: centroids, identification, attitude (verification is part of identification: every method
   ends in it), total; scored against the truth sidecar as `skyview bench` scores (a wrong match is
@@ -209,7 +209,7 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
 
     from skyview.core.catalog import load_guide_catalog
     from skyview.detect.centroids import load_image
-    from skyview.solver.pipeline import BlindSolver, Solver, solve_image
+    from skyview.solver.pipeline import BlindSolver, MethodSolver, solve_image
 
     if n < 1:
         raise BadInput("the number of images (-n) must be at least 1")
@@ -235,8 +235,8 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
         setup, solvers = {}, []
         for method, variant in methods:
             t0 = time.perf_counter()
-            solver = Solver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
-                            catalog=catalog, variant=variant, max_stars=scenario.max_stars)
+            solver = MethodSolver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
+                                  catalog=catalog, variant=variant, max_stars=scenario.max_stars)
             name = f"{method} ({variant})"
             setup[name] = {"solver_ms": (time.perf_counter() - t0) * 1e3, **solver.setup_ms}
             solvers.append((name, f"skyview {method} ({variant}), exact FOV", solver.solve_array))

@@ -1,5 +1,5 @@
 """One Monte Carlo trial, wherever it runs (in this process, a forked worker or a Dask worker): render the
-frame of trial k from the context's attitudes and seeds, solve it with the context's `Solver`, score it
+frame of trial k from the context's attitudes and seeds, solve it with the context's `MethodSolver`, score it
 against the truth. Trial k gets the same attitude and noise seed wherever it runs."""
 
 from __future__ import annotations
@@ -14,12 +14,12 @@ from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scenarios import Scenario
 from skyview.simulate.scoring import score_trial
 from skyview.simulate.truth import wrong_matches
-from skyview.solver.pipeline import Solver
+from skyview.solver.pipeline import MethodSolver
 
 
 @dataclass
 class TrialContext:
-    solver: Solver
+    solver: MethodSolver
     catalog: object
     camera: object
     scenario: Scenario

@@ -98,7 +98,7 @@ def cmd_demo(a) -> int:
     from skyview.core.camera import Camera
     from skyview.core.catalog import REPO_ROOT, load_guide_catalog
     from skyview.simulate.render import SensorModel, simulate_image
-    from skyview.solver.pipeline import Solver, blind_solver
+    from skyview.solver.pipeline import MethodSolver, blind_solver
 
     t0 = time.perf_counter()
     catalog = load_guide_catalog()
@@ -114,7 +114,7 @@ def cmd_demo(a) -> int:
             out["truth"] = against_truth(result, R_true, truth)
         return out
 
-    solver = Solver(camera, a.method, catalog=catalog, variant=a.variant)
+    solver = MethodSolver(camera, a.method, catalog=catalog, variant=a.variant)
     print(f"\n2. {a.method} ({a.variant}), told the exact FOV (database loaded in "
           f"{solver.setup_ms['database_load']:.0f} ms; a first run builds and caches it):")
     result = solver.solve_array(frame.image, measure_all=True)  # every detected star, as its recording draws them

@@ -72,7 +72,7 @@ Improvements (options, off by default; `IMPROVED_PARAMS` turns them on, with n_a
   swap ranks between the image and the catalog; the assignment of such stars is the permutation
   (within the thresholds) with the smallest attitude residual, instead of the rank order.
 
-Images. A 20 deg field at Hp 6 holds a median of ~39 stars, over 100 in the Milky Way. The Solver
+Images. A 20 deg field at Hp 6 holds a median of ~39 stars, over 100 in the Milky Way. The MethodSolver
 hands the identifier only its max_stars = 40 brightest centroids (its default); the faint stars it
 drops are adjacent stars of the patterns. On sun20 (300 attitudes) the improved variant identifies
 95 % with max_stars = 40 and 100 % with max_stars = 200; the paper's variant 17 % and 25 %.

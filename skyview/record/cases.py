@@ -38,7 +38,7 @@ class Case:
     seed: int
     frame: Any  # simulate.SimulatedFrame
     result: Any  # pipeline.SolveResult
-    solver: Any  # pipeline.Solver
+    solver: Any  # pipeline.MethodSolver
     outcome: str  # correct | inconclusive | incorrect (bench.score_trial)
     meta: dict = field(default_factory=dict)
 
@@ -50,7 +50,7 @@ class CaseRunner:
         from skyview.core.catalog import load_guide_catalog
         from skyview.identify import METHODS
         from skyview.simulate.scenarios import get_scenario
-        from skyview.solver.pipeline import Solver
+        from skyview.solver.pipeline import MethodSolver
 
         if method not in METHODS:
             raise BadInput(f"unknown method {method!r}: choose from {', '.join(METHODS)}")
@@ -58,8 +58,9 @@ class CaseRunner:
         self.method, self.variant = method, variant
         self.catalog = catalog if catalog is not None else load_guide_catalog()
         self.camera = self.scenario.camera()
-        self.solver = Solver(self.camera, method, mag_limit=self.scenario.mag_limit, sigma_rad=self.scenario.sigma_rad,
-                             catalog=self.catalog, variant=variant, max_stars=self.scenario.max_stars)
+        self.solver = MethodSolver(self.camera, method, mag_limit=self.scenario.mag_limit,
+                                   sigma_rad=self.scenario.sigma_rad, catalog=self.catalog, variant=variant,
+                                   max_stars=self.scenario.max_stars)
 
     def run(self, seed: int) -> Case:
         from skyview.simulate.render import SensorModel, simulate_image

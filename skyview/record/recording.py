@@ -180,7 +180,7 @@ def record_solve(path: str | os.PathLike, result, image: np.ndarray, *, catalog,
                  force: bool = False, meta: dict | None = None, name: str | None = None) -> RecordInfo:
     """Write `result` (a pipeline.SolveResult of `image`) as a Rerun recording at `path`.
 
-    catalog: the guide catalog the solver used (`Solver.catalog`: step rows and matches are rows of it).
+    catalog: the guide catalog the solver used (`MethodSolver.catalog`: step rows and matches are rows of it).
     truth: the simulator's truth dict when known (true attitude, drawn stars, false stars). meta: extra
     key/values for the result document. The file is written next to `path` and moved into place only when
     complete: nothing is overwritten unless `force`, and a failed write leaves nothing behind.
@@ -195,7 +195,8 @@ def record_solve(path: str | os.PathLike, result, image: np.ndarray, *, catalog,
     missing = [m["hip"] for m in result.matches if not _has_hip(catalog, m["hip"])]
     if missing:
         raise BadInput(f"the catalog given ({len(catalog)} stars) lacks matched star(s) HIP "
-                       f"{', '.join(map(str, missing[:5]))}: it is not the one the solver used (pass Solver.catalog)")
+                       f"{', '.join(map(str, missing[:5]))}: it is not the one the solver used "
+                       f"(pass MethodSolver.catalog)")
     R_est = None if result.R is None else np.asarray(result.R, dtype=np.float64)
     R_true = None if truth is None else np.asarray(truth["R"], dtype=np.float64)
     R_view = R_est if R_est is not None else R_true

@@ -34,7 +34,7 @@ class Scenario:
     vignetting: float = 0.0  # fraction of light lost at the image corners (cos^4-shaped profile)
     sky_gradient: float = 0.0  # fraction by which the sky differs across the frame (left to right)
     jpeg_quality: int | None = None  # the image goes through a JPEG at this quality (1..100)
-    k1: float = 0.0  # radial distortion of the camera (OpenCV k1, k2), rendered and known to Solver
+    k1: float = 0.0  # radial distortion of the camera (OpenCV k1, k2), rendered and known to MethodSolver
     k2: float = 0.0
     # the stars rendered: "guide" (Hipparcos-2 to Hp 9) or "deep" (+ Gaia DR3 to G 10, skyview.core.deep_catalog:
     # the sky a telescope's narrow field shows)

@@ -1,6 +1,6 @@
 """Image -> centroids -> unit vectors -> identification -> verified attitude.
 
-`Solver` holds what is slow to make (guide catalog, camera, the method's database) and solves many
+`MethodSolver` holds what is slow to make (guide catalog, camera, the method's database) and solves many
 images of one camera with one method (the calibrated mode of the papers' benches). `BlindSolver`
 solves images of any camera with no field of view given: scale-free patterns, then the camera
 (FOV, k1, k2) fitted and the shared verification (`skyview.identify.blind`). `solve_image` is the
@@ -29,7 +29,7 @@ from skyview.identify import make_identifier
 from skyview.io.fits import undeclared_row_order
 from skyview.solver.result import NOT_SOLVED, SOLVED, SolveResult, observation, result_from_identification
 
-__all__ = ["Solver", "BlindSolver", "SolveResult", "solve_image", "blind_solver", "result_from_identification",
+__all__ = ["MethodSolver", "BlindSolver", "SolveResult", "solve_image", "blind_solver", "result_from_identification",
            "observation", "SOLVED", "NOT_SOLVED", "check_fov_error", "check_solve_options", "as_image"]
 DEFAULT_CENTROID_SIGMA_PX = 0.5
 DEFAULT_FOV_ERROR = 0.1  # an FOV given without a tolerance is taken as good to +-10 %
@@ -43,8 +43,10 @@ PAPER_MAG_LIMIT = 6.0
 AUTO_DEPTH_METHODS = ("angle",)
 
 
-class Solver:
-    """A configured solver: catalog + camera + method database, ready for many images."""
+class MethodSolver:
+    """One identification method at a known camera, configured: catalog + camera + the method's database,
+    ready for many images (the public `skyview.Solver`, in `skyview.solver.api`, is the one users meet:
+    it runs this, or the blind pipeline `BlindSolver`)."""
 
     def __init__(self, camera: Camera, method: str = "angle", *, mag_limit: float = 6.0,
                  sigma_rad: float | None = None, epoch: float = DEFAULT_EPOCH,
@@ -490,7 +492,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     patterns, camera fitted; then, given an FOV, the improved angle method at it); method="angle",
     "triangle", ... runs that method (`variant` "paper" or "improved"), on the camera the blind
     front end fitted when fov_error > 0. mag_limit=None takes the depth from the image. Other
-    keyword arguments go to `Solver` (sigma_rad, method_params). Solvers are cached (the 8 most
+    keyword arguments go to `MethodSolver` (sigma_rad, method_params). Solvers are cached (the 8 most
     recently used configurations), so a second call reuses the loaded database. try_flipped_rows:
     when the image does not solve, solve it upside down (rows reversed) once more; None does so for a
     FITS file that does not declare its row order (see `skyview.io.fits`). deep: search fields narrower
@@ -528,9 +530,9 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                      auto_mag_limit(_base_catalog(epoch), camera, n_depth))
         key = (method_name, var, camera, depth, epoch, first_try, repr(sorted(kw.items())),
                repr(sorted(common.items())))
-        solver = _SOLVERS.get_or_make(key, lambda: Solver(camera, method_name, mag_limit=depth, epoch=epoch,
-                                                          catalog=_base_catalog(epoch), variant=var,
-                                                          resolve_blends=first_try, **common, **kw))
+        solver = _SOLVERS.get_or_make(key, lambda: MethodSolver(camera, method_name, mag_limit=depth, epoch=epoch,
+                                                                catalog=_base_catalog(epoch), variant=var,
+                                                                resolve_blends=first_try, **common, **kw))
         res = solver.solve_centroids(centroids)
         res.mag_limit = depth
         return res

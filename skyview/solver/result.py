@@ -1,7 +1,7 @@
 """What every solver shares around an identifier: centroids in, `SolveResult` out.
 
 `observation` turns the brightest centroids into the identifier's input (camera-frame unit vectors,
-brightness, the direction sigma): `Solver`, `BlindSolver`, `SequenceSolver` and the viewer's runs all
+brightness, the direction sigma): `MethodSolver`, `BlindSolver`, `SequenceSolver` and the viewer's runs all
 call it. `result_from_identification` turns an identification back into a `SolveResult`: the attitude
 from every match, its 1-sigma from the residuals, and the matches with the catalog rows they refer to
 (HIP, RA/Dec at the catalog's epoch, magnitude), so a sink (JSON, text, the typed API, a recording)
@@ -144,7 +144,7 @@ def result_from_identification(centroids: Centroids, obs: Observation, ident: Id
                                identify_ms: float = 0.0) -> SolveResult:
     """The `SolveResult` of an identification of `obs` (the observation of `centroids`): the attitude
     from every match by `estimator`, its 1-sigma, the matches with their catalog rows and residuals.
-    `Solver` uses it for each image; a sequence uses it for each of its frames (ident=None: nothing was
+    `MethodSolver` uses it for each image; a sequence uses it for each of its frames (ident=None: nothing was
     identified because the image has no stars)."""
     t1 = time.perf_counter()
     common = dict(method=method, variant=variant, camera=camera, centroids=centroids,

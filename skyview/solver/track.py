@@ -3,7 +3,7 @@
 Long (over 500 lines) because `Tracker` is one state machine (lost-in-space, predicted windows,
 verification of the tracked matches, loss of lock) whose stages share its state; the rest is short.
 
-`Tracker` solves the first frame lost-in-space (LIS) with the given method through `Solver` (or, with
+`Tracker` solves the first frame lost-in-space (LIS) with the given method through `MethodSolver` (or, with
 no method, the default pipeline: the blind solver, then the improved angle method at the given FOV,
 as `solve_image` runs them). For every later frame it
 
@@ -68,7 +68,7 @@ from skyview.solver.pipeline import (
     PAPER_MAG_LIMIT,
     SOLVED,
     BlindSolver,
-    Solver,
+    MethodSolver,
     SolveResult,
     as_image,
     blind_solver,
@@ -192,9 +192,9 @@ class Tracker:
 
     camera: the camera (its FOV and distortion); None only with method None (the blind pipeline then
     fits it on the first lost-in-space frame, and tracking uses the fitted camera). method: an
-    identification method for lost-in-space (through `Solver`), or None for the default pipeline.
+    identification method for lost-in-space (through `MethodSolver`), or None for the default pipeline.
     mag_limit: the catalog depth for tracking and for the method (default Hp 6, as `solve_image`'s
-    methods). Other keyword arguments go to `Solver` (method_params, estimator, ...).
+    methods). Other keyword arguments go to `MethodSolver` (method_params, estimator, ...).
     """
 
     def __init__(self, camera: Camera | None = None, method: str | None = None, *, mag_limit: float | None = None,
@@ -233,15 +233,15 @@ class Tracker:
             raise BadInput(f"tracking needs windows around at least {MIN_TRACK_MATCHES + 1} stars")
         self.camera = camera
         self.catalog = self.base.brighter_than(self.mag_limit)
-        self._solver: Solver | None = None
-        self._fallback: Solver | None = None
+        self._solver: MethodSolver | None = None
+        self._fallback: MethodSolver | None = None
         self._blind = blind
         self._progress = progress
         self._method_params = dict(method_params or {})
         if method is not None:
-            self._solver = Solver(camera, method, mag_limit=self.mag_limit, sigma_rad=sigma_rad, epoch=epoch,
-                                  catalog=self.base, max_stars=max_stars, k_sigma=k_sigma,
-                                  method_params=method_params, variant=variant)
+            self._solver = MethodSolver(camera, method, mag_limit=self.mag_limit, sigma_rad=sigma_rad, epoch=epoch,
+                                        catalog=self.base, max_stars=max_stars, k_sigma=k_sigma,
+                                        method_params=method_params, variant=variant)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -610,9 +610,9 @@ class Tracker:
                 self._camera_fitted = lis.camera_fitted
             elif self.camera is not None:  # the default pipeline's second stage: improved angle at the FOV
                 if self._fallback is None:
-                    self._fallback = Solver(self.camera, "angle", mag_limit=self.mag_limit, sigma_rad=self.given_sigma,
-                                            catalog=self.base, max_stars=self.max_stars, k_sigma=self.k_sigma,
-                                            variant="improved")
+                    self._fallback = MethodSolver(self.camera, "angle", mag_limit=self.mag_limit,
+                                                  sigma_rad=self.given_sigma, catalog=self.base,
+                                                  max_stars=self.max_stars, k_sigma=self.k_sigma, variant="improved")
                 first = lis.reason
                 lis = self._fallback.solve_centroids(centroids)
                 if not lis.solved:

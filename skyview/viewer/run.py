@@ -1,4 +1,4 @@
-"""What the viewer runs: a scenario or an image, solved by the same `Solver` as the CLI.
+"""What the viewer runs: a scenario or an image, solved by the same `MethodSolver` as the CLI.
 
 No identification logic here: a `Run` is the simulator's image and truth, the pipeline's
 `SolveResult`, and what `skyview.present.drawables` derives from them for drawing. Solvers (catalog + method database)
@@ -26,7 +26,7 @@ from skyview.identify.base import is_sequence_method
 from skyview.present.drawables import StepView, match_groups, step_views
 from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scoring import centroid_outcomes
-from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, BlindSolver, Solver, SolveResult
+from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, BlindSolver, MethodSolver, SolveResult
 
 ARCSEC = math.pi / 180.0 / 3600.0
 RESOLUTIONS = ("512x512", "1024x1024", "1280x1024", "2048x2048")
@@ -189,7 +189,7 @@ class Solvers:
         self._size = size
         self.queue = SolveQueue(slots)  # every tab's solves take turns here (first come, first served)
         self._lock = threading.Lock()
-        self._items: OrderedDict[tuple, tuple[Solver, threading.Lock]] = OrderedDict()
+        self._items: OrderedDict[tuple, tuple[MethodSolver, threading.Lock]] = OrderedDict()
         self._building: dict[tuple, threading.Lock] = {}
         self._catalog: GuideCatalog | None = None
 
@@ -201,11 +201,11 @@ class Solvers:
             return self._catalog
 
     def get(self, camera: Camera, method: str, variant: str, mag_limit: float,
-            sigma_rad: float) -> tuple[Solver, threading.Lock]:
-        """The single-image `Solver` for this configuration (built once, then shared)."""
+            sigma_rad: float) -> tuple[MethodSolver, threading.Lock]:
+        """The single-image `MethodSolver` for this configuration (built once, then shared)."""
         key = (camera, method, variant, round(float(mag_limit), 3), round(float(sigma_rad), 12))
-        return self.get_or_build(key, lambda catalog: Solver(camera, method, catalog=catalog, mag_limit=mag_limit,
-                                                             sigma_rad=sigma_rad, variant=variant))
+        return self.get_or_build(key, lambda catalog: MethodSolver(camera, method, catalog=catalog, mag_limit=mag_limit,
+                                                                   sigma_rad=sigma_rad, variant=variant))
 
     def get_or_build(self, key: tuple, build) -> tuple[object, threading.Lock]:
         """The item cached under `key`, else `build(base_catalog)` (one build per key at a time), with a
