@@ -64,6 +64,7 @@ CODE_KEYS = pdb.pack_key(BIN_OFFSETS[np.concatenate(_CODE_OFFSETS)])
 WIDE_FROM_DEG = 54.0  # FOVs above this are searched after the narrower ones (see BlindIdentifier.identify)
 PATTERN_SLIDE = 8  # when the brightest stars' patterns do not verify, the window of pattern stars moves this far
 MAX_SLIDE_DEPTH = 40  # down to this many stars (the verification's own depth)
+BATCH_STARS = (5, 6, 8, 10, 12, 14, 16)  # the quads are looked up in batches: those among the 5 brightest, then 6, ...
 PLACES_CAP = 20_000  # a look-up step draws at most this many of its hit patterns (an even sample)
 
 
@@ -199,7 +200,9 @@ class BlindIdentifier(CameraRefit):
 
     def _search(self, uv, pat, width, height, lo, hi, state: "_Search", steps, t0, budget: int):
         """The quads of the pattern stars `pat` (indices of uv, brightest first), looked up and checked in
-        batches: the quads of the first 8, then those that add the next stars. Fields wider than
+        batches (BATCH_STARS): the quads of the 5 brightest, then those that add the next stars, each batch
+        checked before the next is looked up (the candidates are checked quad by quad in brightness order
+        either way: a field whose brightest stars are stars costs one small look-up). Fields wider than
         WIDE_FROM_DEG (a ladder twice as long, for a few cameras) are a section of their own, searched
         after the narrower one at each batch, each section with `budget` checks. Returns (the verified
         result or None, the number of candidates)."""
@@ -216,7 +219,7 @@ class BlindIdentifier(CameraRefit):
         sections = [(a, b) for a, b in ((lo, min(hi, WIDE_FROM_DEG)), (max(lo, WIDE_FROM_DEG), hi)) if a < b]
         spent = [0] * len(sections)
         exhausted: set[int] = set()
-        for upto in sorted({min(n_pat, k) for k in (8, 10, 12, 14, 16, n_pat) if k <= n_pat} | {n_pat}):
+        for upto in sorted({min(n_pat, k) for k in BATCH_STARS if k <= n_pat} | {n_pat}):
             batch = np.flatnonzero((quads.max(axis=1) < upto) & (quads.max(axis=1) >= state.done_upto))
             state.done_upto = upto
             if len(batch) == 0:
