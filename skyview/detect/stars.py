@@ -76,16 +76,18 @@ def star_moments(image: np.ndarray, c: Centroids, idx: np.ndarray, radius: int =
     win -= row_median(border)[:, None, None]  # the local background (vignetting, glow)
     peak = win[:, radius - 1: radius + 2, radius - 1: radius + 2].max(axis=(1, 2))
     floor = np.maximum(c.threshold, PEAK_FRACTION * peak)[:, None, None]
-    above = np.where(win > floor, win, 0.0)
-    dx = d[None, None, :] - (uv[:, 0] - np.rint(uv[:, 0]))[:, None, None]
-    dy = d[None, :, None] - (uv[:, 1] - np.rint(uv[:, 1]))[:, None, None]
-    r2 = dx ** 2 + dy ** 2
+    # the pixels above the floor, listed once (a star's few dozen of its window's 49 x 49): the aperture's
+    # sums over them
+    k, iy, ix = np.nonzero(win > floor)
+    value = win[k, iy, ix]
+    r2 = (d[ix] - (uv[k, 0] - np.rint(uv[k, 0]))) ** 2 + (d[iy] - (uv[k, 1] - np.rint(uv[k, 1]))) ** 2
     aperture = np.full(len(uv), 4.0)
     s_in, f_in = np.full(len(uv), np.nan), np.zeros(len(uv))
     for _ in range(5):
-        w = np.where(r2 <= aperture[:, None, None] ** 2, above, 0.0)
-        f_in = w.sum(axis=(1, 2))
-        s_in = np.sqrt((w * r2).sum(axis=(1, 2)) / (2.0 * np.maximum(f_in, 1e-300))) / TRUNCATED_MOMENT
+        w = np.where(r2 <= aperture[k] ** 2, value, 0.0)
+        f_in = np.bincount(k, weights=w, minlength=len(uv))
+        s_in = np.sqrt(np.bincount(k, weights=w * r2, minlength=len(uv)) / (2.0 * np.maximum(f_in, 1e-300))
+                       ) / TRUNCATED_MOMENT
         s_in[f_in <= 0] = np.nan
         aperture = np.clip(3.0 * np.nan_to_num(s_in, nan=1.0) + 2.0, 4.0, float(radius))
     sigma[inside], flux[inside] = s_in, np.where(f_in > 0, f_in, np.nan)
