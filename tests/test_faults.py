@@ -12,14 +12,12 @@ import subprocess
 import sys
 import time
 import zlib
-from collections import Counter
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from skyview.bench import runner as bench
 from skyview.cli import main
 
 REAL = Path(__file__).parent / "data" / "real-images"
@@ -218,7 +216,9 @@ def test_a_truncated_cached_database_heals_itself(capsys, tmp_path, monkeypatch,
 
 # ------------------------------------------------------------------------------------------ benches
 
-_MARK = {}
+def _mark(path: str) -> str:
+    """The context of the trials below: the path of a file that says whether a worker died already."""
+    return path
 
 
 def _dies_once(ctx, k):
@@ -231,14 +231,43 @@ def _dies_once(ctx, k):
 
 
 def test_a_killed_worker_loses_no_trial(tmp_path):
-    counts = Counter()
-    bar = bench.Progress(20, "test", False)
-    trials = bench._trials_in_processes(str(tmp_path / "mark"), _dies_once, 20, 2, bar, counts)
+    """The benches' workers (`--jobs 2`: a LocalCluster of two processes) killed in the middle of a task:
+    the task is run again on a new worker, and a task that kills its worker twice has its trials reported
+    as lost, not dropped; every other trial is kept."""
+    from skyview.bench.dask_engine import trials_on_dask
+
+    trials = trials_on_dask(_mark, (str(tmp_path / "mark"),), _dies_once, 20, n_workers=2, chunk=5)
     assert [t["trial"] for t in trials] == list(range(20))
     lost = [t for t in trials if t["outcome"] == "error"]
-    # trial 13's chunk (10-14) died twice: reported, not dropped; trial 7's was retried and finished
+    # trial 13's task (10-14) died twice: reported, not dropped; trial 7's was run again and finished
     assert {t["trial"] for t in lost} == set(range(10, 15)) and all("died" in t["reason"] for t in lost)
     assert trials[7]["outcome"] == "correct"
+
+
+def _running(pid: int) -> bool:
+    """Whether the process is alive (not gone, not a zombie waiting to be reaped)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _descendants(pid: int) -> set[int]:
+    """The processes started by `pid`, and theirs (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    out, todo = set(), [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            if c not in out:
+                out.add(c)
+                todo.append(c)
+    return out
 
 
 @pytest.mark.slow
@@ -247,7 +276,9 @@ def test_ctrl_c_stops_a_bench_at_once_and_saves_what_finished(tmp_path):
     p = subprocess.Popen([sys.executable, "-m", "skyview", "bench", "-n", "2000", "--jobs", "2", "--quiet",
                           "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))  # as a background job
-    time.sleep(8)
+    time.sleep(12)
+    workers = _descendants(p.pid)
+    assert len(workers) >= 2  # the LocalCluster's two worker processes (and their nannies)
     t0 = time.perf_counter()
     p.send_signal(signal.SIGINT)
     stdout, stderr = p.communicate(timeout=30)
@@ -256,5 +287,4 @@ def test_ctrl_c_stops_a_bench_at_once_and_saves_what_finished(tmp_path):
     saved = json.loads(next(out.glob("*.json")).read_text())
     assert saved["interrupted"] and 0 < saved["trials_finished"] < 2000
     time.sleep(0.5)
-    left = subprocess.run(["pgrep", "-f", f"--out {out}"], capture_output=True, text=True)
-    assert left.stdout.strip() == ""  # no orphaned workers
+    assert not [w for w in workers if _running(w)]  # no orphaned workers

@@ -1,8 +1,8 @@
 """Monte Carlo evaluation of a method on a scenario: simulate -> solve -> score against truth.
 
-Long (over 900 lines) because it holds the three Monte Carlo benches, calibrated methods, the blind
-pipeline and slews (tracking), in one section each, sharing one trial runner, one fault-tolerant process
-pool and one result format.
+Long (over 700 lines) because it holds the three Monte Carlo benches, calibrated methods, the blind
+pipeline and slews (tracking), in one section each, sharing one trial runner and one result format; more
+than one process (`jobs`, `scheduler`) is the Dask engine's (`skyview.bench.dask_engine`).
 
 Every trial renders a full sensor image with the simulator (random attitude, uniform on SO(3)),
 runs the same `MethodSolver` that `skyview solve` uses, and scores the result against the truth sidecar:
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing
 import platform
 import sys
 import time
@@ -86,12 +85,11 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     """Run n trials; on_trial(trial, frame, result, solver), when given, is called after each trial is scored
     (e.g. skyview.record.recording.FailureRecorder); the trial's own timings are taken before it runs.
 
-    jobs > 1 runs the trials in that many forked processes (the solver and its database are built once,
-    before forking). Trial k always gets the same attitude and noise seed, so the outcomes are the
-    same as with jobs=1; only the timings differ (the processes share the machine).
-
-    scheduler: run the trials on Dask instead (`skyview.bench.dask_engine`: "local" for a LocalCluster of
-    `workers` processes, or a scheduler's address); the same trials and outcomes."""
+    jobs > 1 runs the trials on a LocalCluster of that many worker processes (`skyview.bench.dask_engine`;
+    each builds the solver once, its database from the cache this process filled). Trial k always gets the
+    same attitude and noise seed, so the outcomes are the same as with jobs=1; only the timings differ (the
+    processes share the machine). scheduler: the same on a Dask cluster ("local" for a LocalCluster of
+    `workers` processes, or a scheduler's address)."""
     if n < 1:
         raise BadInput("the number of trials (-n) must be at least 1")
     if scenario.is_slew:
@@ -123,17 +121,12 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     counts = Counter()
     bar = Progress(n, f"{method}({variant})/{scenario.name}", progress)
     each = None if on_trial is None else (lambda trial, frame, result: on_trial(trial, frame, result, solver))
-    if scheduler is not None:
-        from skyview.bench.dask_engine import trials_on_dask
+    from skyview.bench.dask_engine import LOCAL, method_context
 
-        trials = trials_on_dask(method, scenario, n, seed=seed, method_params=method_params, variant=variant,
-                                sensor=ctx.sensor, scheduler=scheduler, n_workers=workers,
-                                on_trial=lambda t, c: bar.update(sum(c.values()), c))
-        interrupted = False
-        if not any(t["outcome"] != "error" for t in trials):
-            raise SkyviewError(f"no trial could run: {trials[0]['reason'] if trials else 'no trials'}")
-    else:
-        trials, interrupted = _collect_trials(ctx, run_trial, n, jobs, bar, counts, each)
+    where = (scheduler, workers) if scheduler is not None else ((LOCAL, jobs) if jobs > 1 else None)
+    trials, interrupted = _collect_trials(ctx, run_trial, n, bar, counts, each, where=where,
+                                          make=(method_context, (method, scenario, n, seed, method_params, variant,
+                                                                 ctx.sensor)))
     summary = summarize(method, scenario, seed, [t for t in trials if t["outcome"] != "error"], setup_ms, solver)
     summary["jobs"] = jobs
     if scheduler is not None:
@@ -142,15 +135,19 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
     return summary
 
 
-def _collect_trials(ctx, run_one: Callable, n: int, jobs: int, bar: Progress, counts: Counter,
-                    each: Callable | None = None) -> tuple[list[dict], bool]:
-    """run_one(ctx, k) for k < n, in this process (each(trial, frame, result) after every trial) or in
-    `jobs` forked ones; (the trials, whether Ctrl-C cut the run short). Raises KeyboardInterrupt when
-    nothing finished, SkyviewError when no trial could run."""
+def _collect_trials(ctx, run_one: Callable, n: int, bar: Progress, counts: Counter, each: Callable | None = None,
+                    *, where: tuple[str, int] | None = None, make: tuple[Callable, tuple] | None = None
+                    ) -> tuple[list[dict], bool]:
+    """run_one(ctx, k) for k < n, in this process (each(trial, frame, result) after every trial), or with
+    where = (scheduler, workers) on Dask, each worker building its context by make = (function, args)
+    (`skyview.bench.dask_engine`); (the trials, whether Ctrl-C cut the run short). Raises
+    KeyboardInterrupt when nothing finished, SkyviewError when no trial could run."""
+    from skyview.bench.dask_engine import Interrupted, trials_on_dask
+
     trials: list[dict] = []
     interrupted = False
     try:
-        if jobs == 1:
+        if where is None:
             for k in range(n):
                 trial, frame, result = run_one(ctx, k)
                 trials.append(trial)
@@ -159,7 +156,13 @@ def _collect_trials(ctx, run_one: Callable, n: int, jobs: int, bar: Progress, co
                     each(trial, frame, result)
                 bar.update(k + 1, counts)
         else:
-            trials = _trials_in_processes(ctx, run_one, n, jobs, bar, counts)
+            def arrived(_trial, c):
+                counts.clear()
+                counts.update(c)
+                bar.update(sum(c.values()), c)
+
+            trials = trials_on_dask(make[0], make[1], run_one, n, scheduler=where[0], n_workers=where[1],
+                                    on_trial=arrived)
     except (KeyboardInterrupt, Interrupted) as exc:
         trials = getattr(exc, "trials", trials)
         interrupted = True
@@ -177,168 +180,6 @@ def _note_faults(summary: dict, trials: list[dict], n: int, interrupted: bool) -
     summary["trials_finished"] = len(trials) - len(errors)
     summary["trials_failed_to_run"] = [{"trial": t["trial"], "reason": t["reason"]} for t in errors]
     summary["interrupted"] = bool(interrupted)
-
-
-BENCH_CHUNK = 5  # trials per task when jobs > 1
-
-
-_CONTEXT: tuple | None = None  # (context, trial function), inherited by the forked workers
-MAX_CHUNK_TRIES = 2  # a chunk whose worker died is run once more, then its trials are reported as lost
-
-
-class Interrupted(Exception):
-    """Ctrl-C during a bench: the trials finished so far travel with it."""
-
-    def __init__(self, trials: list[dict]):
-        super().__init__(f"interrupted after {len(trials)} trials")
-        self.trials = trials
-
-
-def _worker(conn) -> None:
-    """A forked bench worker: receives chunks of trial indices on its own pipe and sends back the trials,
-    until it receives None. It dies with its parent (PR_SET_PDEATHSIG), ignores Ctrl-C (the parent stops
-    it) and reports a trial that raises. Each worker has its own pipe, so a worker killed in the middle
-    of a message cannot hold a lock the others need (a shared multiprocessing.Queue can)."""
-    import signal as _signal
-
-    _signal.signal(_signal.SIGINT, _signal.SIG_IGN)
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, _signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-    ctx, run_one = _CONTEXT
-    while True:
-        try:
-            item = conn.recv()
-        except EOFError:
-            return
-        if item is None:
-            return
-        cid, indices = item
-        out = []
-        for k in indices:
-            try:
-                out.append(run_one(ctx, k)[0])
-            except Exception as exc:  # one trial's bug is a reported trial, not a lost run
-                out.append({"trial": k, "outcome": "error", "reason": f"{type(exc).__name__}: {exc}"})
-        conn.send((cid, out))
-
-
-def _trials_in_processes(ctx, run_one: Callable, n: int, jobs: int, bar: Progress, counts: Counter) -> list[dict]:
-    """run_one(ctx, k)[0] for k < n in `jobs` forked processes (ctx is inherited, not pickled), sorted by k.
-
-    Survives faults: a worker that dies (killed, out of memory) has its chunk run again by a new worker
-    (MAX_CHUNK_TRIES in all), then its trials are reported with outcome "error"; every finished trial is
-    kept. Ctrl-C stops the workers at once and raises Interrupted with the trials finished so far; the
-    workers also die with this process if it is killed."""
-    from collections import deque
-    from multiprocessing.connection import wait
-
-    global _CONTEXT
-    _CONTEXT = (ctx, run_one)
-    mp = multiprocessing.get_context("fork")
-    chunks = {cid: list(range(i, min(i + BENCH_CHUNK, n))) for cid, i in enumerate(range(0, n, BENCH_CHUNK))}
-    todo = deque(chunks)
-    tries = Counter()
-    pending = set(chunks)
-    workers: dict[int, tuple] = {}  # worker id -> (process, parent's end of its pipe, chunk it runs or None)
-    trials: list[dict] = []
-    next_id = 0
-
-    def start_worker():
-        nonlocal next_id
-        parent, child = mp.Pipe()
-        w = mp.Process(target=_worker, args=(child,), daemon=True)
-        w.start()
-        child.close()
-        workers[next_id] = (w, parent, None)
-        next_id += 1
-
-    def feed():
-        for wid, (w, conn, cid) in list(workers.items()):
-            if cid is None and todo:
-                nxt = todo.popleft()
-                tries[nxt] += 1
-                try:
-                    conn.send((nxt, chunks[nxt]))
-                    workers[wid] = (w, conn, nxt)
-                except OSError:
-                    todo.appendleft(nxt)
-                    tries[nxt] -= 1
-
-    def lost(wid):
-        w, conn, cid = workers.pop(wid)
-        conn.close()
-        w.join(1.0)
-        if cid is not None and cid in pending:
-            if tries[cid] < MAX_CHUNK_TRIES:
-                todo.appendleft(cid)
-            else:
-                pending.discard(cid)
-                for k in chunks[cid]:
-                    trials.append({"trial": k, "outcome": "error",
-                                   "reason": f"its worker died twice (exit code {w.exitcode})"})
-                    counts["error"] += 1
-                bar.update(len(trials), counts)
-        if pending and len(workers) < min(jobs, len(pending)):
-            start_worker()
-
-    try:
-        for _ in range(min(jobs, len(chunks))):
-            start_worker()
-        while pending:
-            feed()
-            by_conn = {conn: wid for wid, (_, conn, _) in workers.items()}
-            for conn in wait(list(by_conn), timeout=0.5):
-                wid = by_conn[conn]
-                try:
-                    cid, out = conn.recv()
-                except (EOFError, OSError):
-                    lost(wid)
-                    continue
-                w, c, _ = workers[wid]
-                workers[wid] = (w, c, None)
-                if cid in pending:
-                    pending.discard(cid)
-                    for trial in out:
-                        trials.append(trial)
-                        counts[trial["outcome"]] += 1
-                    bar.update(len(trials), counts)
-            for wid, (w, _, _) in list(workers.items()):
-                if not w.is_alive() and wid in workers:
-                    lost(wid)
-        for w, conn, _ in workers.values():
-            try:
-                conn.send(None)
-            except OSError:
-                pass
-    except KeyboardInterrupt:
-        _stop_workers(workers)
-        trials.sort(key=lambda t: t["trial"])
-        raise Interrupted(trials) from None
-    finally:
-        _stop_workers(workers, grace_s=2.0)
-        _CONTEXT = None
-    trials.sort(key=lambda t: t["trial"])
-    return trials
-
-
-def _stop_workers(workers: dict, grace_s: float = 0.0) -> None:
-    """Stop the bench's worker processes: wait up to grace_s for them to finish, then terminate, kill."""
-    procs = [entry[0] for entry in workers.values()]
-    deadline = time.monotonic() + grace_s
-    for w in procs:
-        w.join(max(0.0, deadline - time.monotonic()))
-    for w in procs:
-        if w.is_alive():
-            w.terminate()
-    for w in procs:
-        w.join(1.0)
-        if w.is_alive():
-            w.kill()
-            w.join(1.0)
 
 
 def summarize(method: str, scenario: Scenario, seed: int, trials: list[dict], setup_ms: float, solver) -> dict:
@@ -498,7 +339,8 @@ def run_blind_bench(scenario: Scenario, n: int, *, seed: int = 0, fov_error: flo
 
     fov_error=None: no FOV is given (pure blind). fov_error=E (a fraction, 0 <= E < 1): the solver is
     told fov_deg = true FOV x (1 + u), u uniform in [-E, E] per trial, good to +-E. One BlindSolver is
-    built (or `solver` is used) for the whole run; jobs > 1 forks after building it. Trial k gets the
+    built (or `solver` is used) for the whole run; jobs > 1 runs the trials on a LocalCluster of that many
+    workers (`skyview.bench.dask_engine`), each building its own. Trial k gets the
     same attitude and noise seed as trial k of run_bench with the same seed.
 
     Outcomes as run_bench, and a solve whose boresight is more than max_error_px pixels (at the
@@ -513,34 +355,49 @@ def run_blind_bench(scenario: Scenario, n: int, *, seed: int = 0, fov_error: flo
     if fov_error is not None:
         check_fov_error(fov_error)
         fov_error = float(fov_error)
+    if jobs > 1 and solver is not None:
+        raise BadInput("a solver of your own runs in this process: leave out jobs (each worker builds the default)")
+    sensor = sensor or scenario.sensor()
+    t0 = time.perf_counter()
+    ctx = blind_context(scenario, n, seed, fov_error, sensor, float(max_error_px), solver=solver, progress=progress)
+    setup_ms = (time.perf_counter() - t0) * 1e3
+    counts: Counter = Counter()
+    given = "no FOV" if fov_error is None else f"FOV +-{100 * fov_error:g} %"
+    bar = Progress(n, f"blind/{scenario.name} ({given})", progress)
+    from skyview.bench.dask_engine import LOCAL
+
+    trials, interrupted = _collect_trials(ctx, _run_blind_trial, n, bar, counts,
+                                          where=(LOCAL, jobs) if jobs > 1 else None,
+                                          make=(blind_context, (scenario, n, seed, fov_error, sensor,
+                                                                float(max_error_px))))
+    summary = summarize_blind(scenario, seed, [t for t in trials if t["outcome"] != "error"], fov_error, setup_ms,
+                              ctx.solver, max_error_px)
+    summary["jobs"] = jobs
+    _note_faults(summary, trials, n, interrupted)
+    return summary
+
+
+def blind_context(scenario: Scenario, n: int, seed: int, fov_error: float | None, sensor: SensorModel,
+                  max_error_px: float, *, solver: BlindSolver | None = None, progress: bool = False) -> _BlindContext:
+    """The blind bench's context: its attitudes, noise seeds and FOV factors drawn from the seed (trial k
+    gets those of trial k of run_bench with the same seed) and a BlindSolver (or `solver`); built once in
+    this process, or once per worker on Dask (`skyview.bench.dask_engine`)."""
     rng = np.random.default_rng(seed)
-    camera = scenario.camera()
     attitudes = random_attitudes(n, rng)
     seeds = rng.integers(0, 2**31 - 1, size=n)
     factors = 1.0 + rng.uniform(-fov_error, fov_error, size=n) if fov_error else np.ones(n)
-    t0 = time.perf_counter()
     if solver is None:
         from skyview.identify.patterns import print_progress
 
         solver = BlindSolver(catalog=load_guide_catalog(), progress=print_progress if progress else None)
-    setup_ms = (time.perf_counter() - t0) * 1e3
     catalog = solver.catalog
     if scenario.catalog == "deep":
         from skyview.core.deep_catalog import load_deep_catalog
 
         catalog = load_deep_catalog(catalog.epoch)  # the stars rendered (the solver picks its own)
-    ctx = _BlindContext(solver=solver, catalog=catalog, camera=camera, scenario=scenario,
-                        sensor=sensor or scenario.sensor(), attitudes=attitudes, seeds=seeds, fov_factors=factors,
-                        fov_error=fov_error, max_error_px=float(max_error_px))
-    counts: Counter = Counter()
-    given = "no FOV" if fov_error is None else f"FOV +-{100 * fov_error:g} %"
-    bar = Progress(n, f"blind/{scenario.name} ({given})", progress)
-    trials, interrupted = _collect_trials(ctx, _run_blind_trial, n, jobs, bar, counts)
-    summary = summarize_blind(scenario, seed, [t for t in trials if t["outcome"] != "error"], fov_error, setup_ms,
-                              solver, max_error_px)
-    summary["jobs"] = jobs
-    _note_faults(summary, trials, n, interrupted)
-    return summary
+    return _BlindContext(solver=solver, catalog=catalog, camera=scenario.camera(), scenario=scenario, sensor=sensor,
+                         attitudes=attitudes, seeds=seeds, fov_factors=factors, fov_error=fov_error,
+                         max_error_px=float(max_error_px))
 
 
 def _run_blind_trial(ctx: _BlindContext, k: int):

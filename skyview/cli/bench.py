@@ -296,8 +296,8 @@ def add_parsers(sub) -> None:
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     add_param(b)
     b.add_argument("--jobs", type=int, default=1,
-                   help="trials run in this many processes (same outcomes as 1; the per-trial times then "
-                        "include the sharing of the cores)")
+                   help="trials run in this many worker processes (a Dask LocalCluster; same outcomes as 1; the "
+                        "per-trial times then include the sharing of the cores)")
     b.add_argument("--record-failures", default=None, metavar="DIR",
                    help="save a Rerun recording of every trial that is not correct into DIR (created if missing)")
     b.add_argument("--scheduler", default=None, metavar="ADDRESS",

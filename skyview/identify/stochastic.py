@@ -86,6 +86,11 @@ fitted; a row gets a roll (the vote) only when it goes to verification.
 Length (~890 lines): the statistics, the roll vote, the prediction with the known turn, the
 registration and the recursion are one method over a sequence; scoring against the truth (the true
 star's posterior) is `skyview.simulate.scoring.sequence_truth`, never here.
+
+Long (~900 lines, a docstring of 90) on purpose: by the identification template's contract
+(`skyview.identify.base`) everything the method is lives in its one module: the paper's description, its
+typed parameters, its search as a generator of hypotheses with its steps, and its improved variant; the
+shared verification is not here.
 """
 
 from __future__ import annotations

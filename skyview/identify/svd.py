@@ -118,6 +118,11 @@ Measured: docs/methods.md and docs/benchmarks.md (`skyview bench --compare` and
 Length (~850 lines, 120 of them this description): the mission catalog, the first-order bounds on
 singular values and vectors and the recognition are one paper's method; the failure causes against the
 truth are in tests/oracles/diagnose_svd.py, the common path the template of `skyview.identify.base`.
+
+Long (~850 lines, a docstring of 120) on purpose: by the identification template's contract
+(`skyview.identify.base`) everything the method is lives in its one module: the paper's description, its
+typed parameters, its search as a generator of hypotheses with its steps, and its improved variant; the
+shared verification is not here.
 """
 
 from __future__ import annotations
