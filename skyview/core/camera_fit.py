@@ -110,7 +110,8 @@ def _left_jacobian(v: np.ndarray) -> np.ndarray:
 
 
 def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, f_scale: float = 1.0,
-                        max_iter: int = 30, tol: float = 1e-10, jac=None, fun_jac=None) -> np.ndarray:
+                        max_iter: int = 30, tol: float = 1e-10, rtol_sigma: float = 1e-3, jac=None,
+                        fun_jac=None) -> np.ndarray:
     """Minimise sum rho(fun(p)^2 / f_scale^2) with rho the soft-L1 loss 2 (sqrt(1 + z) - 1) (what
     scipy's least_squares(loss="soft_l1") minimises), p within [lo, hi]: iteratively reweighted
     Gauss-Newton with step halving (each step from the weighted normal equations), the Jacobian
@@ -118,8 +119,9 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
     once, sharing their work (each trial point's Jacobian is the next step's). A handful of parameters
     and a few dozen stars: each iteration is a few small numpy calls (scipy's trust-region solver spends
     ten times as long in its own bookkeeping here). It stops when no parameter moves by more than `tol`
-    (radians of attitude, the log of the focal length, the corner's stretch: 1e-10 is far below any
-    noise, and the reweighting's slow last steps below it change the answer by ~1e-14)."""
+    (radians of attitude, the log of the focal length, the corner's stretch), or by more than
+    `rtol_sigma` of its own standard error (from the weighted normal matrix and the residuals' scatter):
+    the reweighting's slow last steps change the answer by far less than its noise."""
     p = np.clip(np.asarray(p0, dtype=np.float64), lo, hi)
 
     def soft(r):  # the weights and the cost
@@ -147,10 +149,14 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
         if J is None:
             J = jacobian(p, r)
         Jw = J * w[:, None]
+        normal = Jw.T @ J
         try:
-            step = -np.linalg.solve(Jw.T @ J, Jw.T @ r)
+            step = -np.linalg.solve(normal, Jw.T @ r)
+            scatter = float(np.sum(w * r * r)) / max(len(r) - len(p), 1)
+            sigma = np.sqrt(np.maximum(np.diag(np.linalg.inv(normal)), 0.0) * scatter)
         except np.linalg.LinAlgError:  # a parameter the stars do not constrain: the least-norm step
             step = -np.linalg.lstsq(J * np.sqrt(w)[:, None], r * np.sqrt(w), rcond=None)[0]
+            sigma = np.zeros(len(p))
         t = 1.0
         for _halve in range(8):
             q = np.clip(p + t * step, lo, hi)
@@ -161,9 +167,9 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
             t *= 0.5
         else:
             break  # no step lowers the cost: at the minimum
-        moved = float(np.max(np.abs(q - p)))
+        moved = np.abs(q - p)
         p, r, J, w, c = q, rq, Jq, wq, cq
-        if moved < tol:
+        if moved.max() < tol or np.all(moved < rtol_sigma * sigma):
             break
     return p
 
