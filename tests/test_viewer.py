@@ -965,9 +965,10 @@ def test_browser_renders_the_viewer_and_steps_through(tmp_path):
                     pg.get_by_text(f"Step {k + 1} / ", exact=False).first.wait_for(timeout=10000)
                     FIGURES[f"step_{k}_round_trip_ms"] = round((time.perf_counter() - t) * 1e3)
                     pg.wait_for_timeout(300)
-                    counts.append((pg.evaluate(JS_GEOMETRY, NODES["candidates"]),
-                                   pg.evaluate(JS_GEOMETRY, NODES["candidate_stars"])))
-                assert counts[0][0][0] > 0 and counts[0] != counts[1], counts  # other candidates lit
+                    counts.append(tuple(pg.evaluate(JS_GEOMETRY, NODES[role])
+                                        for role in ("candidates", "candidate_stars", "points")))
+                # the blind look-up's hits on the sky at step 0, fewer (other ones) at step 1
+                assert counts[0][2][0] > counts[1][2][0] > 0 and counts[0] != counts[1], counts
                 # the wide view: candidates light up across the sky
                 pg.get_by_role("tab", name="View").click()
                 pg.get_by_role("button", name="Wide sky").click()

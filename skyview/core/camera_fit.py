@@ -110,7 +110,7 @@ def _left_jacobian(v: np.ndarray) -> np.ndarray:
 
 
 def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, f_scale: float = 1.0,
-                        max_iter: int = 30, tol: float = 1e-10, rtol_sigma: float = 1e-3, jac=None,
+                        max_iter: int = 30, tol: float = 1e-10, rtol: float = 1e-4, jac=None,
                         fun_jac=None) -> np.ndarray:
     """Minimise sum rho(fun(p)^2 / f_scale^2) with rho the soft-L1 loss 2 (sqrt(1 + z) - 1) (what
     scipy's least_squares(loss="soft_l1") minimises), p within [lo, hi]: iteratively reweighted
@@ -119,9 +119,10 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
     once, sharing their work (each trial point's Jacobian is the next step's). A handful of parameters
     and a few dozen stars: each iteration is a few small numpy calls (scipy's trust-region solver spends
     ten times as long in its own bookkeeping here). It stops when no parameter moves by more than `tol`
-    (radians of attitude, the log of the focal length, the corner's stretch), or by more than
-    `rtol_sigma` of its own standard error (from the weighted normal matrix and the residuals' scatter):
-    the reweighting's slow last steps change the answer by far less than its noise."""
+    (radians of attitude, the log of the focal length, the corner's stretch), or when a whole step (not
+    halved) changed the residuals by less than `rtol` RMS (their own unit, pixels here: the weighted
+    change the Gauss-Newton model predicts, step' J'WJ step): the reweighting's slow last steps change
+    the answer by far less than its noise."""
     p = np.clip(np.asarray(p0, dtype=np.float64), lo, hi)
 
     def soft(r):  # the weights and the cost
@@ -152,11 +153,9 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
         normal = Jw.T @ J
         try:
             step = -np.linalg.solve(normal, Jw.T @ r)
-            scatter = float(np.sum(w * r * r)) / max(len(r) - len(p), 1)
-            sigma = np.sqrt(np.maximum(np.diag(np.linalg.inv(normal)), 0.0) * scatter)
         except np.linalg.LinAlgError:  # a parameter the stars do not constrain: the least-norm step
             step = -np.linalg.lstsq(J * np.sqrt(w)[:, None], r * np.sqrt(w), rcond=None)[0]
-            sigma = np.zeros(len(p))
+        change = float(step @ normal @ step)  # the weighted squared change of the residuals it predicts
         t = 1.0
         for _halve in range(8):
             q = np.clip(p + t * step, lo, hi)
@@ -167,9 +166,11 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
             t *= 0.5
         else:
             break  # no step lowers the cost: at the minimum
-        moved = np.abs(q - p)
+        moved = float(np.max(np.abs(q - p)))
         p, r, J, w, c = q, rq, Jq, wq, cq
-        if moved.max() < tol or np.all(moved < rtol_sigma * sigma):
+        # converged: nothing moves, or the whole Gauss-Newton step was taken and changed the residuals by
+        # far less than their noise (a halved step is not a small one: the minimum may still be far)
+        if moved < tol or (t == 1.0 and change < rtol * rtol * len(r)):
             break
     return p
 
