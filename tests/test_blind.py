@@ -399,6 +399,29 @@ def test_the_lookup_steps_tell_how_the_hits_thin_to_the_verified_pattern(blind):
     assert set(verified.catalog) in [set(g) for g in agree.groups]
 
 
+def test_the_default_pipeline_measures_the_stars_it_can_use_with_the_same_answer(catalog):
+    """A dense frame (200 detections): the default pipeline measures its brightest measured_stars and counts
+    the rest; the answer, blind and with the FOV given, is the one measuring every star gives, bit for bit;
+    measure_all (the viewer, `skyview solve --record`) measures them all."""
+    from skyview.simulate.scenarios import get_scenario
+    from skyview.solver.pipeline import MEASURED_STARS, measured_stars
+
+    sc = get_scenario("blind20")
+    kw = {**sc.render_kwargs(), "mag_limit": 9.0}
+    R = R_from_radec_roll(math.radians(280.0), math.radians(-20.0), math.radians(15.0))  # toward the Milky Way
+    image = simulate_image(catalog, sc.camera(), R, sc.sensor(), seed=3, **kw).image
+    assert measured_stars(40) == MEASURED_STARS and measured_stars(80) == 160
+    for fov in (None, 20.0):
+        some = solve_image(image, fov_deg=fov)
+        every = solve_image(image, fov_deg=fov, measure_all=True)
+        assert some.solved and every.solved
+        assert len(every.centroids) == every.centroids.n_detected > MEASURED_STARS
+        assert len(some.centroids) == MEASURED_STARS and some.centroids.n_detected == every.centroids.n_detected
+        assert np.array_equal(some.centroids.uv, every.centroids.uv[:MEASURED_STARS])
+        assert np.array_equal(some.R, every.R) and some.matches == every.matches
+        assert attitude_error_arcsec(some.R, R)["boresight"] < 10.0
+
+
 # ---------------------------------------------------------------------------------- FOV given: fast path first
 
 def _frame(catalog, fov, seed):

@@ -111,7 +111,8 @@ def cmd_solve(a) -> int:
                          estimator=a.estimator, max_stars=a.max_stars, k_sigma=a.k_sigma,
                          distortion=tuple(a.distortion), method_params=mparams or None,
                          variant=a.variant, memory_mb=a.memory_mb, progress=progress_line,
-                         try_flipped_rows=order == "", deep=False if a.no_deep else None, **params)
+                         try_flipped_rows=order == "", deep=False if a.no_deep else None,
+                         measure_all=bool(a.record), **params)
     truth = None
     if a.truth:
         truth = Path(a.truth)

