@@ -70,8 +70,9 @@ def _longest_line(p: np.ndarray, width: float, gap: float, min_members: int):
     i, j, dirs, lengths = i[ok], j[ok], dirs[ok] / lengths[ok, None], lengths[ok]
     if len(i) == 0:
         return None
-    rel = p[None, :, :] - p[i][:, None, :]  # (pairs, n, 2)
-    across = np.abs(rel[..., 0] * dirs[:, 1, None] - rel[..., 1] * dirs[:, 0, None])
+    # each point's distance from each pair's line, |(p_m - p_i) x d|, as one product: (pairs, n)
+    normal = np.stack([dirs[:, 1], -dirs[:, 0]], axis=1)
+    across = np.abs(normal @ p.T - np.einsum("ij,ij->i", normal, p[i])[:, None])
     members = across <= width
     counts = members.sum(axis=1)
     best = None
@@ -79,7 +80,7 @@ def _longest_line(p: np.ndarray, width: float, gap: float, min_members: int):
         if counts[k] < min_members or (best is not None and counts[k] <= len(best)):
             break
         idx = np.flatnonzero(members[k])
-        t = rel[k, idx] @ dirs[k]
+        t = (p[idx] - p[i[k]]) @ dirs[k]
         order = np.argsort(t)
         idx, t = idx[order], t[order]
         # split the points on the line into runs at gaps longer than `gap`; keep the longest run
