@@ -710,11 +710,14 @@ def _camera_is_off(res: SolveResult, z: float = 3.0) -> bool:
     rho2 = np.einsum("ij,ij->i", xc, xc)[:, None]
     A = np.stack([xc.ravel(), (xc * rho2).ravel()], axis=1)  # x_obs = x_cat (1 + ds + k |x_cat|^2)
     y = (xo - xc).ravel()
-    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-    dof = len(y) - 2
-    s2 = float(np.sum((y - A @ coef) ** 2)) / dof
-    cov = s2 * np.linalg.pinv(A.T @ A)
-    se = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    (a, b), (_, c) = A.T @ A  # the 2 x 2 normal equations, solved in closed form
+    det = a * c - b * b
+    if not det > 1e-12 * a * c:  # the two terms cannot be told apart (the stars all at one radius)
+        return False
+    g = A.T @ y
+    coef = np.array([c * g[0] - b * g[1], a * g[1] - b * g[0]]) / det
+    s2 = float(np.sum((y - A @ coef) ** 2)) / (len(y) - 2)
+    se = np.sqrt(np.maximum(s2 * np.array([c, a]) / det, 1e-300))
     return bool(np.any(np.abs(coef) > z * se))
 
 
