@@ -29,6 +29,7 @@ is `skyview.identify.patterns`):
 
 from __future__ import annotations
 
+import functools
 import itertools
 import time
 from dataclasses import dataclass
@@ -82,6 +83,27 @@ def _candidate_rows(table_rows: np.ndarray, patterns: np.ndarray) -> list[int]:
 def _candidate_groups(table_rows: np.ndarray, patterns: np.ndarray) -> list[tuple[int, ...]]:
     """The first CAP candidate patterns as groups of four catalog rows."""
     return [tuple(int(r) for r in g) for g in table_rows[patterns[:CAP]]]
+
+
+def _through_rungs(uv: np.ndarray, fovs: np.ndarray, width: int, height: int, model: str) -> np.ndarray:
+    """(rungs, N, 3): the pixels uv unprojected through each assumed FOV's camera, `Camera.unproject`'s
+    numbers; a pinhole's all rungs at once (x = (u - cx) / f, y likewise, z = 1, normalised)."""
+    if model != PINHOLE:
+        return np.stack([Camera.from_fov(float(f), width, height, model=model).unproject(uv) for f in fovs])
+    focal = np.array([width / (2.0 * np.tan(np.radians(float(f)) / 2.0)) for f in fovs])  # Camera.from_fov's
+    v = np.ones((len(fovs), len(uv), 3))
+    np.divide((uv - np.array([(width - 1) / 2.0, (height - 1) / 2.0]))[None], focal[:, None, None], out=v[..., :2])
+    return v / np.sqrt(np.add.reduce(v * v, axis=2, keepdims=True))
+
+
+@functools.lru_cache(maxsize=64)
+def quads_in_order(n: int) -> np.ndarray:
+    """Every four of n stars (ranks), brightest first: by the faintest star of the quad, then by the sum of
+    ranks (made once per n, read-only)."""
+    quads = np.array(list(itertools.combinations(range(n), 4)), dtype=np.int64).reshape(-1, 4)
+    quads = quads[np.lexsort((quads.sum(axis=1), quads.max(axis=1)))]
+    quads.flags.writeable = False
+    return quads
 
 
 def fov_ladder(lo: float, hi: float, ladder_deg2: float) -> list[tuple[float, float]]:
@@ -209,9 +231,7 @@ class BlindIdentifier(CameraRefit):
         n_pat = len(pat)
         if n_pat < 4:
             return None, 0
-        quads = np.array(list(itertools.combinations(range(n_pat), 4)), dtype=np.int64)
-        # brightest first: by the faintest star of the quad, then by the sum of ranks
-        quads = quads[np.lexsort((quads.sum(axis=1), quads.max(axis=1)))]
+        quads = quads_in_order(n_pat)
         quads_uv = pat[quads]  # the quads as indices of uv
         state.done_upto = 0
         n_cands = 0
@@ -293,7 +313,7 @@ class BlindIdentifier(CameraRefit):
         fa = np.array([f for f, _ in ladder])
         cover = np.array([c for _, c in ladder])
         f_lo, f_hi = np.maximum(lo, fa / cover), np.minimum(hi, fa * cover)  # the FOVs each rung accepts
-        vec = np.stack([Camera.from_fov(float(f), width, height, model=model).unproject(uv) for f in fa])
+        vec = _through_rungs(uv, fa, width, height, model)
         ratios, largest = pdb.edge_ratios(pdb.separations(vec[:, quads]))  # (rungs, Q, 5), (rungs, Q)
         # a quad with a star a lens cannot see at a rung (beyond a fisheye's image circle) has no ratios there
         seen = np.isfinite(ratios).all(axis=2) & np.isfinite(largest) & (largest > 0)
