@@ -1286,6 +1286,23 @@ def test_browser_tells_each_methods_story_step_by_step(tmp_path):
         _stop_view(proc)
 
 
+@contextlib.contextmanager
+def viewer_page(tmp_path: Path, *view_args):
+    """A page of headless Chromium on a `skyview view` process of its own (view_args: its command line's);
+    the browser closed and the viewer stopped (Ctrl-C, exit 0) afterwards."""
+    pw = pytest.importorskip("playwright.sync_api")
+    proc, url = _start_view(*view_args)
+    try:
+        with pw.sync_playwright() as p:
+            browser = _chromium(p, tmp_path)
+            try:
+                yield _open(browser, url)
+            finally:
+                browser.close()
+    finally:
+        _stop_view(proc)
+
+
 def _doc_shot(pg, shot: Path) -> None:
     """A screenshot kept in test-artifacts/, and in docs/images as a JPEG when SKYVIEW_UPDATE_DOC_IMAGES=1."""
     pg.screenshot(path=str(shot))
@@ -1302,9 +1319,8 @@ def test_browser_tells_a_photographs_blind_story_step_by_step(tmp_path):
     """`skyview view PHOTO` opens on the photograph solved blind; its steps read from first to last: the
     pattern table's hits across the sky, how they thin, the hypothesis, the camera fit, the verification.
     On screen the hit patterns' places on the sky thin from the first step to the second, the candidates'
-    arcs follow, and the identification is drawn only once it is made. A screenshot of each step (copied into docs/images when
-    SKYVIEW_UPDATE_DOC_IMAGES=1)."""
-    pw = pytest.importorskip("playwright.sync_api")
+    arcs follow, and the identification is drawn only once it is made. A screenshot of each step (copied
+    into docs/images when SKYVIEW_UPDATE_DOC_IMAGES=1)."""
     from skyview.detect.centroids import load_image
     from skyview.identify.layers import SkyPlaces
     from skyview.solver.pipeline import blind_solver
@@ -1314,43 +1330,33 @@ def test_browser_tells_a_photographs_blind_story_step_by_step(tmp_path):
     steps = blind_solver().solve_array(load_image(real / name)).identification.steps  # the viewer's, seeded alike
     kinds = [st.kind for st in steps]
     assert kinds[:3] == ["lookup", "prune", "prune"] and kinds[-2:] == ["fit", "verify"]
-    proc, url = _start_view(str(real / name))
-    try:
-        with pw.sync_playwright() as p:
-            browser = _chromium(p, tmp_path)
-            try:
-                pg = _open(browser, url)
-                pg.get_by_text("by blind", exact=False).first.wait_for(timeout=120000)
-                pg.get_by_role("tab", name="Steps").click()
-                places, arcs, drawn = [], [], []
-                for k, kind in enumerate(kinds):
-                    _type(pg, "Step", k)
-                    pg.get_by_text(f"Step {k + 1} / {len(kinds)} · {kind}", exact=False).first.wait_for(timeout=60000)
-                    pg.wait_for_timeout(500)
-                    places.append(pg.evaluate(JS_GEOMETRY, NODES["points"])[0])
-                    arcs.append(pg.evaluate(JS_GEOMETRY, NODES["candidates"])[0])
-                    drawn.append(pg.evaluate(JS_VISIBLE, NODES["match_stars"]))
-                    pg.evaluate(JS_PANEL_TOP)
-                    pg.mouse.move(5, 5)
-                    _settle(pg)
-                    _doc_shot(pg, tmp_path / f"steps-blind-photo-{k + 1}-{kind}.png")
-                # the wide sky: the hits across the whole sky, then the ones whose size fits
-                pg.get_by_role("tab", name="View").click()
-                pg.get_by_role("button", name="Wide sky").click()
-                pg.get_by_role("tab", name="Steps").click()
-                for k in (0, 1):
-                    _type(pg, "Step", k)
-                    pg.get_by_text(f"Step {k + 1} / {len(kinds)} · {kinds[k]}", exact=False).first.wait_for(
-                        timeout=60000)
-                    pg.wait_for_timeout(500)
-                    pg.evaluate(JS_PANEL_TOP)
-                    pg.mouse.move(5, 5)
-                    _settle(pg)
-                    _doc_shot(pg, tmp_path / f"steps-blind-photo-wide-{k + 1}-{kinds[k]}.png")
-            finally:
-                browser.close()
-    finally:
-        _stop_view(proc)
+    with viewer_page(tmp_path, str(real / name)) as pg:
+        pg.get_by_text("by blind", exact=False).first.wait_for(timeout=120000)
+        pg.get_by_role("tab", name="Steps").click()
+        places, arcs, drawn = [], [], []
+        for k, kind in enumerate(kinds):
+            _type(pg, "Step", k)
+            pg.get_by_text(f"Step {k + 1} / {len(kinds)} · {kind}", exact=False).first.wait_for(timeout=60000)
+            pg.wait_for_timeout(500)
+            places.append(pg.evaluate(JS_GEOMETRY, NODES["points"])[0])
+            arcs.append(pg.evaluate(JS_GEOMETRY, NODES["candidates"])[0])
+            drawn.append(pg.evaluate(JS_VISIBLE, NODES["match_stars"]))
+            pg.evaluate(JS_PANEL_TOP)
+            pg.mouse.move(5, 5)
+            _settle(pg)
+            _doc_shot(pg, tmp_path / f"steps-blind-photo-{k + 1}-{kind}.png")
+        # the wide sky: the hits across the whole sky, then the ones whose size fits
+        pg.get_by_role("tab", name="View").click()
+        pg.get_by_role("button", name="Wide sky").click()
+        pg.get_by_role("tab", name="Steps").click()
+        for k in (0, 1):
+            _type(pg, "Step", k)
+            pg.get_by_text(f"Step {k + 1} / {len(kinds)} · {kinds[k]}", exact=False).first.wait_for(timeout=60000)
+            pg.wait_for_timeout(500)
+            pg.evaluate(JS_PANEL_TOP)
+            pg.mouse.move(5, 5)
+            _settle(pg)
+            _doc_shot(pg, tmp_path / f"steps-blind-photo-wide-{k + 1}-{kinds[k]}.png")
     FIGURES["blind_photo_story"] = {"places": places, "arcs": arcs}
     _save_figures()
     n = [st.layer(SkyPlaces).total for st in steps[:2]]

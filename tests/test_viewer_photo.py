@@ -317,8 +317,8 @@ def test_in_the_browser_the_identified_stars_sit_on_the_photographs_stars(tmp_pa
     """What a user checks by eye, read from the three.js scene of headless Chromium after uploading a bundled
     photograph and then a crop of it (11.4 and 5.7 deg) through the page's upload control: every identified
     star's ray from the drawn camera crosses the drawn texture on a bright blob of it."""
-    pw = pytest.importorskip("playwright.sync_api")
-    from test_viewer import CHROMIUM, _chromium, _open, _start_view, _stop_view
+    pytest.importorskip("playwright.sync_api")
+    from test_viewer import CHROMIUM, viewer_page
 
     if not Path(CHROMIUM).exists():
         pytest.skip(f"no chromium at {CHROMIUM} (apt-get install chromium)")
@@ -327,27 +327,18 @@ def test_in_the_browser_the_identified_stars_sit_on_the_photographs_stars(tmp_pa
     for name, image in (("full.png", full), ("crop.png", _crop(full))):
         files[name] = tmp_path / name
         cv2.imwrite(str(files[name]), image)
-    proc, url = _start_view()
-    try:
-        with pw.sync_playwright() as p:
-            browser = _chromium(p, tmp_path)
-            try:
-                pg = _open(browser, url)
-                for name, path in files.items():
-                    shape = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape
-                    pg.locator("input[type=file]").first.set_input_files(str(path))
-                    pg.wait_for_function(
-                        "([c, s, w]) => { const o = window.__viserMutable?.nodeRefFromName?.[c]; let ok = false;"
-                        " o?.traverse(x => { if (x.isMesh && x.material?.map?.image?.width === w) ok = true; });"
-                        " return ok && !!window.__viserMutable.nodeRefFromName[s]?.visible; }",
-                        arg=[NODES["camera"], NODES["match_stars"], shape[1]], timeout=120000)
-                    pg.wait_for_timeout(1000)  # the texture's image decoded
-                    drawn = pg.evaluate(JS_DRAWN, [NODES["camera"], NODES["match_stars"]])
-                    assert drawn is not None, name
-                    tex, u, v = _texture_pixels(drawn)
-                    assert tex.shape == shape[:2], (name, tex.shape)
-                    _assert_on_blobs(tex, u, v)
-            finally:
-                browser.close()
-    finally:
-        _stop_view(proc)
+    with viewer_page(tmp_path) as pg:
+        for name, path in files.items():
+            shape = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape
+            pg.locator("input[type=file]").first.set_input_files(str(path))
+            pg.wait_for_function(
+                "([c, s, w]) => { const o = window.__viserMutable?.nodeRefFromName?.[c]; let ok = false;"
+                " o?.traverse(x => { if (x.isMesh && x.material?.map?.image?.width === w) ok = true; });"
+                " return ok && !!window.__viserMutable.nodeRefFromName[s]?.visible; }",
+                arg=[NODES["camera"], NODES["match_stars"], shape[1]], timeout=120000)
+            pg.wait_for_timeout(1000)  # the texture's image decoded
+            drawn = pg.evaluate(JS_DRAWN, [NODES["camera"], NODES["match_stars"]])
+            assert drawn is not None, name
+            tex, u, v = _texture_pixels(drawn)
+            assert tex.shape == shape[:2], (name, tex.shape)
+            _assert_on_blobs(tex, u, v)
