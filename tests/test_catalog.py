@@ -208,3 +208,28 @@ def test_sky_index_is_small_and_lazy(catalog):
     fresh.within(radec_to_vec(1.0, 0.5), np.radians(10))
     assert "sky" in fresh.__dict__ and "tree" not in fresh.__dict__  # no k-d tree built for it
     assert fresh.sky.nbytes <= 50 * len(fresh) + 56 * 6 * 16 * 16
+
+
+def test_a_subset_reads_its_sky_index_off_its_parents_and_gets_the_sorted_one():
+    """A catalog cut by magnitude (the verification's depth) takes its parent's sky index with the other
+    stars left out: the arrays a fresh sort gives, and the same cone queries."""
+    from skyview.core.catalog import SkyIndex
+
+    full = load_guide_catalog()
+    full.within(radec_to_vec(1.0, 0.5), np.radians(10))  # the parent's index made
+    rng = np.random.default_rng(4)
+    for m in (4.0, 6.25, 7.5):
+        sub = full.brighter_than(m)
+        assert "sky" in sub.__dict__  # read off the parent's
+        fresh = SkyIndex(sub.xyz)
+        for name in ("by_z", "xyz_z", "z"):
+            assert np.array_equal(getattr(sub.sky, name), getattr(fresh, name)), (m, name)
+        for _ in range(5):
+            c = radec_to_vec(rng.uniform(0, 2 * np.pi), rng.uniform(-1.5, 1.5))
+            assert np.array_equal(sub.within(c, np.radians(8)), np.sort(sub.tree.query_ball_point(c, chord(
+                np.radians(8)))))
+    # a few rows' RA / Dec are the whole table's numbers
+    rows = rng.choice(len(full), 37, replace=False)
+    ra, dec = full.radec_deg_of(rows)
+    assert "radec_deg" not in full.__dict__
+    assert np.array_equal(ra, full.radec_deg[0][rows]) and np.array_equal(dec, full.radec_deg[1][rows])

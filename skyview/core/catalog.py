@@ -132,6 +132,19 @@ class SkyIndex:
         self.xyz_z = xyz[self.by_z]
         self.z = np.ascontiguousarray(self.xyz_z[:, 2])
 
+    def subset(self, keep: np.ndarray, xyz: np.ndarray) -> "SkyIndex":
+        """The index of the stars `keep` (a boolean mask of this index's rows; xyz: their directions, in
+        row order): this one's z order with the others left out, renumbered. The same arrays as sorting
+        them again (a stable sort keeps the rows of equal z in row order either way), without the sort."""
+        new_row = np.cumsum(keep) - 1
+        kept = keep[self.by_z]
+        out = SkyIndex.__new__(SkyIndex)
+        out.xyz = xyz
+        out.by_z = new_row[self.by_z[kept]]
+        out.xyz_z = self.xyz_z[kept]
+        out.z = np.ascontiguousarray(self.z[kept])
+        return out
+
     @cached_property
     def cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """(rows in cell order, start, stop, centre, cos reach, sin reach, largest reach) of the
@@ -261,6 +274,17 @@ class GuideCatalog:
         ra, dec = np.degrees(self.ra_dec)
         return ra, dec
 
+    def radec_deg_of(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`radec_deg` of some rows: read from the table when it is made, else computed for those rows
+        alone (the same numbers: element by element), so a process that reports a few matches does not
+        convert the whole catalog."""
+        rows = np.asarray(rows, dtype=np.int64)
+        if "radec_deg" in self.__dict__:
+            ra, dec = self.radec_deg
+            return ra[rows], dec[rows]
+        ra, dec = np.degrees(vec_to_radec(self.xyz[rows]))
+        return ra, dec
+
     @cached_property
     def mag_sorted(self) -> np.ndarray:
         """Every star's magnitude, ascending (made once: the depth an image asks for is read from it)."""
@@ -319,11 +343,14 @@ class GuideCatalog:
     # ---------------------------------------------------------------- filters
     def select(self, keep: np.ndarray, note: str) -> "GuideCatalog":
         keep = np.asarray(keep)
-        return GuideCatalog(
+        out = GuideCatalog(
             hip=self.hip[keep], xyz=self.xyz[keep], mag=self.mag[keep], pm=self.pm[keep],
             bv=self.bv[keep], flags=self.flags[keep], epoch=self.epoch,
             history=self.history + (note,),
         )
+        if keep.dtype == bool and "sky" in self.__dict__:  # its sky index read off this one's, not sorted again
+            out.__dict__["sky"] = self.sky.subset(keep, out.xyz)
+        return out
 
     def brighter_than(self, mag_limit: float) -> "GuideCatalog":
         """Stars with Hp <= mag_limit."""

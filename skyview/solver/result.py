@@ -55,10 +55,9 @@ def matched_stars(catalog: GuideCatalog, uv: np.ndarray, matches: dict[int, int]
 def _matched_rows(catalog: GuideCatalog, uv: np.ndarray, idx: np.ndarray, rows: np.ndarray,
                   residuals_arcsec: list[float] | None) -> list[dict]:
     """`matched_stars` of the observed stars idx (increasing, not none) matched to the catalog rows
-    `rows` (RA/Dec from the catalog's table of them: `GuideCatalog.radec_deg`), with their residuals in
+    `rows` (RA/Dec: `GuideCatalog.radec_deg_of`, the numbers of its table), with their residuals in
     arcsec (a list) or none."""
-    ra_all, dec_all = catalog.radec_deg
-    ra, dec = ra_all[rows], dec_all[rows]
+    ra, dec = catalog.radec_deg_of(rows)
     # Python numbers from tolist: what int() / float() of each array element gives
     cols = (idx.tolist(), *np.asarray(uv, dtype=np.float64)[idx].T.tolist(), catalog.hip[rows].tolist(),
             ra.tolist(), dec.tolist(), catalog.mag[rows].tolist())
