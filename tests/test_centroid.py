@@ -822,3 +822,26 @@ def test_pairs_within_groups_are_the_grids_pairs_that_share_a_label():
         a, b = _pairs_within_groups(lab)
         np.testing.assert_array_equal(a, sa[keep])
         np.testing.assert_array_equal(b, sb[keep])
+
+
+def test_work_maps_kept_between_frames_leave_no_trace_in_the_answers():
+    """detect_centroids keeps its background and residual maps for the next frame of the same size (their
+    page faults cost as much as the passes that fill them): a frame's centroids are the same whatever was
+    detected before, and nothing returned refers to the maps (the next frame would overwrite it)."""
+    from skyview.detect import centroids as ce
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:256, 0:320]
+    frames = []
+    for k in range(3):
+        img = 100.0 + 0.2 * xx + 0.1 * k * yy + rng.normal(0, 3, (256, 320))  # a gradient: the map is made
+        for u, v in rng.uniform(20, 230, (12, 2)):
+            img += 800.0 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 1.3 ** 2))
+        frames.append(np.clip(img, 0, 65535).astype(np.uint16))
+    first = [ce.detect_centroids(f) for f in frames]
+    kept = [c.uv.copy() for c in first]
+    again = [ce.detect_centroids(f) for f in reversed(frames)][::-1]
+    assert ce._scratch("residual", 256, 320) is ce._scratch("residual", 256, 320)  # kept
+    for c, uv, d in zip(first, kept, again):
+        assert len(c) >= 10 and np.array_equal(c.uv, uv) and np.array_equal(d.uv, uv)
+        assert np.array_equal(c.brightness, d.brightness)

@@ -94,6 +94,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -584,7 +585,7 @@ def _upsample_at(grid: np.ndarray, by: int, bx: int, H: int, W: int, start: int,
     return _map_weights(H, g.shape[0], by, start, step) @ g @ _map_weights(W, g.shape[1], bx, start, step).T
 
 
-def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int) -> np.ndarray:
+def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int, out: np.ndarray | None = None) -> np.ndarray:
     """(H, W) map from block values at block centres ((i + 0.5) * by - 0.5, (j + 0.5) * bx - 0.5):
     bilinear between centres, linear extrapolation beyond the outer ones (one extra ring of blocks
     extrapolated from the outer two, then sampled at every pixel's place on that grid by one
@@ -600,8 +601,26 @@ def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int) -> np.ndarray:
     p[:, -1] = 2 * p[:, -2] - p[:, -3] if gw > 1 else p[:, 1]
     # pixel y of the map lies at (y + 0.5) / by - 0.5 on the block grid, + 1 on the ringed one
     to_grid = np.array([[1.0 / bx, 0.0, 0.5 / bx + 0.5], [0.0, 1.0 / by, 0.5 / by + 0.5]])
-    return cv2.warpAffine(p, to_grid, (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+    return cv2.warpAffine(p, to_grid, (W, H), dst=out, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                           borderMode=cv2.BORDER_REPLICATE)
+
+
+SCRATCH_MAX_PIXELS = 1 << 22  # frames up to 4 MP keep their two float32 work maps per thread (32 MB at most)
+_SCRATCH = threading.local()
+
+
+def _scratch(name: str, H: int, W: int) -> np.ndarray | None:
+    """A float32 (H, W) work array of this thread, kept for the next frame of the same size (a fresh one
+    of a few MB costs its page faults on every frame: on this project's machine as much as the passes that
+    fill it); None (a fresh array, freed after) above SCRATCH_MAX_PIXELS. Only detect_centroids' own call
+    may hold it: nothing it returns refers to it."""
+    if H * W > SCRATCH_MAX_PIXELS:
+        return None
+    held = _SCRATCH.__dict__
+    a = held.get(name)
+    if a is None or a.shape != (H, W):
+        a = held[name] = np.empty((H, W), dtype=np.float32)
+    return a
 
 
 # ============================================================================ detection
@@ -870,8 +889,8 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         bkg, resid = level, None
         idx = _above_idx(f, np.float32(bkg + thr), band_max)
     else:
-        bkg = _upsample(grid, gby, gbx, H, W)
-        resid = np.subtract(f, bkg, dtype=np.float32)
+        bkg = _upsample(grid, gby, gbx, H, W, out=_scratch("background", H, W))
+        resid = np.subtract(f, bkg, dtype=np.float32, out=_scratch("residual", H, W))
         idx = _above_idx(resid, np.float32(thr))
     empty = dict(background_level=level, noise_sigma=sigma, threshold=thr, estimator=estimator,
                  image_shape=(H, W), params=params)
