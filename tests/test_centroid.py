@@ -841,7 +841,13 @@ def test_work_maps_kept_between_frames_leave_no_trace_in_the_answers():
     first = [ce.detect_centroids(f) for f in frames]
     kept = [c.uv.copy() for c in first]
     again = [ce.detect_centroids(f) for f in reversed(frames)][::-1]
-    assert ce._scratch("residual", 256, 320) is ce._scratch("residual", 256, 320)  # kept
+    with ce._WORK_MAPS.pair(256, 320) as a:
+        pass
+    with ce._WORK_MAPS.pair(256, 320) as b:
+        assert b[1] is a[1]  # kept for the next frame of that size
+        with ce._WORK_MAPS.pair(256, 320) as c:
+            assert c[1] is not b[1]  # lent to one call at a time
+    assert len(ce._WORK_MAPS._free) <= ce._WORK_MAPS.keep  # bounded
     for c, uv, d in zip(first, kept, again):
         assert len(c) >= 10 and np.array_equal(c.uv, uv) and np.array_equal(d.uv, uv)
         assert np.array_equal(c.brightness, d.brightness)

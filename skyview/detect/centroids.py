@@ -91,6 +91,7 @@ Fast forms (issue 11) and what each keeps; tests/test_centroid.py checks them ag
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import os
@@ -605,22 +606,42 @@ def _upsample(grid: np.ndarray, by: int, bx: int, H: int, W: int, out: np.ndarra
                           borderMode=cv2.BORDER_REPLICATE)
 
 
-SCRATCH_MAX_PIXELS = 1 << 22  # frames up to 4 MP keep their two float32 work maps per thread (32 MB at most)
-_SCRATCH = threading.local()
+SCRATCH_MAX_PIXELS = 1 << 22  # frames up to 4 MP keep their two float32 work maps for the next frame
 
 
-def _scratch(name: str, H: int, W: int) -> np.ndarray | None:
-    """A float32 (H, W) work array of this thread, kept for the next frame of the same size (a fresh one
-    of a few MB costs its page faults on every frame: on this project's machine as much as the passes that
-    fill it); None (a fresh array, freed after) above SCRATCH_MAX_PIXELS. Only detect_centroids' own call
-    may hold it: nothing it returns refers to it."""
-    if H * W > SCRATCH_MAX_PIXELS:
-        return None
-    held = _SCRATCH.__dict__
-    a = held.get(name)
-    if a is None or a.shape != (H, W):
-        a = held[name] = np.empty((H, W), dtype=np.float32)
-    return a
+class _WorkMaps:
+    """The background and residual maps of detect_centroids, kept for the next frame of the same size: a
+    fresh few-MB array pays its page faults on every frame (on this project's machine as much as the passes
+    that fill it). A pair is lent to one call at a time (any thread: the viewer runs a thread per tab) and
+    at most `keep` pairs are kept (the oldest goes), so the memory held is bounded: 2 x keep x 16 MB at
+    most (frames over SCRATCH_MAX_PIXELS get fresh arrays, freed after)."""
+
+    def __init__(self, keep: int):
+        self.keep = max(1, int(keep))
+        self._free: list[tuple[np.ndarray, np.ndarray]] = []
+        self._lock = threading.Lock()
+
+    @contextlib.contextmanager
+    def pair(self, H: int, W: int):
+        """A (background, residual) pair of float32 (H, W) arrays for one call, or (None, None) (fresh ones
+        made by the call) for a frame over SCRATCH_MAX_PIXELS. Nothing the call returns may refer to them."""
+        if not 0 < H * W <= SCRATCH_MAX_PIXELS:
+            yield None, None
+            return
+        with self._lock:  # (by position: a list's remove would compare the arrays)
+            at = next((k for k, p in enumerate(self._free) if p[0].shape == (H, W)), None)
+            got = self._free.pop(at) if at is not None else None
+        if got is None:
+            got = (np.empty((H, W), dtype=np.float32), np.empty((H, W), dtype=np.float32))
+        try:
+            yield got
+        finally:
+            with self._lock:
+                self._free.append(got)
+                del self._free[: max(0, len(self._free) - self.keep)]
+
+
+_WORK_MAPS = _WorkMaps(os.cpu_count() or 2)
 
 
 # ============================================================================ detection
@@ -828,6 +849,21 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
                      saturation_level: float | None = None, max_axis_ratio: float = 1.4,
                      background_block: int = 64, iterations: int = 6, deblend: bool = True,
                      max_stars: int | None = None) -> Centroids:
+    """Find stars in a 2-D image and measure their sub-pixel centroids: `_detect_centroids` (its docstring
+    says how) with a pair of work maps lent for the call (`_WorkMaps`)."""
+    shape = np.shape(image)
+    with _WORK_MAPS.pair(*(shape[:2] if len(shape) >= 2 else (0, 0))) as maps:
+        return _detect_centroids(image, k_sigma=k_sigma, window=window, min_pixels=min_pixels, estimator=estimator,
+                                 psf_sigma_px=psf_sigma_px, saturation_level=saturation_level,
+                                 max_axis_ratio=max_axis_ratio, background_block=background_block,
+                                 iterations=iterations, deblend=deblend, max_stars=max_stars, maps=maps)
+
+
+def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | None = None, min_pixels: int = 2,
+                      estimator: str = DEFAULT_ESTIMATOR, psf_sigma_px: float | None = None,
+                      saturation_level: float | None = None, max_axis_ratio: float = 1.4,
+                      background_block: int = 64, iterations: int = 6, deblend: bool = True,
+                      max_stars: int | None = None, maps: tuple = (None, None)) -> Centroids:
     """Find stars in a 2-D image and measure their sub-pixel centroids (see the module docstring).
 
     window: odd side of the square measurement window (pixels) around each blob's brightest pixel;
@@ -889,8 +925,8 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         bkg, resid = level, None
         idx = _above_idx(f, np.float32(bkg + thr), band_max)
     else:
-        bkg = _upsample(grid, gby, gbx, H, W, out=_scratch("background", H, W))
-        resid = np.subtract(f, bkg, dtype=np.float32, out=_scratch("residual", H, W))
+        bkg = _upsample(grid, gby, gbx, H, W, out=maps[0])  # (maps: the grey image's size, as the image's)
+        resid = np.subtract(f, bkg, dtype=np.float32, out=maps[1])
         idx = _above_idx(resid, np.float32(thr))
     empty = dict(background_level=level, noise_sigma=sigma, threshold=thr, estimator=estimator,
                  image_shape=(H, W), params=params)
