@@ -39,7 +39,7 @@ from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scenarios import SLEW, SLEW_AXIS, SLEW_FRAMES, SLEW_STEP_DEG, Scenario
 from skyview.simulate.scoring import score_trial  # noqa: F401  (scoring against truth lives in one module)
 from skyview.simulate.truth import wrong_matches
-from skyview.solver.pipeline import BlindSolver, MethodSolver, check_fov_error
+from skyview.solver.pipeline import BlindSolver, check_fov_error
 
 OUTCOMES = ("correct", "inconclusive", "incorrect")
 BLIND_MAX_ERROR_PX = 5.0  # blind bench: a boresight error beyond this many pixels is incorrect
@@ -108,25 +108,18 @@ def run_bench(method: str, scenario: Scenario, n: int, *, seed: int = 0, method_
         raise BadInput("recording failures (on_trial) runs in one process: use jobs=1")
     if scheduler is not None and (jobs > 1 or on_trial is not None):
         raise BadInput("--scheduler runs the trials on Dask: leave out --jobs and --record-failures")
-    rng = np.random.default_rng(seed)
-    catalog = load_guide_catalog()
-    camera = scenario.camera()
-    t0 = time.perf_counter()
-    solver = MethodSolver(camera, method, mag_limit=scenario.mag_limit, sigma_rad=scenario.sigma_rad,
-                          catalog=catalog, method_params=method_params, variant=variant, max_stars=scenario.max_stars)
-    setup_ms = (time.perf_counter() - t0) * 1e3
-    ctx = TrialContext(solver=solver, catalog=catalog, camera=camera, scenario=scenario,
-                        sensor=sensor or SensorModel(), attitudes=random_attitudes(n, rng),
-                        seeds=rng.integers(0, 2**31 - 1, size=n))
+    from skyview.bench.dask_engine import LOCAL, method_context
+
+    # the context this process uses, and the one each worker makes on Dask: the same function, the same draws
+    make = (method_context, (method, scenario, n, seed, method_params, variant, sensor or SensorModel()))
+    ctx = make[0](*make[1])
+    solver = ctx.solver
+    setup_ms = sum(solver.setup_ms.values())  # its catalog and its database, as the solver timed them
     counts = Counter()
     bar = Progress(n, f"{method}({variant})/{scenario.name}", progress)
     each = None if on_trial is None else (lambda trial, frame, result: on_trial(trial, frame, result, solver))
-    from skyview.bench.dask_engine import LOCAL, method_context
-
     where = (scheduler, workers) if scheduler is not None else ((LOCAL, jobs) if jobs > 1 else None)
-    trials, interrupted = _collect_trials(ctx, run_trial, n, bar, counts, each, where=where,
-                                          make=(method_context, (method, scenario, n, seed, method_params, variant,
-                                                                 ctx.sensor)))
+    trials, interrupted = _collect_trials(ctx, run_trial, n, bar, counts, each, where=where, make=make)
     summary = summarize(method, scenario, seed, [t for t in trials if t["outcome"] != "error"], setup_ms, solver)
     summary["jobs"] = jobs
     if scheduler is not None:

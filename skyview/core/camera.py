@@ -240,9 +240,7 @@ class Camera:
             # columns at once, element by element), z = 1, then v / sqrt(add.reduce(v * v)), which is
             # what np.linalg.norm computes for real rows
             c, f = _centre_focal(self)
-            v = np.ones((len(uv), 3))
-            np.divide(uv - c, f, out=v[:, :2])
-            return v / np.sqrt(np.add.reduce(v * v, axis=1, keepdims=True))
+            return pinhole_rays(uv - c, f)
         xy_d = np.stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy], axis=1)
         xy = self._undistort(xy_d)
         v = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
@@ -262,6 +260,15 @@ class Camera:
         ok = front & self.in_image(uv, margin)
         idx = np.flatnonzero(ok)
         return idx, uv[idx]
+
+
+def pinhole_rays(offsets: np.ndarray, focal) -> np.ndarray:
+    """Unit vectors of undistorted pinhole pixels: offsets (..., N, 2) from the principal point over focal
+    (broadcast: [fx, fy], or one focal length per camera shaped (K, 1, 1) for K cameras at once), z = 1,
+    normalised as np.linalg.norm does for real rows (element by element: the numbers of one camera at a time)."""
+    v = np.ones(np.broadcast_shapes(np.shape(offsets), np.shape(focal))[:-1] + (3,))
+    np.divide(offsets, focal, out=v[..., :2])
+    return v / np.sqrt(np.add.reduce(v * v, axis=-1, keepdims=True))
 
 
 @lru_cache(maxsize=64)

@@ -63,8 +63,7 @@ def fit_camera(uv: np.ndarray, xyz: np.ndarray, camera: Camera, R: np.ndarray, *
         fit_k2 = bool(fit_k1) and n >= MIN_STARS_K2 and spread >= 0.33
     best = _fit(uv, xyz, camera, R, fit_focal and n >= 3, False, False) if (auto_k1 and fit_k1) else None
     if fit_k1:  # from the undistorted fit when there is one (the same minimum, fewer steps to it)
-        start = best if best is not None else None
-        with_k1 = _fit(uv, xyz, start.camera if start else camera, start.R if start else R, fit_focal and n >= 3,
+        with_k1 = _fit(uv, xyz, best.camera if best else camera, best.R if best else R, fit_focal and n >= 3,
                        True, False)
         best = with_k1 if best is None or _better(with_k1, best) else best
         if fit_k2 and "k1" in best.fitted:
@@ -110,13 +109,12 @@ def _left_jacobian(v: np.ndarray) -> np.ndarray:
 
 
 def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, f_scale: float = 1.0,
-                        max_iter: int = 30, tol: float = 1e-10, rtol: float = 1e-4, jac=None,
-                        fun_jac=None) -> np.ndarray:
+                        max_iter: int = 30, tol: float = 1e-10, rtol: float = 1e-4, fun_jac=None) -> np.ndarray:
     """Minimise sum rho(fun(p)^2 / f_scale^2) with rho the soft-L1 loss 2 (sqrt(1 + z) - 1) (what
     scipy's least_squares(loss="soft_l1") minimises), p within [lo, hi]: iteratively reweighted
-    Gauss-Newton with step halving (each step from the weighted normal equations), the Jacobian
-    `jac(p)` when given, else forward differences; `fun_jac(p)` -> (fun(p), jac(p)) computes both at
-    once, sharing their work (each trial point's Jacobian is the next step's). A handful of parameters
+    Gauss-Newton with step halving (each step from the weighted normal equations); `fun_jac(p)` ->
+    (fun(p), its Jacobian) computes both at once, sharing their work (each trial point's Jacobian is the
+    next step's), else the Jacobian comes from forward differences. A handful of parameters
     and a few dozen stars: each iteration is a few small numpy calls (scipy's trust-region solver spends
     ten times as long in its own bookkeeping here). It stops when no parameter moves by more than `tol`
     (radians of attitude, the log of the focal length, the corner's stretch), or when a whole step (not
@@ -129,9 +127,7 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
         t = np.sqrt(1.0 + (r / f_scale) ** 2)
         return 1.0 / t, float(2.0 * np.sum(t - 1.0))
 
-    def jacobian(q, rq):
-        if jac is not None:
-            return jac(q)
+    def forward_differences(q, rq):
         h = 1e-7 * np.maximum(1.0, np.abs(q))
         J = np.empty((len(rq), len(q)))
         for j in range(len(q)):
@@ -148,7 +144,7 @@ def robust_gauss_newton(fun, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, 
     w, c = soft(r)
     for _ in range(max_iter):
         if J is None:
-            J = jacobian(p, r)
+            J = forward_differences(p, r)
         Jw = J * w[:, None]
         normal = Jw.T @ J
         try:

@@ -37,7 +37,7 @@ from functools import partial
 
 import numpy as np
 
-from skyview.core.camera import FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera
+from skyview.core.camera import FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera, pinhole_rays
 from skyview.core.catalog import GuideCatalog
 from skyview.identify import database
 from skyview.identify import patterns as pdb
@@ -87,13 +87,12 @@ def _candidate_groups(table_rows: np.ndarray, patterns: np.ndarray) -> list[tupl
 
 def _through_rungs(uv: np.ndarray, fovs: np.ndarray, width: int, height: int, model: str) -> np.ndarray:
     """(rungs, N, 3): the pixels uv unprojected through each assumed FOV's camera, `Camera.unproject`'s
-    numbers; a pinhole's all rungs at once (x = (u - cx) / f, y likewise, z = 1, normalised)."""
+    numbers; a pinhole's rungs all at once (`pinhole_rays`)."""
+    cams = [Camera.from_fov(float(f), width, height, model=model) for f in fovs]
     if model != PINHOLE:
-        return np.stack([Camera.from_fov(float(f), width, height, model=model).unproject(uv) for f in fovs])
-    focal = np.array([width / (2.0 * np.tan(np.radians(float(f)) / 2.0)) for f in fovs])  # Camera.from_fov's
-    v = np.ones((len(fovs), len(uv), 3))
-    np.divide((uv - np.array([(width - 1) / 2.0, (height - 1) / 2.0]))[None], focal[:, None, None], out=v[..., :2])
-    return v / np.sqrt(np.add.reduce(v * v, axis=2, keepdims=True))
+        return np.stack([cam.unproject(uv) for cam in cams])
+    focal = np.array([cam.fx for cam in cams])[:, None, None]
+    return pinhole_rays(uv - np.array([cams[0].cx, cams[0].cy]), focal)
 
 
 @functools.lru_cache(maxsize=64)

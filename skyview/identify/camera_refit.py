@@ -197,9 +197,8 @@ class CameraRefit:
         sigma_px = max(fit.rms_px if np.isfinite(fit.rms_px) else 0.5, 0.25)
         sigma_rad = sigma_px * cam.pixel_scale_rad
         vectors = cam.unproject(uv[:n_obs])
-        deep_enough = [(int(o), int(c)) for o, c in zip(obs4, rows4) if self.catalog.mag[c] <= cat.mag.max()]
-        hyp = dict(zip([o for o, _ in deep_enough],
-                       cat.rows_of(self.catalog.hip[[c for _, c in deep_enough]]).tolist())) if deep_enough else {}
+        deep = self.catalog.mag[rows4] <= cat.mag.max()  # the hypothesis' stars in the depth's catalog
+        hyp = dict(zip(np.asarray(obs4)[deep].tolist(), cat.rows_of(self.catalog.hip[rows4[deep]]).tolist()))
         ver = verify(vectors, hyp, cat, cam, sigma_rad, n_hypotheses=checks)
         # the steps and the result refer to rows of the full catalog, the verification to the depth's
         rows = np.array(sorted(set(hyp.values()) | set(ver.matches.values())), dtype=np.int64)
