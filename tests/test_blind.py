@@ -542,4 +542,37 @@ def test_a_lit_roof_and_lamps_brighter_than_the_stars_do_not_hide_them(k):
 
     uv = detect_stars(img).uv[:40]
     held = BlindSolver(deep=False).identifier.identify(uv, img.shape[1], img.shape[0], slide=False)
-    assert not held.identification.identified
+    assert not held.identified
+
+
+def test_the_blind_search_is_an_identifier_whose_hypotheses_the_shared_verification_decides(blind):
+    """The blind search yields its hypotheses into the template every method runs in (issue 29): each one that
+    passes its quick check is fitted and verified on its own terms (the fitted camera, the catalog to the
+    frame's depth, the measured noise), counted with every check made (Bonferroni); one `Identification`."""
+    from skyview.detect.stars import detect_stars
+    from skyview.identify.base import IDENTIFIED, Identifier
+
+    name = sorted(REFERENCE)[0]
+    img = load_image(REAL / name)
+    uv = detect_stars(img).uv[:40]
+    identifier = blind.identifier
+    assert isinstance(identifier, Identifier)
+    ident = identifier.identify(uv, img.shape[1], img.shape[0])
+    assert ident.status == IDENTIFIED and ident.method == "blind"
+    kinds = [st.kind for st in ident.steps]
+    assert kinds[-2:] == ["fit", "verify"] and "lookup" in kinds and "hypothesis" in kinds
+    ver = ident.verification
+    assert ver["passed"] and ver["n_hypotheses"] == ident.stats["checks"] >= 1
+    # what the verification found: the fitted camera, the depth and the noise it verified with
+    ref = REFERENCE[name]
+    assert abs(ident.camera.fov_deg / ref["fov_deg"] - 1.0) < 0.005
+    assert ident.mag_limit == ident.stats["mag_limit"] and ident.sigma_rad > 0
+    # the matches name rows of the full guide catalog (the verification ran on the catalog to the depth)
+    assert max(identifier.catalog.mag[list(ident.matches.values())]) <= ident.mag_limit
+    R_ref = R_from_radec_roll(math.radians(ref["ra_deg"]), math.radians(ref["dec_deg"]), math.radians(ref["roll_deg"]))
+    assert attitude_error_arcsec(ident.R, R_ref)["boresight"] < 120.0
+    uv_cat, _ = ident.camera.project(identifier.catalog.xyz[list(ident.matches.values())] @ ident.R.T)
+    assert np.median(np.hypot(*(uv_cat - uv[list(ident.matches)]).T)) < 1.0
+    # an FOV outside what the database covers: the search cannot run, and says why
+    outside = identifier.identify(uv, img.shape[1], img.shape[0], fov_deg=150.0, fov_error=0.05)
+    assert outside.status == "failed" and "covers FOVs" in outside.reason and outside.camera is None

@@ -60,6 +60,18 @@ def test_a_slew_is_tracked_after_one_lost_in_space_frame(tracker, slew):
     _check_slew(frames, slew)
     assert all(f.predicted_by == "turn" for f in frames[1:])
     assert all("track" in f.time_ms and "lost_in_space" not in f.time_ms for f in frames[1:])
+    # each tracked frame is an identification like any method's: its hypotheses through the template and the
+    # shared verification (a windowed frame's chances within its windows), one Identification
+    for f in frames[1:]:
+        ident = f.identification
+        assert ident.identified and ident.method == "track" and ident.stats["verified_by"] == f.verified_by
+        kinds = [st.kind for st in ident.steps]
+        assert kinds[0] == "match" and kinds[-1] == "verify" and kinds.count("verify") == ident.verification["n_hypotheses"]
+        assert ident.verification["p_false"] == f.p_false < 1e-3
+        np.testing.assert_array_equal(ident.R, f.R)
+        assert sorted(ident.matches) == sorted(m["index"] for m in f.matches)
+        # the chance of each tested star is its bound's share of its window, not the sky's density
+        assert min(ident.verification["p_tested"]) > 10 * ident.verification["p_single"]
 
 
 @pytest.mark.parametrize("method", ["svd", "ellipticity"])

@@ -3,17 +3,18 @@ are a verified frame (three when the motion is unknown), judged by the shared ve
 a frame with fewer is coasted on the motion model and says so. Truth: simulated 8 deg slews at Hp 6."""
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from skyview.core.attitude import attitude_error_arcsec, random_attitudes
 from skyview.core.special import binomial_sf
+from skyview.identify.verify import RADIUS_SIGMAS, verify_prediction
 from skyview.simulate.render import SensorModel, simulate_sequence, turn_about_camera_axis
 from skyview.simulate.scenarios import get_scenario
 from skyview.simulate.truth import wrong_matches
 from skyview.solver.track import COASTING, TRACKING, Tracker
-from skyview.solver.track_verify import verify_by_prediction
 
 
 @pytest.fixture(scope="module")
@@ -75,13 +76,23 @@ def test_the_prediction_alone_needs_its_chance_below_the_threshold_and_enough_st
     rng = np.random.default_rng(1)
     b = rng.normal(size=(3, 3))
     b /= np.linalg.norm(b, axis=1, keepdims=True)
-    xyz = b.copy()  # the catalog stars exactly where the stars are seen (the identity attitude)
-    radii = np.full(3, 1e-4)
+    catalog = SimpleNamespace(xyz=b.copy())  # the catalog stars exactly where the stars are seen (identity)
+    sigma = 1e-5
+    r = RADIUS_SIGMAS * sigma  # a certain prediction (P = 0): every bound is the base radius
+    per_star = 1e-3 / (math.pi * r ** 2)  # stars per sr that give each detected star a chance of 1e-3
     matches = {0: 0, 1: 1}
-    p = np.full(3, 1e-3)
-    sol, _ = verify_by_prediction(b, matches, p, xyz, 1e-5, radii, min_stars=2)
-    assert sol is not None and sol.p_false == pytest.approx(binomial_sf(2, 3, 1e-3))
-    np.testing.assert_allclose(sol.R, np.eye(3), atol=1e-9)
-    assert verify_by_prediction(b, matches, p, xyz, 1e-5, radii, min_stars=3)[0] is None  # motion unknown: 3
-    sol, why = verify_by_prediction(b, matches, np.full(3, 0.05), xyz, 1e-5, radii, min_stars=2)
-    assert sol is None and "P(false)" in why  # two of three on places a fifth of the sky's: chance
+    ver = verify_prediction(b, matches, catalog, sigma, np.zeros((3, 3)), per_star, 2)
+    assert ver.passed and ver.p_false == pytest.approx(binomial_sf(2, 3, 1e-3))
+    assert ver.matches == matches and ver.n_tested == 3 and ver.n_agree == 2
+    np.testing.assert_allclose(ver.R, np.eye(3), atol=1e-9)
+    # the hypotheses verified before it on the frame are counted with it (Bonferroni)
+    later = verify_prediction(b, matches, catalog, sigma, np.zeros((3, 3)), per_star, 2, n_hypotheses=3)
+    assert later.p_false == pytest.approx(3 * ver.p_false)
+    assert not verify_prediction(b, matches, catalog, sigma, np.zeros((3, 3)), per_star, 3).passed  # motion unknown
+    ver = verify_prediction(b, matches, catalog, sigma, np.zeros((3, 3)), 50 * per_star, 2)
+    assert not ver.passed and "P(false)" in ver.reason  # two of three on places a twentieth of the sky's: chance
+    # a match off its predicted place by more than its bound does not fit the attitude of the others
+    moved = b.copy()
+    moved[1] = np.cos(3 * r) * b[1] + np.sin(3 * r) * np.cross(b[1], b[0]) / np.linalg.norm(np.cross(b[1], b[0]))
+    ver = verify_prediction(moved, {0: 0, 1: 1, 2: 2}, catalog, sigma, np.zeros((3, 3)), per_star, 2)
+    assert not ver.passed and "do not fit" in ver.reason

@@ -1,5 +1,5 @@
 """The tracking's windowed centroider (skyview.detect.windows) and its closed-form geometry
-(skyview.solver.track_verify) against the project's reference tools, on simulated frames with known truth."""
+(skyview.identify.tracking) against the project's reference tools, on simulated frames with known truth."""
 
 import math
 
@@ -11,10 +11,10 @@ from skyview.core.camera import Camera
 from skyview.core.catalog import load_guide_catalog
 from skyview.detect.centroids import detect_centroids
 from skyview.detect.windows import centroid_windows, measure_windows, window_centers
+from skyview.identify.tracking import match_radii, nearest_one_to_one, rotation_matrix, rotvec, wahba
+from skyview.identify.tracking import predicted_sigma as predicted_sigma_closed
 from skyview.identify.verify import predicted_sigma, star_radii
 from skyview.simulate.render import SensorModel, simulate_image
-from skyview.solver.track_verify import match_radii, nearest_one_to_one, rotation_matrix, rotvec, wahba
-from skyview.solver.track_verify import predicted_sigma as predicted_sigma_closed
 
 CAM = Camera.from_fov(12.0, 1024)
 

@@ -175,6 +175,15 @@ def test_p_false_by_hand(cat, cam):
     idx, _ = cam.visible(est.R, cat.xyz, margin=-r * cam.fx)
     assert len(cam.visible(est.R, cat.xyz)[0]) <= v.n_frame == len(idx)
 
+    # a frame measured in windows (a tracker's): each tested star's chance is its radius' share of the window
+    # it was found in, whatever the sky's density; the same agreements, the same matches
+    window = np.linspace(2e-5, 4e-5, len(f.obs))
+    vw = verify(f.obs.vectors, hyp, cat, cam, SIGMA, n_hypotheses=2, window_sr=window)
+    radii = np.sqrt(np.asarray(v.p_tested) / (dens * np.pi))
+    np.testing.assert_allclose(vw.p_tested, np.minimum(1.0, np.pi * radii ** 2 / window[3:]), rtol=1e-9)
+    assert vw.n_agree == v.n_agree and vw.matches == v.matches
+    assert vw.p_false == pytest.approx(p_false_calibrated(k, n, vw.p_tested, 2), rel=1e-12) and vw.p_false > v.p_false
+
     vt = verify(f.obs.vectors, hyp, cat, cam, SIGMA, statistic=TETRA3, n_patterns=1000)
     m, n_obs = len(vt.matches), len(f.obs)
     expected = p_false_tetra3(m, n_obs, vt.n_frame, r / np.radians(cam.fov_deg))

@@ -10,6 +10,11 @@ yields `Hypothesis` records; each yield is answered with the `Verification` of t
 the method can react: try the next orientation, blame a star, collect several); an accepted one ends
 the search (the hypothesis' `on_accept` sees it). A method that must
 choose among verified hypotheses itself yields the chosen `Verification` instead (it is accepted).
+A hypothesis is verified on the search's terms (the observed vectors, the method's catalog, camera and
+sigma) unless it brings its own `VerificationFrame`: the blind search's, for one, is a camera fitted to
+the hypothesis' stars, the catalog to the frame's depth and the measured noise. Every source of
+hypotheses (the six methods, the blind search, a calibrated answer refitted) ends in this one
+verification and this one `Identification`.
 
 Nothing in `skyview.identify` imports viser or rerun: the viewer and the recorder draw the steps.
 """
@@ -71,13 +76,48 @@ class Observation:
         return int(self.vectors.shape[0])
 
 
+@dataclass(frozen=True)
+class PixelStars:
+    """Detected stars of a width x height image whose camera is not known (a blind search's input), brightest
+    first: uv (N, 2) pixels. No vectors: the camera that would give them is what the search finds."""
+
+    uv: np.ndarray
+    width: int
+    height: int
+    vectors = None
+    sigma_rad = None
+
+    def __len__(self) -> int:
+        return int(len(self.uv))
+
+
+@dataclass(frozen=True)
+class VerificationFrame:
+    """What a hypothesis is verified on when not the search's own: the observed stars' `vectors` through
+    `camera` (e.g. a camera fitted to the hypothesis' stars), `catalog` (e.g. the method's catalog to the
+    frame's depth), `sigma_rad` (e.g. measured from the fit's residuals). `parent_rows[k]`: row k of that
+    catalog as a row of the method's own catalog (the step and the result are told in those rows); None
+    when it is the method's catalog. `window_sr`: the solid angle of the window each observed star was
+    found in, for a frame measured in windows only (a tracker's; `verify.verify`)."""
+
+    vectors: np.ndarray
+    catalog: Any
+    camera: Any
+    sigma_rad: float
+    parent_rows: np.ndarray | None = None
+    window_sr: np.ndarray | None = None
+
+
 @dataclass
 class Identification:
     """The outcome of one identification.
 
     status: IDENTIFIED (verified), INCONCLUSIVE (no unique verified hypothesis) or FAILED (could not
     run: too few stars, ...). matches: observed index -> catalog row, only when identified (after
-    verification, extended to every observed star that agrees). R: attitude when identified.
+    verification, extended to every observed star that agrees). R: attitude when identified. When the
+    method verified on a camera, a depth or a noise of its own finding (the blind search, a refit): the
+    fitted `camera`, the catalog's `mag_limit` and the measured `sigma_rad` (None otherwise: the method's
+    own camera and sigma hold).
     """
 
     method: str
@@ -90,6 +130,9 @@ class Identification:
     verification: dict[str, Any] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
     database_key: str = ""
+    camera: Any = None
+    mag_limit: float | None = None
+    sigma_rad: float | None = None
 
     @property
     def identified(self) -> bool:
@@ -122,7 +165,10 @@ class Hypothesis:
     """A correspondence a method proposes (observed index -> catalog row), for the shared verification.
 
     count: how many hypotheses this one stands for in the Bonferroni factor (1; a method that picked
-    it among many pair hypotheses counts them all). numbers / groups / layers: what the 'verify' step
+    it among many pair hypotheses counts them all). frame: what it is verified on, when not the search's
+    (`VerificationFrame`). prediction: a tracker's `skyview.identify.tracking.Prediction` when the
+    hypothesis is a predicted attitude, not stars of this frame (`matches`: the stars on their predicted
+    places; `verify.verify_prediction`: every observed star tests it). numbers / groups / layers: what the 'verify' step
     shows beside the verification's own figures. judge: an optional check run on the verification
     before it is recorded (it may refuse a verified hypothesis: set `ver.passed = False` and the
     reason), returning (extra numbers for the step, extra figures for the verification record). accept: False
@@ -138,6 +184,8 @@ class Hypothesis:
     judge: Callable[[Any], tuple[dict, dict]] | None = None
     accept: bool = True
     on_accept: Callable[[Any], None] | None = None
+    frame: VerificationFrame | None = None
+    prediction: Any = None
 
 
 @dataclass
@@ -165,7 +213,7 @@ class Search:
 
     @property
     def n(self) -> int:
-        return int(len(self.V))
+        return int(len(self.obs))
 
     @property
     def steps(self) -> list[Step]:
@@ -233,6 +281,8 @@ class Identifier(ABC):
         """`database.key_string(database_key)`, computed once per key dict (a SHA-256, ~60 us: every
         identify records it)."""
         key = self.database_key
+        if not key:  # no database of its own (a refit, a tracked frame)
+            return ""
         cached = self.__dict__.get("_key_string_of")
         if cached is None or cached[0] is not key:
             from skyview.identify import database
@@ -248,12 +298,16 @@ class Identifier(ABC):
     # ------------------------------------------------------------------ the template
     def identify(self, obs: Observation) -> Identification:
         """Identify the observed stars of one frame (the template: see the module docstring)."""
-        search = self.begin(obs)
+        return self.run(self.begin(obs))
+
+    def run(self, search: Search, source: HypothesisSource | None = None) -> Identification:
+        """The too-few-stars exit, then every hypothesis of `source` (default: the method's `hypotheses`)
+        verified until one is accepted, then the result."""
         reason = self.too_few(search)
         if reason:
             return self.finish(search, reason=reason)
         search.result.status = INCONCLUSIVE
-        self.drive(search, self.hypotheses(search))
+        self.drive(search, self.hypotheses(search) if source is None else source)
         return self.finish(search)
 
     @abstractmethod
@@ -261,15 +315,15 @@ class Identifier(ABC):
         """The method's search: record steps in `search.steps`, fill `search.stats`, yield `Hypothesis`
         records (each answered with its Verification) or a chosen passed Verification."""
 
-    def begin(self, obs: Observation) -> Search:
+    def begin(self, obs: Observation | PixelStars) -> Search:
         """The frame's sigma (the observation's when it is a positive number, else the method's), the
-        checked vectors and an empty result (FAILED until the search runs)."""
+        checked vectors (none for `PixelStars`) and an empty result (FAILED until the search runs)."""
         match_radius = (_VERIFY or _verify_module()).match_radius
         t0 = time.perf_counter()
         s = obs.sigma_rad
         sigma = float(s) if (s is not None and math.isfinite(s) and s > 0) else self.sigma_rad
-        V = np.asarray(obs.vectors, dtype=np.float64)
-        if len(obs) and (V.ndim != 2 or V.shape[1] != 3 or not np.isfinite(V).all()):
+        V = np.zeros((0, 3)) if obs.vectors is None else np.asarray(obs.vectors, dtype=np.float64)
+        if obs.vectors is not None and len(obs) and (V.ndim != 2 or V.shape[1] != 3 or not np.isfinite(V).all()):
             raise BadInput(f"observed vectors must be a finite (N, 3) array, not shape {V.shape}")
         result = Identification(method=self.name, status=FAILED, matches={}, steps=[],
                                 database_key=self.database_key_string)
@@ -285,17 +339,34 @@ class Identifier(ABC):
 
     def verify(self, search: Search, hyp: Hypothesis):
         """The shared verification of one hypothesis, counted in the Bonferroni factor, recorded as a
-        'verify' step; `result.verification` keeps its figures."""
+        'verify' step; `result.verification` keeps its figures. On the search's terms, or on the
+        hypothesis' own `frame` (its matches then told in the method's catalog rows)."""
         mod = _VERIFY or _verify_module()
         verification_step, verify = mod.verification_step, mod.verify
         search.n_hypotheses += int(hyp.count)
         search.verifications += 1
-        ver = verify(search.V, hyp.matches, self.catalog, self.camera, search.sigma,
-                     n_hypotheses=search.n_hypotheses, n_patterns=self.n_patterns, statistic=self.statistic,
-                     threshold=self.threshold, radius_rad=search.radius)
+        on, pred = hyp.frame, hyp.prediction
+        if pred is not None:
+            ver = mod.verify_prediction(search.V, hyp.matches, self.catalog, search.sigma, pred.P, pred.density_sr,
+                                        pred.min_stars, n_hypotheses=search.n_hypotheses, threshold=self.threshold,
+                                        radius_rad=search.radius)
+        else:
+            if on is None:
+                V, catalog, camera, sigma, radius = search.V, self.catalog, self.camera, search.sigma, search.radius
+            else:
+                V, catalog, camera, sigma = on.vectors, on.catalog, on.camera, on.sigma_rad
+                radius = mod.match_radius(sigma, self.radius_sigmas)
+            ver = verify(V, hyp.matches, catalog, camera, sigma,
+                         n_hypotheses=search.n_hypotheses, n_patterns=self.n_patterns, statistic=self.statistic,
+                         threshold=self.threshold, radius_rad=radius,
+                         window_sr=None if on is None else on.window_sr)
+        hypothesis = hyp.matches
+        if on is not None and on.parent_rows is not None:
+            ver = ver.in_rows(on.parent_rows)
+            hypothesis = {o: int(on.parent_rows[c]) for o, c in hyp.matches.items()}
         numbers, record = hyp.judge(ver) if hyp.judge is not None else ({}, {})
         vd = ver.to_dict()
-        search.steps.append(verification_step(ver, hyp.matches, numbers={**hyp.numbers, **numbers}, vd=vd,
+        search.steps.append(verification_step(ver, hypothesis, numbers={**hyp.numbers, **numbers}, vd=vd,
                                               groups=list(hyp.groups), layers=tuple(hyp.layers)))
         if record:
             vd |= record

@@ -41,8 +41,8 @@ from skyview.core.camera import FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera, pinhole_
 from skyview.core.catalog import GuideCatalog
 from skyview.identify import database
 from skyview.identify import patterns as pdb
-from skyview.identify.base import FAILED, INCONCLUSIVE, Step
-from skyview.identify.camera_refit import CAP, BlindParams, BlindResult, CameraRefit, NearestPixels
+from skyview.identify.base import FAILED, Identification, PixelStars, Search, Step
+from skyview.identify.camera_refit import CAP, BlindParams, CameraRefit, NearestPixels
 from skyview.identify.layers import SkyPlaces, even_sample
 from skyview.identify.steps import LazyStep
 
@@ -124,7 +124,7 @@ def fov_ladder(lo: float, hi: float, ladder_deg2: float) -> list[tuple[float, fl
 
 
 @dataclass
-class _Search:
+class _Progress:
     """What one blind search carries between its batches of quads."""
 
     uv: np.ndarray
@@ -173,68 +173,82 @@ class BlindIdentifier(CameraRefit):
     def identify(self, uv: np.ndarray, width: int, height: int, *, fov_deg: float | None = None,
                  fov_error: float = 0.1, max_checks: int | None = None,
                  slide: bool = True, model: str = PINHOLE,
-                 checks_before: int = 0) -> BlindResult:
+                 checks_before: int = 0) -> Identification:
         """Identify centroids uv (N, 2), brightest first, of a width x height image; max_checks: the quick
         checks allowed (None: params.max_checks); slide: when no pattern of the brightest
         params.pattern_stars verifies, search the next ones after them too; every centroid verifies. model:
         the lens the image is searched through
         (`skyview.core.camera`: a fisheye over FISHEYE_FOV_RANGE_DEG, its k1 and k2 fitted like a
         pinhole's). checks_before: hypotheses already checked on this image by earlier searches (another
-        database, another lens): the verification counts them with its own (Bonferroni)."""
-        t0 = time.perf_counter()
-        p = self.params
-        uv = np.asarray(uv, dtype=np.float64)
-        steps: list[Step] = []
+        database, another lens): the verification counts them with its own (Bonferroni). The template's
+        `Identification`; when identified, with the fitted `camera`, the verification's `mag_limit` and
+        the measured `sigma_rad`."""
+        search = self.begin(PixelStars(np.asarray(uv, dtype=np.float64).reshape(-1, 2), int(width), int(height)))
+        search.data.update(fov_deg=fov_deg, fov_error=fov_error, max_checks=max_checks, slide=slide, model=model,
+                           checks_before=int(checks_before))
+        return self.run(search)
+
+    def hypotheses(self, search: Search):
+        """The search (the module docstring): the quads' look-ups and quick checks; each hypothesis that
+        passes its quick check is fitted (`CameraRefit._fitted`) and yielded for the shared verification."""
+        p, d = self.params, search.data
+        uv, width, height, model = search.obs.uv, search.obs.width, search.obs.height, d["model"]
         span = self.fov_range_deg if model == PINHOLE else FISHEYE_FOV_RANGE_DEG
         lo, hi = span
+        fov_deg, fov_error = d["fov_deg"], d["fov_error"]
         if fov_deg is not None:
             lo, hi = fov_deg * (1.0 - fov_error), fov_deg * (1.0 + fov_error)
             if hi < span[0] or lo > span[1]:
                 what = "the blind database covers" if model == PINHOLE else f"the {model} search covers"
-                return self._fail(FAILED, f"{what} FOVs of {span[0]:.1f}-{span[1]:.1f} deg, not {lo:.2f}-{hi:.2f} deg",
-                                  steps)
+                return self._cannot(search, f"{what} FOVs of {span[0]:.1f}-{span[1]:.1f} deg, not {lo:.2f}-{hi:.2f} deg")
             lo, hi = max(lo, span[0]), min(hi, span[1])
-        state = _Search(uv, min(len(uv), p.verify_stars), width, height, model=model)
-        state.checks = int(checks_before)
-        budget = p.max_checks if max_checks is None else int(max_checks)
+        state = _Progress(uv, min(len(uv), p.verify_stars), width, height, model=model)
+        state.checks = d["checks_before"]
+        budget = p.max_checks if d["max_checks"] is None else int(d["max_checks"])
         # the brightest pattern_stars first; when no pattern of them verifies, the window slides down the
         # brightness order (a lit roof, street lights or a planet can take the brightest places), each
         # window with its own budget of checks, every check counted in the verification (Bonferroni)
         # and one time budget for all
-        starts = [0] + [s for s in range(PATTERN_SLIDE, MAX_SLIDE_DEPTH, PATTERN_SLIDE) if slide and len(uv) - s >= 8]
+        starts = [0] + [s for s in range(PATTERN_SLIDE, MAX_SLIDE_DEPTH, PATTERN_SLIDE)
+                        if d["slide"] and len(uv) - s >= 8]
         windows = [np.arange(s, min(len(uv), s + p.pattern_stars)) for s in starts]
         if len(windows[0]) < 4:
-            return self._fail(FAILED, f"{len(windows[0])} stars found: a pattern needs four", steps)
-        res, n_cands = None, 0
+            return self._cannot(search, f"{len(windows[0])} stars found: a pattern needs four")
+        n_cands = 0
         for pat in windows:
-            res, n = self._search(uv, pat, width, height, lo, hi, state, steps, t0, budget)
-            n_cands += n
-            if res is not None or state.timed_out:
+            n_cands += yield from self._search(search, pat, lo, hi, state, budget)
+            if state.timed_out:
                 break
-        if res is not None:
-            return res
-        reason = ": ".join(x for x in (state.gave_up, state.reason) if x) if state.checks else (
-            "no catalog pattern matches the brightest stars (not a star field, or its FOV is outside "
-            f"{lo:.1f}-{hi:.1f} deg)")
-        return self._fail(INCONCLUSIVE if state.checks else FAILED, reason, steps,
-                          stats={"checks": state.checks, "candidates": n_cands})
+        # none verified
+        search.stats.update(checks=state.checks, candidates=n_cands)
+        if state.checks > d["checks_before"]:
+            search.reasons.append(": ".join(x for x in (state.gave_up, state.reason) if x))
+        else:
+            self._cannot(search, "no catalog pattern matches the brightest stars (not a star field, or its FOV is "
+                                 f"outside {lo:.1f}-{hi:.1f} deg)")
 
-    def _search(self, uv, pat, width, height, lo, hi, state: "_Search", steps, t0, budget: int):
+    @staticmethod
+    def _cannot(search: Search, reason: str) -> None:
+        """The search could not run on this image (FAILED), and why."""
+        search.result.status = FAILED
+        search.reasons.append(reason)
+
+    def _search(self, search: Search, pat, lo, hi, state: "_Progress", budget: int):
         """The quads of the pattern stars `pat` (indices of uv, brightest first), looked up and checked in
         batches (BATCH_STARS): the quads of the 5 brightest, then those that add the next stars, each batch
         checked before the next is looked up (the candidates are checked quad by quad in brightness order
         either way: a field whose brightest stars are stars costs one small look-up). Fields wider than
         WIDE_FROM_DEG (a ladder twice as long, for a few cameras) are a section of their own, searched
-        after the narrower one at each batch, each section with `budget` checks. Returns (the verified
-        result or None, the number of candidates)."""
+        after the narrower one at each batch, each section with `budget` checks. Yields the hypotheses (the
+        search ends at an accepted one); returns the number of candidates."""
         n_pat = len(pat)
         if n_pat < 4:
-            return None, 0
+            return 0
+        uv, width, height = search.obs.uv, search.obs.width, search.obs.height
         quads = quads_in_order(n_pat)
         quads_uv = pat[quads]  # the quads as indices of uv
         state.done_upto = 0
         n_cands = 0
-        res = None
         sections = [(a, b) for a, b in ((lo, min(hi, WIDE_FROM_DEG)), (max(lo, WIDE_FROM_DEG), hi)) if a < b]
         spent = [0] * len(sections)
         exhausted: set[int] = set()
@@ -248,18 +262,18 @@ class BlindIdentifier(CameraRefit):
                     continue
                 cands = self._lookup(uv[pat], quads, batch, width, height, s_lo, s_hi, state.model)
                 n_cands += len(cands["pattern"])
-                self._record_lookup(steps, cands, pat[:upto].tolist(), upto, len(batch), s_lo, s_hi)
+                self._record_lookup(search.steps, cands, pat[:upto].tolist(), upto, len(batch), s_lo, s_hi)
                 before = state.checks
-                res = self._check(uv, quads_uv, cands, state, steps, t0, max_checks=budget - spent[k])
+                yield from self._check(search, quads_uv, cands, state, max_checks=budget - spent[k])
                 spent[k] += state.checks - before
-                if res is not None or state.timed_out:
-                    return res, n_cands
+                if state.timed_out:
+                    return n_cands
                 if state.out_of_budget:
                     exhausted.add(k)
                     state.out_of_budget = False
             if len(exhausted) == len(sections):
                 break
-        return None, n_cands
+        return n_cands
 
     # ------------------------------------------------------------------ look-up
     def _record_lookup(self, steps, cands: dict, observed: list[int], upto: int, n_quads: int,
@@ -382,18 +396,19 @@ class BlindIdentifier(CameraRefit):
         return (self._band[1][lvl] >= f_lo * size) & (self._band[0][lvl] <= f_hi * size)
 
     # ------------------------------------------------------------------ hypotheses
-    def _check(self, uv, quads, cands, state: "_Search", steps, t0, max_checks: int) -> BlindResult | None:
-        """Check candidates in order, at most max_checks of them; the first verified one is the result,
-        None if none is."""
+    def _check(self, search: Search, quads, cands, state: "_Progress", max_checks: int):
+        """Check candidates in order, at most max_checks of them; each that passes its quick check is fitted
+        and yielded (the search ends at an accepted one)."""
         first = state.checks
         p = self.params
+        uv, steps, t0 = search.obs.uv, search.steps, search.t0
         width, height, n_obs = state.width, state.height, state.n_obs
         for q, pr, fov in zip(cands["quad"], cands["pattern"], cands["fov"]):
             state.timed_out = time.perf_counter() - t0 > p.time_budget_s
             if state.checks - first >= max_checks or state.timed_out:
                 state.out_of_budget = True
                 state.gave_up = f"gave up after {state.checks} hypotheses ({time.perf_counter() - t0:.1f} s)"
-                return None
+                return
             obs4 = quads[q]
             rows4 = self.rows[pr].astype(np.int64)
             cam = Camera.from_fov(float(fov), width, height, model=state.model)
@@ -424,8 +439,5 @@ class BlindIdentifier(CameraRefit):
                 state.reason = f"the best hypothesis was not confirmed by the other stars ({outcome['note']})" \
                     if not state.reason else state.reason
                 continue
-            res = self._finish(uv, n_obs, obs4, rows4, outcome, state.checks, width, height, steps, t0)
-            if res.identification.identified:
-                return res
-            state.reason = res.identification.reason
-        return None
+            ver = yield from self._fitted(search, uv, n_obs, obs4, rows4, outcome, state.checks)
+            state.reason = ver.reason

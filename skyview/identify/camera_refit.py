@@ -11,20 +11,18 @@ without the stars that a companion could blend with (`verify.resolved_matches`).
 
 from __future__ import annotations
 
-import copy
 import math
-import time
-from dataclasses import dataclass, field
+from collections.abc import Generator
+from dataclasses import dataclass
 
 import numpy as np
 
 from skyview.core.camera import Camera
-from skyview.core.camera_fit import CameraFit, fit_camera
+from skyview.core.camera_fit import fit_camera
 from skyview.core.catalog import GuideCatalog
 from skyview.core.special import binomial_sf
-from skyview.identify import database
-from skyview.identify.base import INCONCLUSIVE, Identification, Step
-from skyview.identify.verify import resolved_matches, verification_step, verify
+from skyview.identify.base import Hypothesis, Identification, Identifier, PixelStars, Search, Step, VerificationFrame
+from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, resolved_matches
 
 CAP = 200  # catalog rows a step lists at most
 
@@ -46,16 +44,6 @@ class BlindParams:
     quick_threshold: float = 1e-3
     max_checks: int = 400  # quick checks at most
     time_budget_s: float = 5.0
-
-
-@dataclass
-class BlindResult:
-    identification: Identification
-    camera: Camera | None = None  # the fitted camera when identified
-    fit: CameraFit | None = None
-    mag_limit: float | None = None  # the depth the verification used
-    sigma_rad: float | None = None
-    info: dict = field(default_factory=dict)
 
 
 class NearestPixels:
@@ -80,11 +68,20 @@ class NearestPixels:
         return np.where(miss, np.inf, best), np.where(miss, n, j)
 
 
-class CameraRefit:
+class CameraRefit(Identifier):
     """The camera fitted to a hypothesis' stars and the hypothesis verified with it, on the full guide
-    catalog (`name`: the method reported; `database_key`: the database the hypothesis came from)."""
+    catalog (`name`: the method reported; `database_key`: the database the hypothesis came from). An
+    `Identifier` whose hypotheses bring their own `VerificationFrame` (the fitted camera, the catalog to
+    the frame's depth, the measured noise): the shared verification and the one `Identification`."""
 
     name = "blind"
+    title = "the blind search"
+    min_stars = 0  # the search says itself what it lacks (four stars for a pattern, two matches for a refit)
+    statistic = CALIBRATED
+    threshold = None
+    radius_sigmas = RADIUS_SIGMAS
+    sigma_rad = float("nan")  # every hypothesis brings the noise measured from its fit
+    camera = None  # ... and the camera fitted to it
 
     def __init__(self, catalog: GuideCatalog, params: BlindParams | None = None, *, name: str | None = None,
                  database_key: dict | None = None):
@@ -93,35 +90,44 @@ class CameraRefit:
         if name is not None:
             self.name = name
         self.database_key = database_key or {}
-        self._depth_catalogs: dict[float, GuideCatalog] = {}
+        self._depths: dict[float, tuple[GuideCatalog, np.ndarray]] = {}
 
-    @property
-    def _key_string(self) -> str:
-        return database.key_string(self.database_key) if self.database_key else ""
+    def hypotheses(self, search: Search):
+        """A refit has no search of its own: its one hypothesis is given (`refit`)."""
+        return iter(())
 
-    def catalog_to(self, mag: float) -> GuideCatalog:
-        """The catalog to `mag` (rounded up to a quarter magnitude), cached with its tree."""
+    def catalog_to(self, mag: float) -> tuple[GuideCatalog, np.ndarray]:
+        """The catalog to `mag` (rounded up to a quarter magnitude) and the row of each of its stars in the
+        full one, cached with its tree."""
         m = min(math.ceil(mag * 4.0) / 4.0, float(self.catalog.mag.max()))
-        cat = self._depth_catalogs.get(m)
-        if cat is None:
-            cat = self._depth_catalogs[m] = self.catalog.brighter_than(m)
-        return cat
+        depth = self._depths.get(m)
+        if depth is None:
+            keep = self.catalog.mag <= m
+            depth = self._depths[m] = (self.catalog.select(keep, f"mag<={m:g}"), np.flatnonzero(keep))
+        return depth
 
     def refit(self, uv: np.ndarray, matches: dict[int, int], camera: Camera, R: np.ndarray, *, checks: int = 1,
-              steps: list[Step] | None = None) -> BlindResult:
+              steps: list[Step] | None = None) -> Identification:
         """A verified hypothesis of another source (observed index -> row of this catalog, on `camera` at
         attitude `R`), its camera fitted and verified again as a blind one is; `checks` hypotheses were
         tried to find it (the Bonferroni factor). The observed stars beyond verify_stars are not used."""
-        t0 = time.perf_counter()
-        uv = np.asarray(uv, dtype=np.float64)
+        search = self.begin(PixelStars(np.asarray(uv, dtype=np.float64).reshape(-1, 2), camera.width, camera.height))
+        search.steps.extend(steps or [])
+        return self.run(search, self._refitted(search, matches, camera, R, checks))
+
+    def _refitted(self, search: Search, matches: dict[int, int], camera: Camera, R: np.ndarray, checks: int):
+        uv = search.obs.uv
         n_obs = min(len(uv), self.params.verify_stars)
         seed = sorted(o for o in matches if o < n_obs)
+        if len(seed) < 2:
+            search.reasons.append(f"{len(seed)} of the matched stars are among the brightest {n_obs}: a fit needs two")
+            return
         obs = np.array(seed, dtype=np.int64)
         rows = np.array([matches[o] for o in seed], dtype=np.int64)
         quick = {"agree": {}, "camera": camera, "R": np.asarray(R, dtype=np.float64)}
-        return self._finish(uv, n_obs, obs, rows, quick, max(1, int(checks)), camera.width, camera.height,
-                            list(steps or []), t0)
-
+        ver = yield from self._fitted(search, uv, n_obs, obs, rows, quick, max(1, int(checks)))
+        if not ver.passed:
+            search.reasons.append(ver.reason)
     def _frame_rows(self, cam: Camera, R: np.ndarray, n_obs: int) -> np.ndarray:
         """Catalog rows on the sensor for (cam, R), the brightest depth_factor * n_obs of them."""
         near = self.catalog.within(R[2], cam.half_diagonal_rad * 1.02)
@@ -164,7 +170,11 @@ class CameraRefit:
         return {"passed": passed, "n_agree": len(agree), "n_tested": n_tested, "p": prob, "note": note,
                 "agree": agree, "camera": cam, "R": R}
 
-    def _finish(self, uv, n_obs, obs4, rows4, quick, checks, width, height, steps, t0) -> BlindResult:
+    def _fitted(self, search: Search, uv, n_obs, obs4, rows4, quick, checks) -> Generator:
+        """The camera fitted to a hypothesis' stars (with those the quick check found), re-matched, then the
+        hypothesis yielded for the shared verification on the fitted camera, the catalog to the frame's
+        depth and the measured noise; `checks`: the hypotheses checked so far on this image (Bonferroni).
+        Returns the verification."""
         p = self.params
         obs_tree = NearestPixels(uv[:n_obs])
         matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **quick["agree"]}
@@ -185,42 +195,29 @@ class CameraRefit:
         if matches != fitted_on:  # the last matching changed the stars: fit once more
             fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R)
             cam, R = fit.camera, fit.R
-        steps.append(Step("fit", f"camera fitted to {len(idx)} stars: FOV {cam.fov_deg:.3f} deg, "
-                                 f"k1 {cam.k1:+.4f}, k2 {cam.k2:+.4f}, residual {fit.rms_px:.2f} px per axis",
-                          observed=[int(i) for i in idx], catalog=[int(matches[i]) for i in idx][:CAP],
-                          numbers={"fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2, "rms_px": fit.rms_px,
-                                   "stars": len(idx)}))
+        search.steps.append(Step("fit", f"camera fitted to {len(idx)} stars: FOV {cam.fov_deg:.3f} deg, "
+                                        f"k1 {cam.k1:+.4f}, k2 {cam.k2:+.4f}, residual {fit.rms_px:.2f} px per axis",
+                                 observed=[int(i) for i in idx], catalog=[int(matches[i]) for i in idx][:CAP],
+                                 numbers={"fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2, "rms_px": fit.rms_px,
+                                          "stars": len(idx)}))
         # the shared verification: the fitted camera, the catalog to the frame's depth, measured noise
         frame = self._frame_rows(cam, R, n_obs)
         mag_limit = float(self.catalog.mag[frame].max()) if len(frame) else float(self.catalog.mag.max())
-        cat = self.catalog_to(mag_limit)
+        cat, parent_rows = self.catalog_to(mag_limit)
         sigma_px = max(fit.rms_px if np.isfinite(fit.rms_px) else 0.5, 0.25)
         sigma_rad = sigma_px * cam.pixel_scale_rad
-        vectors = cam.unproject(uv[:n_obs])
         deep = self.catalog.mag[rows4] <= cat.mag.max()  # the hypothesis' stars in the depth's catalog
-        hyp = dict(zip(np.asarray(obs4)[deep].tolist(), cat.rows_of(self.catalog.hip[rows4[deep]]).tolist()))
-        ver = verify(vectors, hyp, cat, cam, sigma_rad, n_hypotheses=checks)
-        # the steps and the result refer to rows of the full catalog, the verification to the depth's
-        rows = np.array(sorted(set(hyp.values()) | set(ver.matches.values())), dtype=np.int64)
-        to_full = dict(zip(rows.tolist(), self.catalog.rows_of(cat.hip[rows]).tolist()))
-        shown = copy.copy(ver)
-        shown.matches = {o: to_full[c] for o, c in ver.matches.items()}
-        steps.append(verification_step(shown, {o: to_full[c] for o, c in hyp.items()},
-                                       numbers={"fov_deg": cam.fov_deg, "mag_limit": mag_limit}))
-        ident = Identification(method=self.name, status=INCONCLUSIVE, matches={}, steps=steps,
-                               reason=ver.reason, verification=ver.to_dict(),
-                               stats={"checks": checks, "fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2,
-                                      "mag_limit": mag_limit, "fit_rms_px": fit.rms_px},
-                               database_key=self._key_string)
-        if ver.passed:
-            ident.accept(ver)
-            ident.matches = resolved_matches(dict(shown.matches), self.catalog, cam.pixel_scale_rad)
-            ident.stats["unresolved_pairs_left_out"] = len(shown.matches) - len(ident.matches)
-        ident.stats["time_ms"] = (time.perf_counter() - t0) * 1e3
-        return BlindResult(ident, camera=cam if ver.passed else None, fit=fit, mag_limit=mag_limit,
-                           sigma_rad=sigma_rad, info={"checks": checks})
+        hyp = dict(zip(np.asarray(obs4)[deep].tolist(), np.searchsorted(parent_rows, rows4[deep]).tolist()))
+        found = {"checks": checks, "fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2, "mag_limit": mag_limit,
+                 "fit_rms_px": fit.rms_px}
 
-    def _fail(self, status, reason, steps, stats=None) -> BlindResult:
-        ident = Identification(method=self.name, status=status, matches={}, steps=steps, reason=reason,
-                               stats=stats or {}, database_key=self._key_string)
-        return BlindResult(ident)
+        def accepted(ver) -> None:  # reported without the stars a companion could blend with
+            result = search.result
+            result.matches = resolved_matches(dict(ver.matches), self.catalog, cam.pixel_scale_rad)
+            result.camera, result.mag_limit, result.sigma_rad = cam, mag_limit, sigma_rad
+            search.stats.clear()
+            search.stats.update(found, unresolved_pairs_left_out=len(ver.matches) - len(result.matches))
+
+        return (yield Hypothesis(matches=hyp, count=checks - search.n_hypotheses,
+                                 numbers={"fov_deg": cam.fov_deg, "mag_limit": mag_limit}, on_accept=accepted,
+                                 frame=VerificationFrame(cam.unproject(uv[:n_obs]), cat, cam, sigma_rad, parent_rows)))

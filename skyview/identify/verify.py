@@ -77,6 +77,18 @@ the Python floats of p_tested (the same IEEE operations as numpy's).
 Each of these gives the general path's (and the k-d tree's) numbers to the last bit
 (tests/test_verify.py and tests/test_catalog.py compare them).
 
+Windowed frames. A tracker measures only windows around the stars it predicts: a star found in a window
+of solid angle W_i lands within r_i of the predicted star by accident with p_i = pi r_i^2 / W_i (the
+window holds a detection by construction), not the sky's density times the area: `verify(...,
+window_sr=...)`.
+
+A predicted attitude as the hypothesis (`verify_prediction`). A tracker's prediction comes from earlier
+frames and the motion, not from this frame, so every detected star tests it: P(false) is the same
+calibrated statistic of the stars on their predicted places (p_i: the density around the field times
+the bound's area), at least `min_stars` of them; the attitude is then estimated from those stars, and
+each must fit it within its bound. What keeps lock on frames of two or three stars, where no star is
+left to test a hypothesis made of three.
+
 Statistic "tetra3": the classic tetra3 form for comparison: per star p1 = N_nearby (r / FOV)^2
 (r as a fraction of the horizontal FOV, no pi), P = BinomCDF(n_obs - (n_matched - 2), n_obs, 1 - p1)
 over ALL observed stars and ALL matches (hypothesis included, minus two degrees of freedom), and the
@@ -87,7 +99,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -380,6 +392,13 @@ class Verification:
     matches: dict[int, int] = field(default_factory=dict)
     agreeing: dict[int, int] = field(default_factory=dict)  # the other stars that agreed with R(hypothesis)
     ambiguous: list[int] = field(default_factory=list)  # observed stars left out: two catalog stars within r
+
+    def in_rows(self, rows: np.ndarray) -> "Verification":
+        """A copy whose matches and agreeing stars name catalog rows `rows[k]` instead of k (the rows of a
+        catalog of which the verified one is a subset)."""
+        rows = np.asarray(rows)
+        return replace(self, matches={o: int(rows[c]) for o, c in self.matches.items()},
+                                   agreeing={o: int(rows[c]) for o, c in self.agreeing.items()})
 
     def to_dict(self) -> dict:
         return {
@@ -858,13 +877,16 @@ class _Frame:
 
 def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalog, camera: Camera,
            sigma_rad: float, *, n_hypotheses: int = 1, n_patterns: int = 1, statistic: str = CALIBRATED,
-           threshold: float | None = None, radius_rad: float | None = None) -> Verification:
+           threshold: float | None = None, radius_rad: float | None = None,
+           window_sr: np.ndarray | None = None) -> Verification:
     """Verify a hypothesis (observed index -> catalog row) against the whole frame.
 
     vectors: (N, 3) camera-frame unit vectors of ALL observed stars. n_hypotheses: how many
     hypotheses have been verified for this frame, this one included (Bonferroni factor of the
     calibrated statistic). n_patterns: the size of the method's pattern database (the tetra3
     statistic divides its threshold by it). radius_rad: the base match radius (default 3 sqrt(2) sigma).
+    window_sr: (N,) the solid angle of the window each observed star was found in, for a frame
+    measured in windows only (a tracker's): a tested star's chance is then its radius' share of its window.
     """
     if statistic not in STATISTICS:
         raise ValueError(f"unknown verification statistic {statistic!r}: choose from {', '.join(STATISTICS)}")
@@ -910,7 +932,9 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     # the catalog stars around the frame, fetched once for every round below, as far as the local
     # density of the observed stars reaches (an observed star lies acos(z) from the boresight)
     z_min = float(_min(vectors[:, 2]))
-    near = _Near(catalog, math.acos(max(-1.0, min(1.0, z_min))) + LOCAL_RADIUS_RAD + NEAR_SLACK_RAD)
+    # (a windowed frame's chances need no local density: the frame's stars only)
+    reach = 0.0 if window_sr is not None else LOCAL_RADIUS_RAD
+    near = _Near(catalog, math.acos(max(-1.0, min(1.0, z_min))) + reach + NEAR_SLACK_RAD)
     frame = _Frame(catalog, camera, R, r, out.radius_max_rad, near)
     out.n_frame = frame.n_frame
     solid_angle = _solid_angle_sr(camera)
@@ -920,16 +944,18 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     agree, amb = frame.agreeing(vectors, others, h_cat, radii, q, qq1, h_cat_l)
     out.n_agree = len(agree) + len(amb)  # an unresolved close pair still is a catalog star
     out.agreeing = agree
-    # density: the frame's, or the local one around each tested star where that is higher (a
-    # cluster); the star a tested star landed on is left out of its own neighbourhood
-    others_l = others.tolist()
-    landed = np.array([o in agree or o in amb for o in others_l], dtype=np.float64)
-    tested = q @ R
-    cover = near.covers(tested, LOCAL_RADIUS_RAD)
-    dens = np.maximum(out.n_frame / solid_angle, local_density(catalog, tested, leave_out=landed,
-                                                              among=near.wide if cover else None,
-                                                              among_xyz=near.wide_xyz if cover else None))
-    out.p_tested = np.minimum(1.0, dens * np.pi * radii ** 2).tolist()
+    if window_sr is not None:  # a star found in a window: the chance of one placed within r_i of its centre
+        out.p_tested = np.minimum(1.0, np.pi * radii ** 2 / np.asarray(window_sr, dtype=np.float64)[others]).tolist()
+    else:
+        # density: the frame's, or the local one around each tested star where that is higher (a
+        # cluster); the star a tested star landed on is left out of its own neighbourhood
+        landed = np.array([o in agree or o in amb for o in others.tolist()], dtype=np.float64)
+        tested = q @ R
+        cover = near.covers(tested, LOCAL_RADIUS_RAD)
+        dens = np.maximum(out.n_frame / solid_angle, local_density(catalog, tested, leave_out=landed,
+                                                                  among=near.wide if cover else None,
+                                                                  among_xyz=near.wide_xyz if cover else None))
+        out.p_tested = np.minimum(1.0, dens * np.pi * radii ** 2).tolist()
     if statistic == CALIBRATED:
         out.p_false = p_false_calibrated(out.n_agree, out.n_tested, out.p_tested, n_hypotheses)
     else:
@@ -1011,6 +1037,41 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     out.R = est.R
     out.covariance = est.covariance
     out.matches = {o: final[o] for o in sorted(final)}  # Python ints: from tolist() and int()
+    return out
+
+
+def verify_prediction(vectors: np.ndarray, matches: dict[int, int], catalog: GuideCatalog, sigma_rad: float,
+                      covariance: np.ndarray, density_sr: float, min_stars: int, *, n_hypotheses: int = 1,
+                      threshold: float | None = None, radius_rad: float | None = None) -> Verification:
+    """Verify a predicted attitude (the module docstring): `matches` (observed index -> catalog row) are the
+    observed stars found on their predicted places, each within its bound from the prediction's
+    `covariance` (`star_radii`); `density_sr` the stars per steradian an accidental one is drawn from.
+    Passed when at least `min_stars` are matched, P(false) (calibrated, every observed star tested, times
+    n_hypotheses) is below the threshold, and every match fits the attitude estimated from the matches."""
+    vectors = np.asarray(vectors, dtype=np.float64)
+    thr = DEFAULT_THRESHOLD[CALIBRATED] if threshold is None else float(threshold)
+    r = match_radius(sigma_rad) if radius_rad is None else float(radius_rad)
+    k, n = len(matches), len(vectors)
+    out = Verification(passed=False, reason="", statistic=CALIBRATED, threshold=thr, threshold_effective=thr,
+                       radius_rad=r, n_agree=k, n_tested=n, n_hypotheses=int(n_hypotheses))
+    if k < min_stars:
+        out.reason = f"{k} of {n} stars matched the prediction; the prediction alone needs {min_stars}"
+        return out
+    radii = star_radii(vectors, covariance, sigma_rad, r)
+    out.radius_max_rad = float(_max(radii)) if n else r
+    out.p_tested = np.minimum(1.0, density_sr * np.pi * radii ** 2).tolist()
+    out.p_false = p_false_calibrated(k, n, out.p_tested, n_hypotheses)
+    if not out.p_false < thr:
+        out.reason = f"{k} of {n} stars on their predicted places, P(false) = {out.p_false:.2e}"
+        return out
+    est, obs, cat = _estimate(vectors, matches, catalog, sigma_rad)
+    if np.any(angular_distance(vectors[obs], catalog.xyz[cat] @ est.R.T) > radii[obs]):
+        out.reason = "the matched stars do not fit one attitude"
+        return out
+    out.passed = True
+    out.reason = f"{k} of {n} stars on their predicted places, P(false) = {out.p_false:.2e}"
+    out.R, out.covariance = est.R, est.covariance
+    out.matches = out.agreeing = {int(o): int(c) for o, c in zip(obs.tolist(), cat.tolist())}
     return out
 
 

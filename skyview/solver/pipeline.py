@@ -315,33 +315,31 @@ class BlindSolver:
             Camera.from_fov(fov_deg, width, height, model=PINHOLE if fov_deg < 180.0 else EQUIDISTANT)
         t0 = time.perf_counter()
         n = min(len(centroids), self.max_stars)
-        br = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error,
-                                      max_checks=max_checks, slide=slide, model=model, checks_before=checks_before)
-        ident = br.identification
+        ident = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error,
+                                         max_checks=max_checks, slide=slide, model=model, checks_before=checks_before)
         identify_ms = (time.perf_counter() - t0) * 1e3
         span = self.fov_range_deg if model == PINHOLE else FISHEYE_FOV_RANGE_DEG
         guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(span)))
-        if br.camera is not None and model != PINHOLE:
+        if ident.camera is not None and model != PINHOLE:
             # the other fisheye lens, fitted to the matched stars, matched and verified again through it: kept
             # when it holds more stars, or as many with less distortion
-            for lens in _other_lenses(br.camera, centroids.uv, self.catalog.xyz, ident.matches, ident.R):
-                again = self.identifier.refit(centroids.uv[:n], ident.matches, lens, ident.R,
-                                              checks=int(ident.stats.get("checks", 1)), steps=list(ident.steps))
-                a = again.identification
+            for lens in _other_lenses(ident.camera, centroids.uv, self.catalog.xyz, ident.matches, ident.R):
+                a = self.identifier.refit(centroids.uv[:n], ident.matches, lens, ident.R,
+                                          checks=int(ident.stats.get("checks", 1)), steps=list(ident.steps))
                 if a.identified and (len(a.matches) > len(ident.matches) or (
                         len(a.matches) == len(ident.matches)
-                        and abs(again.camera.k1) + abs(again.camera.k2) < abs(br.camera.k1) + abs(br.camera.k2))):
+                        and abs(a.camera.k1) + abs(a.camera.k2) < abs(ident.camera.k1) + abs(ident.camera.k2))):
                     a.stats = {**ident.stats, **a.stats}
-                    br, ident = again, a
-        camera = br.camera if br.camera is not None else Camera.from_fov(guess, width, height, model=model)
-        sigma = br.sigma_rad if br.sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
+                    ident = a
+        camera = ident.camera if ident.camera is not None else Camera.from_fov(guess, width, height, model=model)
+        sigma = ident.sigma_rad if ident.sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
         obs = observation(centroids, camera, sigma, n)
         result = result_from_identification(
             centroids, obs, ident if n else None, camera=camera, catalog=self.catalog, method=BLIND,
             variant="improved", sigma_rad=sigma, estimator=self.estimator,
             database_key=self.identifier.database_key, identify_ms=identify_ms)
-        result.mag_limit = br.mag_limit
-        result.camera_fitted = br.camera is not None
+        result.mag_limit = ident.mag_limit
+        result.camera_fitted = ident.camera is not None
         lo, hi = span if fov_deg is None else (max(span[0], fov_deg * (1 - fov_error)),
                                                min(span[1], fov_deg * (1 + fov_error)))
         result.searches = [{"kind": "fisheye" if model != PINHOLE else self.kind, "fov_deg": [float(lo), float(hi)],
@@ -736,17 +734,17 @@ def _refit_camera(fast: SolveResult, centroids: Centroids, epoch: float, max_sta
     obs = sorted(ident.matches)
     rows = full.rows_of(fast.catalog.hip[[ident.matches[o] for o in obs]])
     checks = int(ident.verification.get("n_hypotheses") or 1)
-    br = refit.refit(centroids.uv, dict(zip(obs, rows.tolist())), fast.camera, fast.R, checks=checks,
-                     steps=ident.steps)
-    if not br.identification.identified:
+    again = refit.refit(centroids.uv, dict(zip(obs, rows.tolist())), fast.camera, fast.R, checks=checks,
+                        steps=ident.steps)
+    if not again.identified:
         return fast
-    br.identification.stats = {**ident.stats, **br.identification.stats}
+    again.stats = {**ident.stats, **again.stats}
     identify_ms = fast.time_ms.get("identify", 0.0) + (time.perf_counter() - t0) * 1e3
     res = result_from_identification(
-        centroids, observation(centroids, br.camera, br.sigma_rad, max_stars), br.identification, camera=br.camera,
-        catalog=full, method=fast.method, variant=fast.variant, sigma_rad=br.sigma_rad, estimator=estimator,
+        centroids, observation(centroids, again.camera, again.sigma_rad, max_stars), again, camera=again.camera,
+        catalog=full, method=fast.method, variant=fast.variant, sigma_rad=again.sigma_rad, estimator=estimator,
         database_key=fast.database_key, identify_ms=identify_ms)
-    res.mag_limit = br.mag_limit
+    res.mag_limit = again.mag_limit
     res.camera_fitted = True
     return res
 

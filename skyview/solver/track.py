@@ -21,21 +21,19 @@ as `solve_image` runs them). For every later frame it
    all at once (`track_window.centroid_windows`: a (K, S, S) stack, border background, a
    Gaussian-weighted centroid per window); `Tracker(..., windows=False)` and `process_centroids`
    take whole-image centroids instead;
-4. matches the observed centroids to the catalog stars around the predicted field by nearest
-   neighbour within the bound (one-to-one; a centroid with two catalog stars within its bound is left
-   out; `track_verify.nearest_one_to_one`); when some were left out, estimates the attitude from the
-   matches and matches once more with the bound of that estimate;
-5. verifies: the hypothesis is the tracked matches' best spread three (their attitude), tested by
-   every other observed star; n_hypotheses counts the tracked hypotheses verified for the frame
-   (Bonferroni). Windowed frames use `track_verify.verify_windowed` (the statistic of `verify.verify`
-   with the chance of one star taken within its window), whole-image frames the shared
-   `verify.verify`. A passed verification extends and re-estimates the attitude from every agreeing
-   star, exactly as for a lost-in-space solve.
+4. identifies the frame where the prediction expects it: `identify.tracking.TrackedIdentifier`, an
+   `Identifier` whose hypotheses go through the template and the shared verification like the six
+   methods'. The observed centroids are matched to the catalog stars around the predicted field by
+   nearest neighbour within the bound (one-to-one; a centroid with two catalog stars within its bound is
+   left out), refined once when some were left out; the hypotheses are the tracked matches' best spread
+   three, tested by every other observed star (`verify.verify`; a windowed frame with the chance of one
+   star taken within its window, `window_sr`), then, when those are refused or fewer than
+   MIN_TRACK_MATCHES stars matched, the prediction itself (`verify.verify_prediction`): 2 matched stars
+   (3 when the motion is unknown) on their predicted places, P(false) below the shared threshold. The
+   hypotheses verified for the frame are counted together (Bonferroni). A passed verification extends
+   and re-estimates the attitude from every agreeing star, exactly as for a lost-in-space solve.
 
-With fewer matches than that, or none left to test them, the prediction itself is the hypothesis
-(`track_verify.verify_by_prediction`): 2 matched stars (3 when the motion is unknown) on their
-predicted places, P(false) below the shared threshold. Loss of lock (fewer stars, or the verification
-refused) falls back to LIS for that frame; a frame that neither solves is coasted on the motion model
+Loss of lock (fewer stars, or the verification refused) falls back to LIS for that frame; a frame that neither solves is coasted on the motion model
 (mode COASTING, for MAX_COAST_FRAMES at most) or reported failed, and the next one is predicted from the
 last solved frame (the prediction's bound grows with the frames in between).
 
@@ -59,7 +57,9 @@ from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids
 from skyview.detect.windows import DEFAULT_PSF_SIGMA_PX, MAX_HALF_PX, PSF_REACH_SIGMAS, centroid_windows, window_centers
-from skyview.identify.verify import MAX_RADIUS_RAD, RADIUS_SIGMAS, verify
+from skyview.identify.base import Identification, Observation
+from skyview.identify.tracking import Prediction, TrackedIdentifier, predicted_sigma, rotation_matrix, rotvec
+from skyview.identify.verify import RADIUS_SIGMAS
 from skyview.solver.pipeline import (
     BLIND,
     DEFAULT_CENTROID_SIGMA_PX,
@@ -75,18 +75,6 @@ from skyview.solver.pipeline import (
 )
 from skyview.solver.result import matched_stars, observation
 from skyview.solver.solution_json import solution_dict
-from skyview.solver.track_verify import (
-    HYPOTHESIS_STARS,
-    cross,
-    nearest_one_to_one,
-    predicted_sigma,
-    rotation_matrix,
-    rotvec,
-    spread_subset,
-    verify_by_prediction,
-    verify_windowed,
-    wahba,
-)
 
 LOST_IN_SPACE = "lost_in_space"
 TRACKING = "tracking"
@@ -128,6 +116,7 @@ class TrackFrame:
     camera_fitted: bool = False
     verified_by: str = ""  # a tracked frame: "hypothesis" (three matches tested by the rest) | "prediction"
     prediction: tuple | None = field(default=None, repr=False)  # (R, covariance) the frame was predicted at
+    identification: Identification | None = field(default=None, repr=False)  # a tracked frame's (its steps)
     method: str | None = None
     variant: str | None = None
     mag_limit: float | None = None
@@ -496,102 +485,35 @@ class Tracker:
             return R, P, "rate"
         return Rj, Pj + (self.still_sigma ** 2 + (n * self.turn_sigma) ** 2) * np.eye(3), "still"
 
-    def _radii(self, b: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """The match bound of each observed direction under a prediction of covariance P (rad)."""
-        s = predicted_sigma(b, P)  # at the observed directions (close to the predicted ones)
-        return np.minimum(RADIUS_SIGMAS * np.sqrt(self.sigma_rad ** 2 + s ** 2), MAX_RADIUS_RAD)
-
-    def _match(self, b: np.ndarray, rows: np.ndarray, R: np.ndarray, P: np.ndarray) -> tuple[dict[int, int], int]:
-        """Observed index -> catalog row (of the field rows): nearest neighbours within the bound of
-        prediction (R, P), one-to-one; an observed star with two catalog stars within its bound is left
-        out. Also returns how many were left out so (ambiguous, or their catalog star taken by a closer one)."""
-        if len(rows) == 0 or len(b) == 0:
-            return {}, 0
-        v = self.catalog.xyz[rows] @ R.T
-        radii = self._radii(b, P)
-        qi, rj, n_left = nearest_one_to_one(b, v, radii)
-        return dict(zip(qi.tolist(), rows[rj].tolist())), n_left
-
     def _track(self, centroids: Centroids, res: TrackFrame, prediction, rows: np.ndarray,
                box_sr: np.ndarray | None = None) -> bool:
+        """The frame identified where the prediction expects it (`identify.tracking.TrackedIdentifier`: the
+        tracked hypotheses, then the prediction itself, through the shared verification)."""
         R_pred, P_pred, how = prediction
         res.predicted_by = how
         res.prediction = (R_pred, P_pred)
         b, uv = self._observation(centroids)
-        sigma = self.sigma_rad
-        matches, n_left = self._match(b, rows, R_pred, P_pred)
-        on_prediction = dict(matches)  # within the prediction's own bound: what the prediction test counts
-        if len(matches) >= 2 and (n_left or len(matches) < len(b)):
-            # some stars were left out at the prediction's bound: refine the attitude with the matches,
-            # then match again with the tighter bound of that estimate
-            idx = np.array(sorted(matches))
-            r = self.catalog.xyz[[matches[i] for i in idx]]
-            R_est, P_est = wahba(b[idx], r, sigma)
-            resid = np.linalg.norm(cross(b[idx], r @ R_est.T), axis=1)
-            if np.all(resid < RADIUS_SIGMAS * sigma * 3):
-                matches, _ = self._match(b, rows, R_est, P_est)
-        if len(matches) < self.min_matches:
-            res.lost_lock = (f"{len(matches)} of {len(b)} stars matched the prediction ({how}); tracking needs "
-                             f"{self.min_matches}")
-            return self._by_prediction(b, uv, on_prediction, rows, P_pred, how, res)
-        idx = np.array(sorted(matches))
-        order = idx[np.argsort(-centroids.brightness[idx], kind="stable")]
-        if box_sr is not None:  # a windowed frame: the chance agreement within each star's window
-            sol, reason = verify_windowed(b, matches, order, box_sr[:len(b)], self.catalog.xyz, sigma,
-                                          RADIUS_SIGMAS * sigma, self.min_matches, MAX_TRACK_TRIES)
-            if sol is None:
-                res.lost_lock = "verification refused the tracked matches: " + reason
-                return self._by_prediction(b, uv, on_prediction, rows, P_pred, how, res)
-            self._accept(res, sol.R, sol.covariance, sol.p_false, matched_stars(self.catalog, uv, sol.matches))
-            return True
-        ver = None
-        for t in range(MAX_TRACK_TRIES):
-            # hypothesis: three well-spread tracked matches (the next try: three of the rest); every
-            # other observed star tests it
-            pool = order[t * HYPOTHESIS_STARS:]
-            k = min(HYPOTHESIS_STARS, len(b) - 1, len(pool))
-            if k < 2:
-                break
-            hyp_idx = spread_subset(b, pool, k)
-            ver = verify(b, {int(i): matches[int(i)] for i in hyp_idx}, self.catalog, self.camera, sigma,
-                         n_hypotheses=t + 1)
-            if ver.passed:
-                break
-        if ver is None or not ver.passed:
-            res.lost_lock = ("verification refused the tracked matches: " + (ver.reason if ver else "no hypothesis"))
-            return self._by_prediction(b, uv, on_prediction, rows, P_pred, how, res)
-        self._accept(res, ver.R, ver.covariance, float(ver.p_false), matched_stars(self.catalog, uv, ver.matches))
-        return True
-
-    @staticmethod
-    def _accept(res: TrackFrame, R: np.ndarray, covariance: np.ndarray, p_false: float, matches: list[dict],
-                verified_by: str = "hypothesis") -> None:
-        res.mode, res.status = TRACKING, SOLVED
-        res.R, res.covariance, res.p_false, res.matches = R, covariance, p_false, matches
-        res.verified_by = verified_by
-        res.lost_lock = ""
-
-    def _by_prediction(self, b: np.ndarray, uv: np.ndarray, matches: dict[int, int], rows: np.ndarray,
-                       P_pred: np.ndarray, how: str, res: TrackFrame) -> bool:
-        """The frame verified by the prediction alone (`track_verify.verify_by_prediction`): what keeps lock
-        on frames of 2-3 stars, where no star is left to test a hypothesis made of three."""
-        if len(b) == 0:
-            return False
-        radii = self._radii(b, P_pred)
         # the chance that a star of the predicted field lies within a detection's bound by accident: the
-        # density of stars there times the bound's area (as the shared verification has it), the density
-        # the catalog's around the field or the detections' of the last whole frame, whichever is higher (a
-        # window holds a detection by construction; an accident needs one placed within its bound)
+        # density of stars there, the density the catalog's around the field or the detections' of the last
+        # whole frame, whichever is higher (a window holds a detection by construction; an accident needs
+        # one placed within its bound)
         cap = self._half_diag[1] + FIELD_MARGIN_RAD
         density = max(len(rows) / (2.0 * np.pi * (1.0 - np.cos(cap))), self._detection_density)
-        p_each = density * np.pi * radii ** 2
-        need = PREDICTION_MIN_STARS.get(how, 3)
-        sol, reason = verify_by_prediction(b, matches, p_each, self.catalog.xyz, self.sigma_rad, radii, need)
-        if sol is None:
-            res.lost_lock = f"{res.lost_lock}; {reason}"
+        expected = Prediction(R_pred, P_pred, how, rows, density, PREDICTION_MIN_STARS.get(how, 3))
+        tracked = TrackedIdentifier(self.catalog, self.camera, self.sigma_rad, min_matches=self.min_matches,
+                                    tries=MAX_TRACK_TRIES)
+        obs = Observation(vectors=b, uv=uv, brightness=centroids.brightness[:len(b)], sigma_rad=self.sigma_rad)
+        ident = tracked.identify_predicted(obs, expected, None if box_sr is None else box_sr[:len(b)])
+        res.identification = ident
+        if not ident.identified:
+            res.lost_lock = ident.reason
             return False
-        self._accept(res, sol.R, sol.covariance, sol.p_false, matched_stars(self.catalog, uv, sol.matches),
-                     verified_by="prediction")
+        res.mode, res.status = TRACKING, SOLVED
+        res.R, res.covariance = ident.R, ident.attitude_covariance
+        res.p_false = float(ident.verification["p_false"])
+        res.matches = matched_stars(self.catalog, uv, ident.matches)
+        res.verified_by = ident.stats["verified_by"]
+        res.lost_lock = ""
         return True
 
     def _lost_in_space(self, centroids: Centroids, width: int, height: int, res: TrackFrame) -> None:
