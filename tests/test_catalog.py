@@ -233,3 +233,32 @@ def test_a_subset_reads_its_sky_index_off_its_parents_and_gets_the_sorted_one():
     ra, dec = full.radec_deg_of(rows)
     assert "radec_deg" not in full.__dict__
     assert np.array_equal(ra, full.radec_deg[0][rows]) and np.array_equal(dec, full.radec_deg[1][rows])
+
+
+def test_a_large_catalogs_sky_index_is_built_once_and_read_from_the_cache(tmp_path, monkeypatch):
+    """The guide catalog's sky index (its z order and cells) is sorted once per catalog and memory-mapped
+    from the cache after that: the same arrays and the same answers as sorting it in the process."""
+    from skyview.core.catalog import SkyIndex
+    from skyview.identify import database
+
+    monkeypatch.setenv("SKYVIEW_CACHE", str(tmp_path))
+    first = database.with_cached_sky_index(load_guide_catalog())
+    files = list((tmp_path / "databases").glob("sky_index-*.npz"))
+    assert len(files) == 1 and "sky" in first.__dict__
+    again = database.with_cached_sky_index(load_guide_catalog())
+    assert not again.sky.by_z.flags.writeable  # read from the file (memory-mapped), not sorted again
+    fresh = SkyIndex(again.xyz)
+    for name in ("by_z", "xyz_z", "z"):
+        assert np.array_equal(getattr(again.sky, name), getattr(fresh, name)), name
+    for a, b in zip(again.sky.cells, fresh.cells):
+        assert np.array_equal(a, b)
+    rng = np.random.default_rng(9)
+    for angle in (3.0, 20.0, 70.0):  # a run of declinations, and the cells (a wide cap on the deep end)
+        c = radec_to_vec(rng.uniform(0, 2 * np.pi), rng.uniform(-1.5, 1.5))
+        assert np.array_equal(again.within(c, np.radians(angle)), np.sort(again.tree.query_ball_point(
+            c, chord(np.radians(angle)))))
+    # a catalog at another epoch has its own index; a small catalog is sorted in the process (a millisecond)
+    other = database.with_cached_sky_index(load_guide_catalog(epoch=2050.0))
+    assert len(list((tmp_path / "databases").glob("sky_index-*.npz"))) == 2 and "sky" in other.__dict__
+    small = database.with_cached_sky_index(load_guide_catalog().brighter_than(5.0))
+    assert "sky" not in small.__dict__

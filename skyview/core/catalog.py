@@ -145,6 +145,26 @@ class SkyIndex:
         out.z = np.ascontiguousarray(self.z[kept])
         return out
 
+    _CELL_FIELDS = ("cell_rows", "cell_start", "cell_stop", "cell_centre", "cell_cos_reach", "cell_sin_reach")
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The index as named arrays, its cells made (what `from_arrays` reads back: a cache's file)."""
+        *cells, max_reach = self.cells
+        return {"by_z": self.by_z, "xyz_z": self.xyz_z, "z": self.z, **dict(zip(self._CELL_FIELDS, cells)),
+                "cell_max_reach": np.array([max_reach])}
+
+    @classmethod
+    def from_arrays(cls, xyz: np.ndarray, arrays: dict[str, np.ndarray]) -> "SkyIndex":
+        """The index of directions `xyz` from `to_arrays`'s arrays (of these very directions: a cache keyed
+        by the catalog's fingerprint), the cells included; raises ValueError when they do not fit xyz."""
+        out = cls.__new__(cls)
+        out.xyz = xyz
+        out.by_z, out.xyz_z, out.z = arrays["by_z"], arrays["xyz_z"], arrays["z"]
+        if not (len(out.by_z) == len(out.xyz_z) == len(out.z) == len(xyz) == len(arrays["cell_rows"])):
+            raise ValueError("the sky index does not fit the catalog")
+        out.__dict__["cells"] = (*(arrays[k] for k in cls._CELL_FIELDS), float(arrays["cell_max_reach"][0]))
+        return out
+
     @cached_property
     def cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """(rows in cell order, start, stop, centre, cos reach, sin reach, largest reach) of the

@@ -21,6 +21,7 @@ from skyview.core.camera import Camera
 from skyview.core.camera_fit import fit_camera
 from skyview.core.catalog import GuideCatalog
 from skyview.core.special import binomial_sf
+from skyview.identify import database
 from skyview.identify.base import Hypothesis, Identification, Identifier, PixelStars, Search, Step, VerificationFrame
 from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, resolved_matches
 
@@ -85,7 +86,7 @@ class CameraRefit(Identifier):
 
     def __init__(self, catalog: GuideCatalog, params: BlindParams | None = None, *, name: str | None = None,
                  database_key: dict | None = None):
-        self.catalog = catalog
+        self.catalog = database.with_cached_sky_index(catalog)
         self.params = params or BlindParams()
         if name is not None:
             self.name = name
