@@ -17,7 +17,7 @@ edge to edge.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import cv2
 import numpy as np
@@ -104,9 +104,10 @@ class Camera:
             return float(np.degrees(2.0 * fisheye_theta(np.asarray(self.height / (2.0 * self.fy)), self.model)))
         return float(np.degrees(2.0 * np.arctan(self.height / (2.0 * self.fy))))
 
-    @property
+    @cached_property
     def half_diagonal_rad(self) -> float:
-        """Angle from the boresight to the farthest image corner (radius of the circumscribed cone)."""
+        """Angle from the boresight to the farthest image corner (radius of the circumscribed cone); computed
+        once per camera (it unprojects the corners)."""
         corners = np.array([[-0.5, -0.5], [self.width - 0.5, -0.5], [-0.5, self.height - 0.5],
                             [self.width - 0.5, self.height - 0.5]])
         return float(np.max(np.arccos(np.clip(self.unproject(corners)[:, 2], -1.0, 1.0))))

@@ -654,12 +654,6 @@ def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad
 
 
 @lru_cache(maxsize=64)
-def _half_diagonal_rad(camera: Camera) -> float:
-    """camera.half_diagonal_rad, computed once per camera (it unprojects the corners: ~0.1 ms a call)."""
-    return camera.half_diagonal_rad
-
-
-@lru_cache(maxsize=64)
 def _focal_centre(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """[fx, fy] and [cx, cy] as arrays, made once per camera."""
     return np.array([camera.fx, camera.fy]), np.array([camera.cx, camera.cy])
@@ -728,7 +722,7 @@ class _Frame:
                  near: _Near | None = None, count: bool = True):
         R = np.asarray(R, dtype=np.float64)
         grow = max(float(r), float(r_pool), 0.0)
-        radius = _half_diagonal_rad(camera) + grow + 1e-9
+        radius = camera.half_diagonal_rad + grow + 1e-9
         near = near or _Near(catalog)
         rows = near.rows(R[2], radius)
         v = near.xyz @ R.T
