@@ -157,6 +157,7 @@ class SkyIndex:
     def from_arrays(cls, xyz: np.ndarray, arrays: dict[str, np.ndarray]) -> "SkyIndex":
         """The index of directions `xyz` from `to_arrays`'s arrays (of these very directions: a cache keyed
         by the catalog's fingerprint), the cells included; raises ValueError when they do not fit xyz."""
+        arrays = {k: np.array(a) for k, a in arrays.items()}  # in memory: a file-backed map costs its gathers ~2x
         out = cls.__new__(cls)
         out.xyz = xyz
         out.by_z, out.xyz_z, out.z = arrays["by_z"], arrays["xyz_z"], arrays["z"]

@@ -130,8 +130,9 @@ class CameraRefit(Identifier):
         if not ver.passed:
             search.reasons.append(ver.reason)
     def _frame_rows(self, cam: Camera, R: np.ndarray, n_obs: int) -> np.ndarray:
-        """Catalog rows on the sensor for (cam, R), the brightest depth_factor * n_obs of them."""
-        near = self.catalog.within(R[2], cam.half_diagonal_rad * 1.02)
+        """Catalog rows on the sensor for (cam, R), the brightest depth_factor * n_obs of them (of the stars the
+        sky index puts in the sensor's cone, a superset of `within`'s, ascending as they are: the same rows)."""
+        near = np.sort(self.catalog.sky.cap(R[2], cam.half_diagonal_rad * 1.02))
         if len(near) == 0:
             return near
         uv, front = cam.project(self.catalog.xyz[near] @ R.T)
