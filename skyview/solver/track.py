@@ -242,7 +242,6 @@ class Tracker:
         self.rate_covariance: np.ndarray | None = None
         self._psf_sigma_px: float | None = None  # measured on the last whole-image centroiding
         self._detection_density = 0.0  # detections per sr of the last whole-image centroiding
-        self._half_diag: tuple | None = None  # (camera, its half-diagonal in rad), computed once per camera
 
     @property
     def sigma_rad(self) -> float:
@@ -354,9 +353,7 @@ class Tracker:
         """Catalog rows around the predicted field: within the half-diagonal + FIELD_MARGIN of R's
         boresight (one tree query per frame; the windows and the matching use these rows)."""
         cam = self.camera
-        if self._half_diag is None or self._half_diag[0] is not cam:
-            self._half_diag = (cam, float(cam.half_diagonal_rad))
-        return self.catalog.within(R[2], self._half_diag[1] + FIELD_MARGIN_RAD)
+        return self.catalog.within(R[2], cam.half_diagonal_rad + FIELD_MARGIN_RAD)
 
     def _windows(self, near: np.ndarray, R: np.ndarray, P: np.ndarray, width: int, height: int
                  ) -> tuple[np.ndarray, int]:
@@ -497,7 +494,7 @@ class Tracker:
         # density of stars there, the density the catalog's around the field or the detections' of the last
         # whole frame, whichever is higher (a window holds a detection by construction; an accident needs
         # one placed within its bound)
-        cap = self._half_diag[1] + FIELD_MARGIN_RAD
+        cap = self.camera.half_diagonal_rad + FIELD_MARGIN_RAD
         density = max(len(rows) / (2.0 * np.pi * (1.0 - np.cos(cap))), self._detection_density)
         expected = Prediction(R_pred, P_pred, how, rows, density, PREDICTION_MIN_STARS.get(how, 3))
         tracked = TrackedIdentifier(self.catalog, self.camera, self.sigma_rad, min_matches=self.min_matches,
