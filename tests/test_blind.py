@@ -574,5 +574,38 @@ def test_the_blind_search_is_an_identifier_whose_hypotheses_the_shared_verificat
     uv_cat, _ = ident.camera.project(identifier.catalog.xyz[list(ident.matches.values())] @ ident.R.T)
     assert np.median(np.hypot(*(uv_cat - uv[list(ident.matches)]).T)) < 1.0
     # an FOV outside what the database covers: the search cannot run, and says why
-    outside = identifier.identify(uv, img.shape[1], img.shape[0], fov_deg=150.0, fov_error=0.05)
+    outside = identifier.identify(uv, img.shape[1], img.shape[0], fov_deg=150.0, fov_error=0.05, checks_before=7)
     assert outside.status == "failed" and "covers FOVs" in outside.reason and outside.camera is None
+    assert outside.stats["checks"] == 7  # the checks of the searches before it still count for the next
+
+
+def test_a_distorted_lens_at_the_fov_given_is_refitted_and_keeps_its_method(catalog):
+    """`--fov-deg F` on a lens with k1 = 0.05: the improved angle method verifies at the FOV given, its
+    stars say the camera is off, and the refit (`CameraRefit.refit`, through the template's verification)
+    fits k1 and verifies again; the identification still names the angle method, with the first one's
+    stars counted and time, and the refit's own time beside them."""
+    from dataclasses import replace
+
+    from skyview.simulate.scenarios import SCENARIOS
+
+    cam = Camera.from_fov(12.0, 1024, 768, k1=0.05)
+    R = R_from_radec_roll(np.radians(90.8), np.radians(-2.4), np.radians(30.0))
+    frame = simulate_image(catalog, cam, R, SensorModel(), seed=1,
+                           **replace(SCENARIOS["blind8"], fov_deg=12.0).render_kwargs())
+    res = solve_image(frame.image, fov_deg=12.0)
+    assert res.solved and res.method == "angle" and res.camera_fitted and res.camera.k1 > 0.02
+    ident = res.identification
+    assert ident.method == "angle" and ident.camera is res.camera and ident.verification["passed"]
+    assert ident.stats["stars"] == 40 and ident.stats["refit_time_s"] > 0 and ident.stats["checks"] >= 1
+    assert attitude_error_arcsec(res.R, R)["boresight"] < 5.0
+    assert not wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in res.matches], frame.truth)
+
+
+def test_a_refit_without_its_hypothesis_says_so(catalog):
+    """A CameraRefit has no search of its own: identified without the hypothesis `refit` gives, it says why."""
+    from skyview.identify.base import INCONCLUSIVE, PixelStars
+    from skyview.identify.camera_refit import CameraRefit
+
+    refit = CameraRefit(catalog)
+    ident = refit.run(refit.begin(PixelStars(np.zeros((5, 2)), 640, 480)))
+    assert ident.status == INCONCLUSIVE and "refit()" in ident.reason and ident.camera is None

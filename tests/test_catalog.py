@@ -236,8 +236,8 @@ def test_a_subset_reads_its_sky_index_off_its_parents_and_gets_the_sorted_one():
 
 
 def test_a_large_catalogs_sky_index_is_built_once_and_read_from_the_cache(tmp_path, monkeypatch):
-    """The guide catalog's sky index (its z order and cells) is sorted once per catalog and memory-mapped
-    from the cache after that: the same arrays and the same answers as sorting it in the process."""
+    """The guide catalog's sky index (its z order and cells) is sorted once per catalog and read from the
+    cache after that (into memory): the same arrays and the same answers as sorting it in the process."""
     from skyview.core.catalog import SkyIndex
     from skyview.identify import database
 

@@ -231,7 +231,8 @@ class Identifier(ABC):
     `min_stars`, fills `database_key` (the key dict its database was built for; see
     `skyview.identify.database`) and `database_info` (counts, bytes, build / load time), and writes
     `hypotheses(search)`; `identify` (the template, above) does the rest and ends every hypothesis in
-    `skyview.identify.verify.verify`. Hooks with defaults: `too_few` (the too-few-stars exit),
+    the shared verification (`skyview.identify.verify.verify`; a tracker's predicted attitude in
+    `verify.verify_prediction`). Hooks with defaults: `too_few` (the too-few-stars exit),
     `failure_reason`, `n_patterns` (the database size the tetra3 statistic divides by).
     """
 

@@ -229,9 +229,11 @@ class BlindIdentifier(CameraRefit):
 
     @staticmethod
     def _cannot(search: Search, reason: str) -> None:
-        """The search could not run on this image (FAILED), and why."""
+        """The search could not run on this image (FAILED), and why; the hypotheses checked before it are
+        still counted (a later search's Bonferroni factor reads them)."""
         search.result.status = FAILED
         search.reasons.append(reason)
+        search.stats.setdefault("checks", search.data["checks_before"])
 
     def _search(self, search: Search, pat, lo, hi, state: "_Progress", budget: int):
         """The quads of the pattern stars `pat` (indices of uv, brightest first), looked up and checked in

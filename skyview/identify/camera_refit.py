@@ -95,7 +95,9 @@ class CameraRefit(Identifier):
 
     def hypotheses(self, search: Search):
         """A refit has no search of its own: its one hypothesis is given (`refit`)."""
-        return iter(())
+        search.reasons.append("a refit verifies a given hypothesis: call refit()")
+        return
+        yield  # (a generator, as the template's drive expects)
 
     def catalog_to(self, mag: float) -> tuple[GuideCatalog, np.ndarray]:
         """The catalog to `mag` (rounded up to a quarter magnitude) and the row of each of its stars in the
@@ -108,11 +110,14 @@ class CameraRefit(Identifier):
         return depth
 
     def refit(self, uv: np.ndarray, matches: dict[int, int], camera: Camera, R: np.ndarray, *, checks: int = 1,
-              steps: list[Step] | None = None) -> Identification:
+              steps: list[Step] | None = None, method: str | None = None) -> Identification:
         """A verified hypothesis of another source (observed index -> row of this catalog, on `camera` at
         attitude `R`), its camera fitted and verified again as a blind one is; `checks` hypotheses were
-        tried to find it (the Bonferroni factor). The observed stars beyond verify_stars are not used."""
+        tried to find it (the Bonferroni factor). The observed stars beyond verify_stars are not used.
+        method: the method the result names (default: this refit's `name`)."""
         search = self.begin(PixelStars(np.asarray(uv, dtype=np.float64).reshape(-1, 2), camera.width, camera.height))
+        if method is not None:
+            search.result.method = method
         search.steps.extend(steps or [])
         return self.run(search, self._refitted(search, matches, camera, R, checks))
 
@@ -129,6 +134,7 @@ class CameraRefit(Identifier):
         ver = yield from self._fitted(search, uv, n_obs, obs, rows, quick, max(1, int(checks)))
         if not ver.passed:
             search.reasons.append(ver.reason)
+
     def _frame_rows(self, cam: Camera, R: np.ndarray, n_obs: int) -> np.ndarray:
         """Catalog rows on the sensor for (cam, R), the brightest depth_factor * n_obs of them (of the stars the
         sky index puts in the sensor's cone, a superset of `within`'s, ascending as they are: the same rows)."""

@@ -154,7 +154,7 @@ def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap
 
 
 SKY_INDEX_MIN_STARS = 20_000  # a catalog this large keeps its sky index in the cache
-SKY_INDEX_FORMAT = 1
+SKY_INDEX_FORMAT = 1  # bump with any change to how SkyIndex or its cells are made: the files are keyed by it
 
 
 def with_cached_sky_index(catalog: GuideCatalog) -> GuideCatalog:

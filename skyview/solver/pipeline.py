@@ -329,7 +329,7 @@ class BlindSolver:
                 if a.identified and (len(a.matches) > len(ident.matches) or (
                         len(a.matches) == len(ident.matches)
                         and abs(a.camera.k1) + abs(a.camera.k2) < abs(ident.camera.k1) + abs(ident.camera.k2))):
-                    a.stats = {**ident.stats, **a.stats}
+                    a.stats = _refit_stats(ident.stats, a.stats)
                     ident = a
         camera = ident.camera if ident.camera is not None else Camera.from_fov(guess, width, height, model=model)
         sigma = ident.sigma_rad if ident.sigma_rad is not None else DEFAULT_CENTROID_SIGMA_PX * camera.pixel_scale_rad
@@ -729,16 +729,16 @@ def _refit_camera(fast: SolveResult, centroids: Centroids, epoch: float, max_sta
 
     t0 = time.perf_counter()
     full = _base_catalog(epoch)
-    refit = _SOLVERS.get_or_make(("refit", epoch), lambda: CameraRefit(full, name=fast.method))
+    refit = _SOLVERS.get_or_make(("refit", epoch), lambda: CameraRefit(full))
     ident = fast.identification
     obs = sorted(ident.matches)
     rows = full.rows_of(fast.catalog.hip[[ident.matches[o] for o in obs]])
     checks = int(ident.verification.get("n_hypotheses") or 1)
     again = refit.refit(centroids.uv, dict(zip(obs, rows.tolist())), fast.camera, fast.R, checks=checks,
-                        steps=ident.steps)
+                        steps=ident.steps, method=fast.method)
     if not again.identified:
         return fast
-    again.stats = {**ident.stats, **again.stats}
+    again.stats = _refit_stats(ident.stats, again.stats)
     identify_ms = fast.time_ms.get("identify", 0.0) + (time.perf_counter() - t0) * 1e3
     res = result_from_identification(
         centroids, observation(centroids, again.camera, again.sigma_rad, max_stars), again, camera=again.camera,
@@ -747,6 +747,14 @@ def _refit_camera(fast: SolveResult, centroids: Centroids, epoch: float, max_sta
     res.mag_limit = again.mag_limit
     res.camera_fitted = True
     return res
+
+
+def _refit_stats(first: dict, refit: dict) -> dict:
+    """The statistics of an answer refitted: the first identification's, with the refit's figures (its fitted
+    camera, depth, checks) added and its time as `refit_time_s`; the stars counted and the time stay the
+    first one's."""
+    extra = {k: v for k, v in refit.items() if k not in ("stars", "time_s")}
+    return {**first, **extra, "refit_time_s": refit.get("time_s", 0.0)}
 
 
 _CATALOGS: dict[float, GuideCatalog] = {}

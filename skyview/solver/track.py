@@ -538,7 +538,8 @@ class Tracker:
                     lis.reason = f"{first}; then the improved angle method: {lis.reason}"
         res.lis_result = lis
         ident = lis.identification
-        res.p_false = (ident.verification.get("p_false") if ident is not None and ident.verification else None)
+        res.p_false = (ident.verification.get("p_false") if lis.solved and ident is not None and ident.verification
+                       else None)  # (an unsolved frame's last verification refused its hypothesis)
         if not lis.solved:
             res.reason = lis.reason
             if res.lost_lock:
