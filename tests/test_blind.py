@@ -609,3 +609,49 @@ def test_a_refit_without_its_hypothesis_says_so(catalog):
     refit = CameraRefit(catalog)
     ident = refit.run(refit.begin(PixelStars(np.zeros((5, 2)), 640, 480)))
     assert ident.status == INCONCLUSIVE and "refit()" in ident.reason and ident.camera is None
+
+
+def test_a_cold_database_is_asked_for_the_pages_a_lookup_reads(tmp_path, monkeypatch):
+    """`database.prefetch` asks the kernel for exactly the pages that hold the rows a look-up will read, one
+    call per run of pages (so a cold page cache reads them together), and the blind search does so in its
+    first search only."""
+    import mmap
+
+    arr = np.lib.format.open_memmap(tmp_path / "t.npy", mode="w+", dtype=np.int64, shape=(10_000,))
+    arr[:] = np.arange(10_000)
+    arr.flush()
+    mapped = np.load(tmp_path / "t.npy", mmap_mode="r")
+    asked = []
+
+    class Map:  # the map's madvise, recorded
+        def __init__(self, m):
+            self.m = m
+
+        def __len__(self):
+            return len(self.m)
+
+        def madvise(self, option, start=0, length=0):
+            asked.append((option, start, length))
+
+    monkeypatch.setattr(mapped, "_mmap", Map(mapped._mmap), raising=False)
+    rows = np.array([0, 1, 600, 5000, 5001, 9999])
+    database.prefetch(mapped, rows)
+    page = mmap.PAGESIZE
+    lead = mapped.offset % mmap.ALLOCATIONGRANULARITY
+    wanted = sorted({(lead + r * 8) // page for r in rows.tolist()})
+    got = sorted({p for _, s, n in asked for p in range(s // page, (s + n - 1) // page + 1)})
+    assert got == wanted and all(o == mmap.MADV_WILLNEED for o, _, _ in asked)
+    assert len(asked) == len(wanted) - sum(b - a == 1 for a, b in zip(wanted, wanted[1:]))  # runs
+    database.prefetch(np.arange(5), np.array([1, 2]))  # not a map: nothing to ask
+
+    # the blind search prefetches while its database is cold (its first search), not after
+    solver = BlindSolver(deep=False)
+    calls = []
+    monkeypatch.setattr(database, "prefetch", lambda m, r: calls.append(len(r)))
+    name = sorted(REFERENCE)[0]
+    img = load_image(REAL / name)
+    first = solver.solve_array(img)
+    n_first = len(calls)
+    again = solver.solve_array(img)
+    assert n_first > 0 and len(calls) == n_first  # none on the second solve
+    assert first.solved and again.solved

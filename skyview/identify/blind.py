@@ -160,6 +160,13 @@ class BlindIdentifier(CameraRefit):
         self.rows = np.asarray(arrays["rows"])
         self.bucket_start = np.asarray(arrays["bucket_start"])
         self.level = np.asarray(arrays["level"])
+        # the table is read at random places: no read-ahead; and the first search after the database is
+        # opened, when its pages are likely not in memory yet (a process's first solve: ~1,400 of them on a
+        # photograph), asks for the pages each look-up will read all at once (~250 -> ~60 ms on a cold page
+        # cache); after it, asking costs more than it saves (~2 ms a solve), so it stops
+        self._maps = arrays
+        database.random_access(arrays)
+        self._cold = True
         # each level's band of largest edges, radians, [lo, hi) (patterns.py), widened by 1e-6 for
         # rounding: the look-up drops the patterns whose size cannot give an FOV it searches
         band_hi = np.radians(np.asarray(arrays["edges_deg"], dtype=np.float64))
@@ -186,7 +193,13 @@ class BlindIdentifier(CameraRefit):
         search = self.begin(PixelStars(np.asarray(uv, dtype=np.float64).reshape(-1, 2), int(width), int(height)))
         search.data.update(fov_deg=fov_deg, fov_error=fov_error, max_checks=max_checks, slide=slide, model=model,
                            checks_before=int(checks_before))
-        return self.run(search)
+        try:
+            return self.run(search)
+        finally:
+            self._cold = False
+
+    def _prefetch(self, name: str, rows: np.ndarray) -> None:
+        database.prefetch(self._maps[name], rows)
 
     def hypotheses(self, search: Search):
         """The search (the module docstring): the quads' look-ups and quick checks; each hypothesis that
@@ -342,7 +355,11 @@ class BlindIdentifier(CameraRefit):
         base, code = np.divmod(combos, len(BIN_OFFSETS))
         needles = np.repeat(base, CODE_COUNT[code]) + CODE_KEYS[_ranges(CODE_START[code], CODE_COUNT[code])]
         distinct, which = np.unique(needles, return_inverse=True)
-        hit_needle, hit_row = pdb.lookup(self.keys, self.bucket_start, distinct)  # by distinct key, ascending
+        cold = self._prefetch if self._cold else None
+        hit_needle, hit_row = pdb.lookup(self.keys, self.bucket_start, distinct, cold)  # by distinct key, ascending
+        if cold is not None:  # the hits' levels and stars are read next
+            cold("level", hit_row)
+            cold("rows", hit_row)
         per_key = np.bincount(hit_needle, minlength=len(distinct))
         first_hit = np.cumsum(per_key) - per_key
         # each combination's hits (its needles' in offset order), then each pair's: its combination's

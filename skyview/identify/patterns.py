@@ -37,6 +37,7 @@ import math
 import sys
 import time
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -313,13 +314,19 @@ def bucket_of(keys: np.ndarray, bits: int) -> np.ndarray:
     return (h >> np.uint64(64 - bits)).astype(np.int64)
 
 
-def lookup(keys: np.ndarray, bucket_start: np.ndarray, needles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def lookup(keys: np.ndarray, bucket_start: np.ndarray, needles: np.ndarray,
+           prefetch: Callable[[str, np.ndarray], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(needle index, table index) of every stored pattern whose key equals a needle: two reads of
-    the bucket table per needle, then the bucket's entries compared."""
+    the bucket table per needle, then the bucket's entries compared. prefetch(name, indices): told
+    before each table ("bucket_start", "keys") is read at those indices (a memory map asks for its pages)."""
     bits = int(round(math.log2(len(bucket_start) - 1)))
     b = bucket_of(needles, bits)
+    if prefetch is not None:
+        prefetch("bucket_start", np.concatenate([b, b + 1]))
     a = bucket_start[b]
     n = bucket_start[b + 1] - a
+    if prefetch is not None:
+        prefetch("keys", np.concatenate([a, a + np.maximum(n - 1, 0)]))
     total = int(n.sum())
     if total == 0:
         e = np.zeros(0, dtype=np.int64)
