@@ -444,7 +444,7 @@ class BlindIdentifier(CameraRefit):
             if fit_px.max() > max(3.0 * p.quick_radius_px, 0.01 * width):
                 continue  # a mirror image, or a pattern that only shares its ratios
             state.checks += 1
-            outcome = self._quick(uv, n_obs, state.tree, obs4, rows4, cam, R, state.checks)
+            outcome = self._quick(uv, n_obs, state.tree, obs4, rows4, cam, R)
             if state.shown < CAP:
                 state.shown += 1
                 steps.append(Step("hypothesis", f"stars {list(map(int, obs4))} as HIP "

@@ -23,7 +23,7 @@ from skyview.core.catalog import GuideCatalog
 from skyview.core.special import binomial_sf
 from skyview.identify import database
 from skyview.identify.base import Hypothesis, Identification, Identifier, PixelStars, Search, Step, VerificationFrame
-from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, resolved_matches
+from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, frame_stars, resolved_matches
 
 CAP = 200  # catalog rows a step lists at most
 
@@ -136,13 +136,8 @@ class CameraRefit(Identifier):
             search.reasons.append(ver.reason)
 
     def _frame_rows(self, cam: Camera, R: np.ndarray, n_obs: int) -> np.ndarray:
-        """Catalog rows on the sensor for (cam, R), the brightest depth_factor * n_obs of them (of the stars the
-        sky index puts in the sensor's cone, a superset of `within`'s, ascending as they are: the same rows)."""
-        near = np.sort(self.catalog.sky.cap(R[2], cam.half_diagonal_rad * 1.02))
-        if len(near) == 0:
-            return near
-        uv, front = cam.project(self.catalog.xyz[near] @ R.T)
-        near = near[front & cam.in_image(uv)]
+        """Catalog rows on the sensor for (cam, R) (`verify.frame_stars`), the brightest depth_factor * n_obs of them."""
+        near = frame_stars(self.catalog, cam, R)
         keep = max(int(self.params.depth_factor * n_obs), 8)
         return near[np.argsort(self.catalog.mag[near], kind="stable")[:keep]]
 
@@ -160,7 +155,7 @@ class CameraRefit(Identifier):
                 pairs[o] = int(rows[ci])
         return pairs, rows
 
-    def _quick(self, uv, n_obs, obs_tree, obs4, rows4, cam, R, checks) -> dict:
+    def _quick(self, uv, n_obs, obs_tree, obs4, rows4, cam, R) -> dict:
         p = self.params
         pairs, rows = self._match(uv, n_obs, obs_tree, cam, R, p.quick_radius_px)
         hyp = set(int(i) for i in obs4)

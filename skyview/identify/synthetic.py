@@ -17,6 +17,7 @@ import numpy as np
 from skyview.core.camera import Camera
 from skyview.core.catalog import GuideCatalog
 from skyview.identify.base import Observation
+from skyview.identify.verify import frame_stars
 
 
 @dataclass
@@ -52,10 +53,8 @@ def synthetic_frame(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sigma_
                     rng: np.random.Generator, false_stars: int = 0) -> SyntheticFrame:
     """The observation of `catalog` by `camera` at attitude R, with noise and optional false stars."""
     R = np.asarray(R, dtype=np.float64)
-    # the stars on the sensor: of those within its half-diagonal of the boresight (the catalog's sky index,
-    # ascending rows), not of the whole sky projected (a sweep makes millions of frames)
-    near = catalog.within(R[2], camera.half_diagonal_rad * 1.02)
-    idx = near[camera.visible(R, catalog.xyz[near])[0]]
+    # the stars on the sensor, ascending (from the sky index's cone: a sweep makes millions of frames)
+    idx = frame_stars(catalog, camera, R)
     v_cam = catalog.xyz[idx] @ R.T
     mags = catalog.mag[idx].astype(np.float64)
     truth = idx.astype(np.int64)

@@ -196,10 +196,6 @@ class TrackedIdentifier(Identifier):
         search.data.update(prediction=prediction, window_sr=window_sr)
         return self.run(search)
 
-    def radii(self, b: np.ndarray, P: np.ndarray, sigma_rad: float) -> np.ndarray:
-        """The match bound of each observed direction under a prediction of covariance P (rad)."""
-        return np.minimum(RADIUS_SIGMAS * np.sqrt(sigma_rad ** 2 + predicted_sigma(b, P) ** 2), MAX_RADIUS_RAD)
-
     def match(self, b: np.ndarray, rows: np.ndarray, R: np.ndarray, P: np.ndarray,
               sigma_rad: float) -> tuple[dict[int, int], int]:
         """Observed index -> catalog row (of the field rows): nearest neighbours within the bound of
@@ -207,7 +203,8 @@ class TrackedIdentifier(Identifier):
         out. Also returns how many were left out so (ambiguous, or their catalog star taken by a closer one)."""
         if len(rows) == 0 or len(b) == 0:
             return {}, 0
-        qi, rj, n_left = nearest_one_to_one(b, self.catalog.xyz[rows] @ R.T, self.radii(b, P, sigma_rad))
+        radii = match_radii(b, P, sigma_rad, RADIUS_SIGMAS * sigma_rad)
+        qi, rj, n_left = nearest_one_to_one(b, self.catalog.xyz[rows] @ R.T, radii)
         return dict(zip(qi.tolist(), rows[rj].tolist())), n_left
 
     def hypotheses(self, search: Search):

@@ -58,7 +58,7 @@ from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids
 from skyview.detect.windows import DEFAULT_PSF_SIGMA_PX, MAX_HALF_PX, PSF_REACH_SIGMAS, centroid_windows, window_centers
 from skyview.identify.base import Identification, Observation
-from skyview.identify.tracking import Prediction, TrackedIdentifier, predicted_sigma, rotation_matrix, rotvec
+from skyview.identify.tracking import Prediction, TrackedIdentifier, match_radii, rotation_matrix, rotvec
 from skyview.identify.verify import RADIUS_SIGMAS
 from skyview.solver.pipeline import (
     BLIND,
@@ -373,7 +373,7 @@ class Tracker:
         order = np.argsort(self.catalog.mag[rows], kind="stable")[:self.track_stars]
         v, uv = v[order], uv[order]
         sigma = self.sigma_rad
-        bound = RADIUS_SIGMAS * np.sqrt(sigma ** 2 + predicted_sigma(v, P) ** 2)
+        bound = match_radii(v, P, sigma, RADIUS_SIGMAS * sigma)  # the match bound (`TrackedIdentifier.match`)
         psf = self._psf_sigma_px or DEFAULT_PSF_SIGMA_PX
         half = bound / cam.pixel_scale_rad + PSF_REACH_SIGMAS * psf + WINDOW_MARGIN_PX
         if np.any(half > MAX_HALF_PX):
