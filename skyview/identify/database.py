@@ -174,8 +174,9 @@ def prefetch(mapped: np.ndarray, rows: np.ndarray) -> None:
     page = mmap_module.PAGESIZE
     lead = mapped.offset % mmap_module.ALLOCATIONGRANULARITY  # where the array starts in its map
     first = lead + np.asarray(rows, dtype=np.int64) * mapped.strides[0]
-    pages = np.unique(np.concatenate([first // page, (first + mapped.strides[0] - 1) // page]))
-    cut = np.flatnonzero(np.diff(pages) != 1) + 1
+    # (sorted, repeats kept: np.unique would import numpy.ma, which a solve does not need)
+    pages = np.sort(np.concatenate([first // page, (first + mapped.strides[0] - 1) // page]))
+    cut = np.flatnonzero(np.diff(pages) > 1) + 1
     size = len(m)
     for s, e in zip(pages[np.r_[0, cut]].tolist(), (pages[np.r_[cut - 1, len(pages) - 1]] + 1).tolist()):
         m.madvise(mmap_module.MADV_WILLNEED, s * page, min(e * page, size) - s * page)
