@@ -64,13 +64,16 @@ class Observation:
 
     vectors: (N, 3) camera-frame unit vectors; uv: (N, 2) pixels; brightness: (N,) summed
     background-subtracted intensity (used as rank / relative magnitude only); sigma_rad: the 1-sigma
-    direction error of one star (the paper's sigma).
+    direction error of one star (the paper's sigma). window_sr: (N,) the solid angle of the window each
+    star was found in, for a frame measured in windows only (a tracker's: the verification then takes a
+    star's chance of agreeing by accident within its window); None for a whole frame.
     """
 
     vectors: np.ndarray
     uv: np.ndarray
     brightness: np.ndarray
     sigma_rad: float
+    window_sr: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.vectors.shape[0])
@@ -86,6 +89,7 @@ class PixelStars:
     height: int
     vectors = None
     sigma_rad = None
+    window_sr = None
 
     def __len__(self) -> int:
         return int(len(self.uv))
@@ -97,15 +101,13 @@ class VerificationFrame:
     `camera` (e.g. a camera fitted to the hypothesis' stars), `catalog` (e.g. the method's catalog to the
     frame's depth), `sigma_rad` (e.g. measured from the fit's residuals). `parent_rows[k]`: row k of that
     catalog as a row of the method's own catalog (the step and the result are told in those rows); None
-    when it is the method's catalog. `window_sr`: the solid angle of the window each observed star was
-    found in, for a frame measured in windows only (a tracker's; `verify.verify`)."""
+    when it is the method's catalog."""
 
     vectors: np.ndarray
     catalog: Any
     camera: Any
     sigma_rad: float
     parent_rows: np.ndarray | None = None
-    window_sr: np.ndarray | None = None
 
 
 @dataclass
@@ -360,7 +362,7 @@ class Identifier(ABC):
             ver = verify(V, hyp.matches, catalog, camera, sigma,
                          n_hypotheses=search.n_hypotheses, n_patterns=self.n_patterns, statistic=self.statistic,
                          threshold=self.threshold, radius_rad=radius,
-                         window_sr=None if on is None else on.window_sr)
+                         window_sr=search.obs.window_sr if on is None else None)
         hypothesis = hyp.matches
         if on is not None and on.parent_rows is not None:
             ver = ver.in_rows(on.parent_rows)

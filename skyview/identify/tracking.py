@@ -10,7 +10,7 @@ through the template and the shared `skyview.identify.verify` and come out as on
    are matched once more with the bound of that estimate;
 2. with at least `min_matches` matches, the hypotheses are three well-spread tracked matches (brightest
    first; the next try three of the rest), each tested by every other observed star in `verify.verify`
-   (a frame measured in windows: the chance of a star taken within its window, `window_sr`);
+   (a frame measured in windows: the chance of a star taken within its window, `Observation.window_sr`);
 3. when they are refused, or too few stars matched, the prediction itself is the hypothesis
    (`verify.verify_prediction`): every observed star tests it, two or three on their predicted places
    suffice. The hypotheses verified for the frame are counted together (Bonferroni).
@@ -39,7 +39,7 @@ from functools import partial
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from skyview.identify.base import Hypothesis, Identification, Identifier, Observation, Search, VerificationFrame
+from skyview.identify.base import Hypothesis, Identification, Identifier, Observation, Search
 from skyview.identify.steps import LazyStep
 from skyview.identify.verify import CALIBRATED, MAX_RADIUS_RAD, RADIUS_SIGMAS
 
@@ -173,7 +173,7 @@ class Prediction:
 
 class TrackedIdentifier(Identifier):
     """The identification of a tracked frame (the module docstring) against the tracking catalog, through
-    the camera the tracker holds. `identify_predicted(obs, prediction, window_sr)`; when identified, its
+    the camera the tracker holds. `identify_predicted(obs, prediction)`; when identified, its
     stats say `verified_by`: "hypothesis" (three tracked matches tested by the rest) or "prediction"."""
 
     name = "track"
@@ -188,12 +188,11 @@ class TrackedIdentifier(Identifier):
         self.min_matches, self.tries = int(min_matches), int(tries)
         self.database_key, self.database_info = {}, {}
 
-    def identify_predicted(self, obs: Observation, prediction: Prediction,
-                           window_sr: np.ndarray | None = None) -> Identification:
-        """Identify a frame's observed stars (brightest first) where `prediction` expects them; window_sr:
-        the solid angle of the window each star was found in, for a frame measured in windows."""
+    def identify_predicted(self, obs: Observation, prediction: Prediction) -> Identification:
+        """Identify a frame's observed stars (brightest first; measured in windows: `obs.window_sr`) where
+        `prediction` expects them."""
         search = self.begin(obs)
-        search.data.update(prediction=prediction, window_sr=window_sr)
+        search.data["prediction"] = prediction
         return self.run(search)
 
     def match(self, b: np.ndarray, rows: np.ndarray, R: np.ndarray, P: np.ndarray,
@@ -233,9 +232,6 @@ class TrackedIdentifier(Identifier):
         if len(matches) >= self.min_matches:
             idx = np.array(sorted(matches))
             order = idx[np.argsort(-np.asarray(search.obs.brightness)[idx], kind="stable")]
-            window_sr = search.data["window_sr"]
-            frame = None if window_sr is None else VerificationFrame(b, self.catalog, self.camera, sigma,
-                                                                     window_sr=window_sr)
             ver = None
             for t in range(self.tries):
                 # three well-spread tracked matches (the next try: three of the rest); every other star tests them
@@ -244,7 +240,7 @@ class TrackedIdentifier(Identifier):
                 if k < 2:
                     break
                 hyp = spread_subset(b, pool, k)
-                ver = yield Hypothesis({int(i): matches[int(i)] for i in hyp}, numbers={"try": t + 1}, frame=frame,
+                ver = yield Hypothesis({int(i): matches[int(i)] for i in hyp}, numbers={"try": t + 1},
                                        on_accept=partial(_verified_by, search, "hypothesis"))
             lost = "verification refused the tracked matches: " + (ver.reason if ver else "no hypothesis")
         # the prediction itself: every detected star tests it

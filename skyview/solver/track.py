@@ -27,7 +27,7 @@ as `solve_image` runs them). For every later frame it
    nearest neighbour within the bound (one-to-one; a centroid with two catalog stars within its bound is
    left out), refined once when some were left out; the hypotheses are the tracked matches' best spread
    three, tested by every other observed star (`verify.verify`; a windowed frame with the chance of one
-   star taken within its window, `window_sr`), then, when those are refused or fewer than
+   star taken within its window, `Observation.window_sr`), then, when those are refused or fewer than
    MIN_TRACK_MATCHES stars matched, the prediction itself (`verify.verify_prediction`): 2 matched stars
    (3 when the motion is unknown) on their predicted places, P(false) below the shared threshold. The
    hypotheses verified for the frame are counted together (Bonferroni). A passed verification extends
@@ -499,8 +499,9 @@ class Tracker:
         expected = Prediction(R_pred, P_pred, how, rows, density, PREDICTION_MIN_STARS.get(how, 3))
         tracked = TrackedIdentifier(self.catalog, self.camera, self.sigma_rad, min_matches=self.min_matches,
                                     tries=MAX_TRACK_TRIES)
-        obs = Observation(vectors=b, uv=uv, brightness=centroids.brightness[:len(b)], sigma_rad=self.sigma_rad)
-        ident = tracked.identify_predicted(obs, expected, None if box_sr is None else box_sr[:len(b)])
+        obs = Observation(vectors=b, uv=uv, brightness=centroids.brightness[:len(b)], sigma_rad=self.sigma_rad,
+                          window_sr=None if box_sr is None else box_sr[:len(b)])
+        ident = tracked.identify_predicted(obs, expected)
         res.identification = ident
         if not ident.identified:
             res.lost_lock = ident.reason
