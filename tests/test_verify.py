@@ -581,14 +581,14 @@ def test_local_density_from_the_stars_around_a_frame_is_the_kd_tree_count(cat, c
     """The local density from the stars fetched around a frame (dot products, the few near the limit
     measured) counts as the k-d tree does; so does the sky index without them."""
     from skyview.core.catalog import chord
-    from skyview.identify.verify import LOCAL_RADIUS_RAD, _Near, local_density
+    from skyview.identify.verify import LOCAL_RADIUS_RAD, NearStars, local_density
 
     rng = np.random.default_rng(8)
     area = 2.0 * np.pi * (1.0 - np.cos(LOCAL_RADIUS_RAD))
     for seed in range(30):
         f = frame_with(cat, cam, 3, seed=300 + seed)
         d = f.obs.vectors @ f.R
-        near = _Near(cat, cam.half_diagonal_rad + LOCAL_RADIUS_RAD + 0.01)
+        near = NearStars(cat, cam.half_diagonal_rad + LOCAL_RADIUS_RAD + 0.01)
         near.rows(f.R[2], cam.half_diagonal_rad)
         assert near.covers(d, LOCAL_RADIUS_RAD)
         n = cat.tree.query_ball_point(d, float(chord(LOCAL_RADIUS_RAD)), return_length=True)

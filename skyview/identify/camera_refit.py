@@ -23,7 +23,7 @@ from skyview.core.catalog import GuideCatalog
 from skyview.core.special import binomial_sf
 from skyview.identify import database
 from skyview.identify.base import Hypothesis, Identification, Identifier, PixelStars, Search, Step, VerificationFrame
-from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, frame_stars, resolved_matches
+from skyview.identify.verify import CALIBRATED, RADIUS_SIGMAS, NearStars, frame_stars, resolved_matches
 
 CAP = 200  # catalog rows a step lists at most
 
@@ -135,14 +135,15 @@ class CameraRefit(Identifier):
         if not ver.passed:
             search.reasons.append(ver.reason)
 
-    def _frame_rows(self, cam: Camera, R: np.ndarray, n_obs: int) -> np.ndarray:
-        """Catalog rows on the sensor for (cam, R) (`verify.frame_stars`), the brightest depth_factor * n_obs of them."""
-        near = frame_stars(self.catalog, cam, R)
+    def _frame_rows(self, cam: Camera, R: np.ndarray, n_obs: int, near: NearStars) -> np.ndarray:
+        """Catalog rows on the sensor for (cam, R) (`verify.frame_stars`; `near`: the hypothesis' stars fetched
+        around the frame, kept from one fit to the next), the brightest depth_factor * n_obs of them."""
+        on = frame_stars(self.catalog, cam, R, near=near)
         keep = max(int(self.params.depth_factor * n_obs), 8)
-        return near[np.argsort(self.catalog.mag[near], kind="stable")[:keep]]
+        return on[np.argsort(self.catalog.mag[on], kind="stable")[:keep]]
 
-    def _match(self, uv, n_obs, obs_tree, cam, R, radius_px):
-        rows = self._frame_rows(cam, R, n_obs)
+    def _match(self, uv, n_obs, obs_tree, cam, R, radius_px, near: NearStars):
+        rows = self._frame_rows(cam, R, n_obs, near)
         if len(rows) == 0:
             return {}, rows
         puv, _ = cam.project(self.catalog.xyz[rows] @ R.T)
@@ -157,7 +158,8 @@ class CameraRefit(Identifier):
 
     def _quick(self, uv, n_obs, obs_tree, obs4, rows4, cam, R) -> dict:
         p = self.params
-        pairs, rows = self._match(uv, n_obs, obs_tree, cam, R, p.quick_radius_px)
+        near = NearStars(self.catalog)  # the catalog around this hypothesis' frame, for its fits too
+        pairs, rows = self._match(uv, n_obs, obs_tree, cam, R, p.quick_radius_px, near)
         hyp = set(int(i) for i in obs4)
         agree = {o: c for o, c in pairs.items() if o not in hyp and c not in set(rows4.tolist())}
         n_tested = n_obs - 4
@@ -171,7 +173,7 @@ class CameraRefit(Identifier):
         note = f"{len(agree)} of {n_tested} other stars land on the {len(rows)} brightest catalog stars, " \
                f"chance {prob:.1e}"
         return {"passed": passed, "n_agree": len(agree), "n_tested": n_tested, "p": prob, "note": note,
-                "agree": agree, "camera": cam, "R": R}
+                "agree": agree, "camera": cam, "R": R, "near": near}
 
     def _fitted(self, search: Search, uv, n_obs, obs4, rows4, quick, checks) -> Generator:
         """The camera fitted to a hypothesis' stars (with those the quick check found), re-matched, then the
@@ -182,6 +184,7 @@ class CameraRefit(Identifier):
         obs_tree = NearestPixels(uv[:n_obs])
         matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **quick["agree"]}
         cam, R = quick["camera"], quick["R"]
+        near = quick.get("near") or NearStars(self.catalog)
         fit, fitted_on = None, None
         # the attitude and the scale first, then the distortion too, each followed by matching again
         passes = ((p.quick_radius_px, False), (max(1.5, 0.5 * p.quick_radius_px), None))
@@ -192,7 +195,7 @@ class CameraRefit(Identifier):
             fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R,
                              fit_k1=distortion, fit_k2=distortion)
             cam, R, fitted_on = fit.camera, fit.R, dict(matches)
-            pairs, _ = self._match(uv, n_obs, obs_tree, cam, R, max(radius, 3.0 * fit.rms_px))
+            pairs, _ = self._match(uv, n_obs, obs_tree, cam, R, max(radius, 3.0 * fit.rms_px), near)
             matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **pairs}
         idx = np.array(sorted(matches))
         if matches != fitted_on:  # the last matching changed the stars: fit once more
@@ -204,7 +207,7 @@ class CameraRefit(Identifier):
                                  numbers={"fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2, "rms_px": fit.rms_px,
                                           "stars": len(idx)}))
         # the shared verification: the fitted camera, the catalog to the frame's depth, measured noise
-        frame = self._frame_rows(cam, R, n_obs)
+        frame = self._frame_rows(cam, R, n_obs, near)
         mag_limit = float(self.catalog.mag[frame].max()) if len(frame) else float(self.catalog.mag.max())
         cat, parent_rows = self.catalog_to(mag_limit)
         sigma_px = max(fit.rms_px if np.isfinite(fit.rms_px) else 0.5, 0.25)

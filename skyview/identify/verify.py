@@ -62,7 +62,7 @@ the tested stars (nearest, second nearest, the crowding count) come from one arr
 k-d tree per round; the catalog stars around the frame are fetched once per verification from the
 catalog's sky index (`GuideCatalog.sky`: numpy, no scipy.spatial), a little wider (NEAR_SLACK_RAD)
 and as far as the local density of the observed stars reaches, and every refined attitude reuses
-them (`_Near`); the local density counts among those stars (`local_density`, `among`); the radii of
+them (`NearStars`); the local density counts among those stars (`local_density`, `among`); the radii of
 all stars are computed once per estimate. Only the (observed, catalog) pairs within a radius are
 measured (all of a small frame's, or those a dot-product prefilter keeps on a larger one:
 `_Frame._within`); a frame whose pairs are one-to-one agrees pair for pair, any other is paired in
@@ -648,9 +648,13 @@ def _stars_apart(catalog: GuideCatalog, rows: np.ndarray, v: np.ndarray, radius_
     return float(_min(_nearest(catalog, rows))) > c2
 
 
-def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
-    """Catalog rows that land on the sensor for attitude R (the sensor grown by margin_rad)."""
-    return _Frame(catalog, camera, R, margin_rad, margin_rad).rows
+def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad: float = 0.0,
+                near: NearStars | None = None) -> np.ndarray:
+    """Catalog rows that land on the sensor for attitude R (the sensor grown by margin_rad), ascending.
+    near: the catalog stars fetched around an earlier attitude of the same frame (`NearStars`), reused
+    while they still cover this one (a camera fit moves the boresight by arcseconds) and fetched again
+    when they do not: the same rows."""
+    return _Frame(catalog, camera, R, margin_rad, margin_rad, near, count=False).rows
 
 
 @lru_cache(maxsize=64)
@@ -672,7 +676,7 @@ _NO_ROWS = np.zeros(0, dtype=np.int64)
 _NO_XYZ = np.zeros((0, 3))
 
 
-class _Near:
+class NearStars:
     """The catalog stars within some radius of a direction, fetched once per verification and reused
     by every re-estimated attitude whose frame they still cover (a refit moves the boresight by
     arcseconds): `rows(b, radius)` is catalog.within(b, radius) or a superset of it, ascending; and
@@ -719,11 +723,11 @@ class _Frame:
     density), and the pool of stars an observed star may match (grown by the largest radius)."""
 
     def __init__(self, catalog: GuideCatalog, camera: Camera, R: np.ndarray, r: float, r_pool: float,
-                 near: _Near | None = None, count: bool = True):
+                 near: NearStars | None = None, count: bool = True):
         R = np.asarray(R, dtype=np.float64)
         grow = max(float(r), float(r_pool), 0.0)
         radius = camera.half_diagonal_rad + grow + 1e-9
-        near = near or _Near(catalog)
+        near = near or NearStars(catalog)
         rows = near.rows(R[2], radius)
         v = near.xyz @ R.T
         f = max(camera.fx, camera.fy)
@@ -928,7 +932,7 @@ def verify(vectors: np.ndarray, hypothesis: dict[int, int], catalog: GuideCatalo
     z_min = float(_min(vectors[:, 2]))
     # (a windowed frame's chances need no local density: the frame's stars only)
     reach = 0.0 if window_sr is not None else LOCAL_RADIUS_RAD
-    near = _Near(catalog, math.acos(max(-1.0, min(1.0, z_min))) + reach + NEAR_SLACK_RAD)
+    near = NearStars(catalog, math.acos(max(-1.0, min(1.0, z_min))) + reach + NEAR_SLACK_RAD)
     frame = _Frame(catalog, camera, R, r, out.radius_max_rad, near)
     out.n_frame = frame.n_frame
     solid_angle = _solid_angle_sr(camera)
