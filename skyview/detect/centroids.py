@@ -368,19 +368,54 @@ def row_median(a: np.ndarray) -> np.ndarray:
 
 
 def _median_part(x: np.ndarray):
-    """np.median of a 1-D array (the same value, in its dtype) from one partition at the middle (numpy's
-    SIMD selection, several times faster than a sort or np.median's two-element partition): for an even
-    count the element below the middle is the largest of the left part."""
+    """np.median of a 1-D array (the same value, in its dtype) from its middle order statistics: for an
+    even count the mean of the two middle ones. On a large array (`_middle_pair`) from the few values
+    that a sub-sample brackets them with, else from one partition at the middle (numpy's SIMD
+    selection, several times faster than a sort or np.median's two-element partition; for an even count
+    the element below the middle is the largest of the left part)."""
     n = x.size
     k = n // 2
     if n > 4096 and _few_values(x[::64], 32):
         # few distinct values (a noise of ~1 step of an integer image): numpy's selection slows ten-fold
         # on so many ties, its SIMD sort does not (the same median)
         return _median_sorted(np.sort(x))
+    if n >= _BRACKET_MIN:
+        pair = _middle_pair(x)
+        if pair is not None:
+            below, mid = pair
+            return mid if n % 2 else (below + mid) / x.dtype.type(2)
     p = np.partition(x, k)
     if n % 2:
         return p[k]
     return (p[:k].max() + p[k]) / x.dtype.type(2)
+
+
+_BRACKET_MIN = 8192  # an array this large has its median bracketed from a sub-sample (`_middle_pair`)
+_BRACKET_STEP = 16  # the sub-sample: every 16th value
+_BRACKET_SIGMAS = 3.0  # the bracket's half-width in standard deviations of the sub-sample's rank of the median
+
+
+def _middle_pair(x: np.ndarray):
+    """(x's order statistic k - 1, its order statistic k) for k = n // 2, the values a sort would put
+    there (None when the bracket missed them, which happens with a chance of ~3e-3: the caller then
+    partitions the whole). The sub-sample's order statistics _BRACKET_SIGMAS standard deviations of its
+    median's rank either side bracket the middle; the values below the bracket are counted, those within
+    it (a few per cent of the array) partitioned: ~40 us on 16,384 float32 values against ~90 us."""
+    n = x.size
+    k = n // 2
+    sub = x[::_BRACKET_STEP]
+    m = sub.size
+    half = int(_BRACKET_SIGMAS * 0.5 * math.sqrt(m)) + 1
+    i_lo, i_hi = max(0, m // 2 - half), min(m - 1, m // 2 + half)
+    ps = np.partition(sub, (i_lo, i_hi))
+    lo, hi = ps[i_lo], ps[i_hi]
+    n_below = int(np.count_nonzero(x < lo))
+    inside = x[(x >= lo) & (x <= hi)]
+    if not n_below <= k - 1 or not k < n_below + inside.size:
+        return None
+    j = k - n_below
+    q = np.partition(inside, (j - 1, j))
+    return q[j - 1], q[j]
 
 
 def _background_stats(f: np.ndarray, block: int = 64):
@@ -1088,7 +1123,12 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     h = int(window) // 2 if window is not None else min(max(math.ceil(2.5 * s_eff), 2), 8)
     params["window_used"] = 2 * h + 1
 
-    if h != h0:
+    if h < h0:  # the narrower windows are the middles of those gathered: the same pixels, the same numbers
+        cut = slice(h0 - h, h0 + h + 1)
+        vals, rawv = np.ascontiguousarray(vals[:, cut, cut]), np.ascontiguousarray(rawv[:, cut, cut])
+        if valid is not None:
+            valid = np.ascontiguousarray(valid[:, cut, cut])
+    elif h > h0:
         vals, valid, rawv = gather(h)
     extended = area > max(MIN_EXTENDED_PX, EXTENDED_PSF_AREAS * math.pi * (3.0 * s_eff) ** 2)
     n_extended = int(np.count_nonzero(extended))
