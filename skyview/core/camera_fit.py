@@ -191,24 +191,25 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
     R0 = np.asarray(R, dtype=np.float64)
     f0 = camera.fx
     fisheye = camera.fisheye
-    rc2 = (np.hypot(camera.width, camera.height) / 2.0 / f0) ** 2
+    rc2 = (math.hypot(camera.width, camera.height) / 2.0 / f0) ** 2
     if fisheye:  # a fisheye's distortion is a polynomial in the off-axis angle: its corner's, squared
         rc2 = float(np.nan_to_num(fisheye_theta(np.asarray(np.sqrt(rc2)), camera.model), nan=np.pi / 2)) ** 2
     names = ("attitude",) + (("f",) if fit_focal else ()) + (("k1",) if fit_k1 else ()) + (("k2",) if fit_k2 else ())
 
-    def unpack(p):
+    def unpack(p):  # (R, f, k1, k2; the last three Python floats: numpy scalars slow every operation)
+        q = p.tolist()
         Rk = _rotvec_matrix(p[:3]) @ R0
         i = 3
         f = f0
         if fit_focal:
-            f = f0 * np.exp(p[i])
+            f = f0 * math.exp(q[i])
             i += 1
         k1, k2 = camera.k1, camera.k2
         if fit_k1:
-            k1 = p[i] / rc2
+            k1 = q[i] / rc2
             i += 1
         if fit_k2:
-            k2 = p[i] / rc2 ** 2
+            k2 = q[i] / rc2 ** 2
         return Rk, f, k1, k2
 
     def project(p):
@@ -243,52 +244,60 @@ def _fit(uv, xyz, camera: Camera, R, fit_focal: bool, fit_k1: bool, fit_k2: bool
     if 2 * n <= len(p0):
         d = project(p0) - uv
         return CameraFit(camera, R0, np.hypot(d[:, 0], d[:, 1]), float("nan"), ())
-    c_minus_uv = np.array([camera.cx, camera.cy]) - uv  # (the residuals' constant part)
+    # the residuals' constant parts and the catalog directions as rows of x, y, z: every array below is a
+    # contiguous 1-d one (an operation on one costs a third of one on a broadcast (N, 2) view)
+    cu0, cv0 = camera.cx - uv[:, 0], camera.cy - uv[:, 1]
+    xyz_t = np.ascontiguousarray(xyz.T)
+    n_p = len(p0)
 
     def residuals_and_jacobian(p):
-        """The residuals (u0 - uv, v0 - uv, u1 - ...) of the pinhole model and their derivatives by p, the
-        image's two axes side by side in (N, 2) arrays."""
+        """The residuals of the pinhole model (the u of every star, then the v; the robust loss and the
+        normal equations do not care for the order) and their derivatives by p."""
         Rk, f, k1, k2 = unpack(p)
-        v = xyz @ Rk.T
-        iz = 1.0 / np.maximum(v[:, 2], 1e-9)
-        xy = v[:, :2] * iz[:, None]
-        x, y = xy[:, 0], xy[:, 1]
+        vx, vy, vz = Rk @ xyz_t  # the directions in the camera frame, one row per axis
+        iz = 1.0 / np.maximum(vz, 1e-9)
+        x, y = vx * iz, vy * iz
         r2 = x * x + y * y
-        s = 1.0 + k1 * r2 + k2 * r2 * r2
-        fxys = xy * (f * s)[:, None]  # (f x s, f y s): the pixel offsets, and their derivatives by log f
-        ds = 2.0 * (k1 + 2.0 * k2 * r2)  # ds/dx = ds * x, ds/dy = ds * y
-        # d(u, v)/d(vector): the columns by v_x, v_y, v_z, each for (u, v): (a, b), (b, d), (cu, cv) with
-        # a = f (s + ds x^2) / z, b = f ds x y / z, d = f (s + ds y^2) / z, c. = -(x col_x + y col_y)
+        s = 1.0 + k1 * r2 + k2 * r2 * r2 if k2 else 1.0 + k1 * r2  # (+ 0 r2^2 changes no bit)
+        fs = f * s
+        JT = np.empty((n_p, 2, n))  # the Jacobian, parameter by parameter, for u and v of each star
+        fx_s, fy_s = JT[3] if fit_focal else np.empty((2, n))  # f x s, f y s: the pixel offsets and d/d log f
+        np.multiply(fs, x, out=fx_s)
+        np.multiply(fs, y, out=fy_s)
+        res = np.empty((2, n))  # (the u residuals, then the v residuals: the Jacobian's rows below)
+        np.add(fx_s, cu0, out=res[0])
+        np.add(fy_s, cv0, out=res[1])
+        # d(u, v)/d(vector): rows (a, b, cu) and (b, d, cv) with a = f (s + ds x^2) / z, b = f ds x y / z,
+        # d = f (s + ds y^2) / z, ds = 2 (k1 + 2 k2 r^2) (ds/dx = ds x), c. = -(x col_x + y col_y)
         g = f * iz
         gs = g * s
-        t = xy * (g * ds)[:, None]
-        col_x = t * x[:, None]
-        col_x[:, 0] += gs
-        col_y = t * y[:, None]
-        col_y[:, 1] += gs
-        col_z = -(col_x * x[:, None] + col_y * y[:, None])
-        # by the rotation vector: (row x v) (-Jl) (the triple product), for both rows at once
-        vx, vy, vz = v[:, 0, None], v[:, 1, None], v[:, 2, None]
-        rows = np.empty((len(v), 2, 3))
-        rows[:, :, 0] = col_y * vz - col_z * vy
-        rows[:, :, 1] = col_z * vx - col_x * vz
-        rows[:, :, 2] = col_x * vy - col_y * vx
-        J = np.empty((len(v), 2, len(p)))
-        J[:, :, :3] = rows @ -_left_jacobian(p[:3])
-        i = 3
-        if fit_focal:
-            J[:, :, i] = fxys
-            i += 1
+        gds = g * (2.0 * (k1 + 2.0 * k2 * r2)) if k2 else g * (2.0 * k1)
+        gx, gy = gds * x, gds * y
+        a = gs + gx * x
+        b = gx * y
+        d = gs + gy * y
+        cu = -(a * x + b * y)
+        cv = -(b * x + d * y)
+        # by the rotation vector: (row x v) (-Jl) (the triple product), both rows in one product
+        rows = np.empty((3, 2, n))
+        rows[0, 0], rows[1, 0], rows[2, 0] = b * vz - cu * vy, cu * vx - a * vz, a * vy - b * vx
+        rows[0, 1], rows[1, 1], rows[2, 1] = d * vz - cv * vy, cv * vx - b * vz, b * vy - d * vx
+        JT[:3] = (-_left_jacobian(p[:3]).T @ rows.reshape(3, 2 * n)).reshape(3, 2, n)
+        i = 3 + bool(fit_focal)
         if fit_k1 or fit_k2:
-            fxy = xy * f
+            fx_, fy_ = f * x, f * y
             if fit_k1:
-                J[:, :, i] = fxy * (r2 / rc2)[:, None]
+                t = r2 / rc2
+                np.multiply(fx_, t, out=JT[i, 0])
+                np.multiply(fy_, t, out=JT[i, 1])
                 i += 1
             if fit_k2:
-                J[:, :, i] = fxy * (r2 * r2 / rc2 ** 2)[:, None]
-        return (fxys + c_minus_uv).ravel(), J.reshape(2 * len(v), len(p))
+                t = r2 * r2 / rc2 ** 2
+                np.multiply(fx_, t, out=JT[i, 0])
+                np.multiply(fy_, t, out=JT[i, 1])
+        return res.reshape(2 * n), JT.reshape(n_p, 2 * n).T  # (2N, P): rows u0 .. uN-1, v0 .. vN-1
 
-    x = robust_gauss_newton(lambda p: (project(p) - uv).ravel(), p0, lo, hi,
+    x = robust_gauss_newton(lambda p: (project(p) - uv).T.ravel(), p0, lo, hi,  # (u of every star, then v)
                             fun_jac=None if fisheye else residuals_and_jacobian)
     Rk, f, k1, k2 = unpack(x)
     cam = Camera(camera.width, camera.height, float(f), float(f), camera.cx, camera.cy, float(k1), float(k2),
