@@ -732,7 +732,7 @@ class _Frame:
         v = near.xyz @ R.T
         f = max(camera.fx, camera.fy)
         if len(rows):
-            if camera.distorted or camera.fisheye:
+            if camera.fisheye:
                 uv, front = camera.project(v)  # NaN pixels behind the camera compare False below
                 every = False
             else:  # = camera.project without its per-call overhead: the same numbers
@@ -743,9 +743,14 @@ class _Frame:
                 if not every:
                     front = z > 1e-12
                     z = np.where(front, z, 1.0)
-                # x = fx (v_x / z) + cx and y likewise, both columns at once (the same operations)
+                # x = fx (v_x / z) + cx and y likewise, both columns at once (the same operations), through
+                # the radial distortion as Camera._distort applies it
                 fxy, cxy = _focal_centre(camera)
-                uv = (v[:, :2] / z[:, None]) * fxy + cxy
+                xy = v[:, :2] / z[:, None]
+                if camera.distorted:
+                    r2 = np.add.reduce(xy * xy, axis=1, keepdims=True)  # (= np.sum of two: x^2 + y^2)
+                    xy = xy * (1.0 + camera.k1 * r2 + camera.k2 * r2 * r2)
+                uv = xy * fxy + cxy
 
             def inside(margin):  # = camera.in_image(uv, margin) without its per-call overhead
                 hi = np.array([camera.width - 0.5 - margin, camera.height - 0.5 - margin])
