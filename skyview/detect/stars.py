@@ -38,6 +38,7 @@ MAX_BINNING = 16
 FEW_STARS = 12  # fewer detections than this: try the image binned (stars too wide to detect), then the matched filter
 MATCHED_FILTER_GAIN = 3  # the matched filter's stars are kept when they are at least this many more
 MIN_BINNED_SIDE = 64  # never bin an image below this many pixels a side
+WIDTH_CHECK_STARS = 15  # the brightest detections whose widths say whether a frame's stars are wide
 # A star is measured on its pixels above this fraction of its peak (so that the background's structure
 # and its neighbours stay out); the RMS radius of a Gaussian cut there is this fraction of sigma:
 PEAK_FRACTION = 0.1
@@ -68,9 +69,10 @@ def star_moments(image: np.ndarray, c: Centroids, idx: np.ndarray, radius: int =
     if len(uv) == 0:
         return sigma, flux
     d = np.arange(-radius, radius + 1, dtype=np.float64)
-    rows = np.rint(uv[:, 1]).astype(np.int64)[:, None, None] + d.astype(np.int64)[None, :, None]
-    cols = np.rint(uv[:, 0]).astype(np.int64)[:, None, None] + d.astype(np.int64)[None, None, :]
-    win = img[rows, cols].astype(np.float64)
+    # each window by flat indices (one index array instead of two broadcast ones: the same pixels)
+    di = d.astype(np.int64)
+    centre = np.rint(uv[:, 1]).astype(np.int64) * W + np.rint(uv[:, 0]).astype(np.int64)
+    win = img.reshape(-1).take(centre[:, None, None] + (di[:, None] * W + di[None, :])[None]).astype(np.float64)
     border = np.concatenate([win[:, [0, -1], :].reshape(len(uv), -1), win[:, 1:-1, [0, -1]].reshape(len(uv), -1)],
                             axis=1)
     win -= row_median(border)[:, None, None]  # the local background (vignetting, glow)
@@ -94,10 +96,13 @@ def star_moments(image: np.ndarray, c: Centroids, idx: np.ndarray, radius: int =
     return sigma, flux
 
 
-def psf_sigma_from_moments(image: np.ndarray, c: Centroids, brightest: int = 15) -> float:
+def psf_sigma_from_moments(image: np.ndarray, c: Centroids, brightest: int = WIDTH_CHECK_STARS) -> float:
     """The PSF sigma (pixels) of the image's stars: the median `star_moments` width of the brightest
     detections; NaN when fewer than three could be measured."""
-    sigma = star_moments(image, c, np.arange(min(brightest, len(c))))[0]
+    return _median_width(star_moments(image, c, np.arange(min(brightest, len(c))))[0])
+
+
+def _median_width(sigma: np.ndarray) -> float:
     sigma = sigma[np.isfinite(sigma)]
     return float(row_median(sigma[None])[0]) if len(sigma) >= 3 else math.nan
 
@@ -136,6 +141,7 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     c = detect_centroids(image, k_sigma=k_sigma, **kwargs)
     H, W = np.shape(image)[:2]
     b, cb, binned = (1 if binning is None else int(binning)), None, None
+    moments = None  # the width check's (sigma, flux) of the brightest stars, when it ran
     if binning is None:
         # the centroider measured its stars' width from the unsaturated bright ones: when they are
         # compact, none of the brightest is saturated and there are enough, there is nothing to bin
@@ -144,7 +150,8 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
         # binning would gather?) waits with the matched filter for `fainter_stars`
         deferred = not faint_search and compact and len(c) < FEW_STARS
         if (not compact or len(c) < FEW_STARS) and not deferred:
-            sigma = psf_sigma_from_moments(image, c)
+            moments = star_moments(image, c, np.arange(min(WIDTH_CHECK_STARS, len(c))))
+            sigma = _median_width(moments[0])  # = psf_sigma_from_moments(image, c)
             b = binning_for(sigma)
             if b == 1 and len(c) < FEW_STARS and not sigma < 1.5:
                 # so wide that few stars clear the threshold pixel by pixel: binning gathers their light
@@ -172,10 +179,10 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
             if faint_search:
                 cm = matched_filter_stars(image, c, k_sigma=k_sigma, **kwargs)
                 if len(cm) >= len(c) + MATCHED_FILTER_GAIN:
-                    c = cm
+                    c, moments = cm, None  # (other stars: the width check's moments are not theirs)
             else:
                 c.params["faint_search"] = "deferred"
-    c = _saturated_by_aperture(binned, c, b)
+    c = _saturated_by_aperture(binned, c, b, moments[1] if moments is not None and b == 1 else None)
     n_trail = 0
     if reject_trails and len(c):
         width = max(1.5, 0.75 * c.psf_sigma_px) if math.isfinite(c.psf_sigma_px) else 1.5
@@ -250,17 +257,27 @@ def take(c: Centroids, keep: np.ndarray) -> Centroids:
     return dataclasses.replace(c, **per_star, params=dict(c.params))
 
 
-def _saturated_by_aperture(image: np.ndarray, c: Centroids, b: int) -> Centroids:
+def _saturated_by_aperture(image: np.ndarray, c: Centroids, b: int, known_flux: np.ndarray | None = None
+                           ) -> Centroids:
     """Saturated stars' brightness from their whole disk (`star_moments`), brightest first again.
 
     The centroider sums a window around the peak, which for a saturated star holds only its flat
     core: every saturated star would seem equally bright. `image` is the image the centroids were
-    measured on (binned by b; c's positions are in full-image pixels)."""
+    measured on (binned by b; c's positions are in full-image pixels). known_flux: `star_moments`'s flux
+    of c's first stars, measured already (by the width check, b = 1): a star's moments do not depend on
+    the others measured with it, so those are not measured again."""
     sat = np.flatnonzero(c.saturated)
     if len(sat) == 0:
         return c
     scaled = dataclasses.replace(c, uv=(c.uv - (b - 1) / 2.0) / b) if b > 1 else c
-    flux = star_moments(image, scaled, sat)[1] * b * b
+    if known_flux is not None:
+        flux = np.empty(len(sat))
+        seen = sat < len(known_flux)
+        flux[seen] = known_flux[sat[seen]]
+        if not seen.all():
+            flux[~seen] = star_moments(image, scaled, sat[~seen])[1]
+    else:
+        flux = star_moments(image, scaled, sat)[1] * b * b
     brightness = c.brightness.copy()
     brightness[sat] = np.fmax(brightness[sat], flux)
     order = np.argsort(-brightness, kind="stable")
