@@ -215,14 +215,18 @@ def test_patch_hot_pixels_takes_a_hot_pixel_and_leaves_a_star():
 
 def test_saturated_fluxes_from_the_width_check_are_measured_again_the_same():
     """The saturated stars' disk fluxes that the width check measured already (its brightest stars) are the
-    fluxes measuring them again gives, bit for bit, so the saturated stars rank the same either way (here
-    two of the three saturated stars known, the third measured)."""
+    fluxes measuring them again gives, bit for bit (a star's moments do not depend on the stars measured
+    with it), and they are the ones used: here two of the three saturated stars known, the third measured."""
     from skyview.detect.stars import _saturated_by_aperture, star_moments
 
     img = load_image(REAL / "2019-07-29T204726_Alt40_Azi-45_Try1.png")
     c = detect_centroids(img)
     assert np.flatnonzero(c.saturated).tolist() == [0, 1, 2]
     known = star_moments(img, c, np.arange(2))[1]
+    together = star_moments(img, c, np.arange(3))[1]
+    assert np.array_equal(together, np.r_[known, star_moments(img, c, np.array([2]))[1]])
     reused, measured = _saturated_by_aperture(img, c, 1, known), _saturated_by_aperture(img, c, 1)
     assert np.array_equal(reused.uv, measured.uv) and np.array_equal(reused.brightness, measured.brightness)
-    assert np.isfinite(known).all() and np.isfinite(star_moments(img, c, np.array([2]))[1]).all()  # measured disks
+    # fluxes ten times larger, given as known, become the two stars' brightness: the known ones are read
+    boosted = _saturated_by_aperture(img, c, 1, 10.0 * known)
+    assert np.array_equal(np.sort(boosted.brightness)[::-1][:2], 10.0 * known)
