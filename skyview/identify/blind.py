@@ -88,11 +88,11 @@ def _candidate_groups(table_rows: np.ndarray, patterns: np.ndarray) -> list[tupl
 def _through_rungs(uv: np.ndarray, fovs: np.ndarray, width: int, height: int, model: str) -> np.ndarray:
     """(rungs, N, 3): the pixels uv unprojected through each assumed FOV's camera, `Camera.unproject`'s
     numbers; a pinhole's rungs all at once (`pinhole_rays`)."""
-    cams = [Camera.from_fov(float(f), width, height, model=model) for f in fovs]
     if model != PINHOLE:
-        return np.stack([cam.unproject(uv) for cam in cams])
-    focal = np.array([cam.fx for cam in cams])[:, None, None]
-    return pinhole_rays(uv - np.array([cams[0].cx, cams[0].cy]), focal)
+        return np.stack([Camera.from_fov(float(f), width, height, model=model).unproject(uv) for f in fovs])
+    # the rungs' focal lengths as Camera.from_fov makes them (the same operations on an array: the same numbers)
+    focal = (width / (2.0 * np.tan(np.radians(np.asarray(fovs, dtype=np.float64)) / 2.0)))[:, None, None]
+    return pinhole_rays(uv - np.array([(width - 1) / 2.0, (height - 1) / 2.0]), focal)
 
 
 @functools.lru_cache(maxsize=64)

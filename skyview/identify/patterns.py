@@ -99,9 +99,10 @@ NARROW_FIELD_PARAMS = PatternParams(max_edge_deg=2.6, min_edge_deg=0.5, stars_pe
 
 def separations(v: np.ndarray) -> np.ndarray:
     """(..., 4, 3) unit vectors -> (..., 6) angles (radians) in PAIRS_OF_FOUR order."""
-    a = v[..., PAIRS_OF_FOUR[:, 0], :]
-    b = v[..., PAIRS_OF_FOUR[:, 1], :]
-    return 2.0 * np.arcsin(np.clip(np.linalg.norm(a - b, axis=-1) / 2.0, 0.0, 1.0))
+    d = v[..., PAIRS_OF_FOUR[:, 0], :] - v[..., PAIRS_OF_FOUR[:, 1], :]
+    # = 2 arcsin(clip(np.linalg.norm(d, axis=-1) / 2, 0, 1)): the norm is sqrt(add.reduce(d * d)) as numpy
+    # computes it for real rows, and it is >= 0 (NaN stays NaN): the same numbers without the wrappers
+    return 2.0 * np.arcsin(np.minimum(np.sqrt(np.add.reduce(d * d, axis=-1)) / 2.0, 1.0))
 
 
 def edge_ratios(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
