@@ -200,3 +200,20 @@ def test_covariance_and_weights_match_the_general_linear_algebra():
     for bad in (0.0, -1.0, np.array([1.0, 0.0])):
         with pytest.raises(ValueError):
             svd_attitude(b, b, bad)
+
+
+def test_proper_rotation_is_markleys_svd_step():
+    """proper_rotation(sum b r^T) is svd_attitude's rotation (equal weights), and a proper one even when
+    the profile matrix holds a reflection."""
+    from skyview.core.attitude import proper_rotation, random_attitudes, svd_attitude
+
+    rng = np.random.default_rng(5)
+    for R in random_attitudes(20, rng):
+        r = rng.normal(size=(6, 3))
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        b = r @ R.T + rng.normal(0.0, 1e-4, (6, 3))
+        assert np.array_equal(proper_rotation(b.T @ r), svd_attitude(b, r).R)
+        assert np.allclose(proper_rotation(b.T @ r), R, atol=1e-3)
+    mirror = np.diag([1.0, 1.0, -1.0])
+    Rm = proper_rotation(mirror)
+    assert np.isclose(np.linalg.det(Rm), 1.0) and np.allclose(Rm @ Rm.T, np.eye(3))

@@ -255,6 +255,12 @@ def _proper(U: np.ndarray, Vt: np.ndarray) -> np.ndarray:
     return U @ Vt
 
 
+def proper_rotation(B: np.ndarray) -> np.ndarray:
+    """The proper rotation R maximising trace(R^T B) for a 3x3 attitude profile matrix B = sum b_i r_i^T
+    (Markley's SVD step, unweighted: U diag(1, 1, det U det V) V^T), without np.linalg's wrappers."""
+    return _proper(*_svd3(np.asarray(B, dtype=np.float64)))
+
+
 def svd_attitude(b: np.ndarray, r: np.ndarray, sigma: float | np.ndarray = 1.0) -> AttitudeEstimate:
     """Markley's SVD solution of Wahba's problem: b_i ~ R r_i (b: camera, r: ICRS), proper R.
 

@@ -37,6 +37,7 @@ from functools import partial
 
 import numpy as np
 
+from skyview.core.attitude import proper_rotation
 from skyview.core.camera import FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera, pinhole_rays
 from skyview.core.catalog import GuideCatalog
 from skyview.identify import database
@@ -103,6 +104,14 @@ def quads_in_order(n: int) -> np.ndarray:
     quads = quads[np.lexsort((quads.sum(axis=1), quads.max(axis=1)))]
     quads.flags.writeable = False
     return quads
+
+
+@functools.lru_cache(maxsize=64)
+def _faintest_of_quads(n: int) -> np.ndarray:
+    """The faintest star (highest rank) of each of `quads_in_order(n)`: non-decreasing (read-only)."""
+    faintest = quads_in_order(n).max(axis=1)
+    faintest.flags.writeable = False
+    return faintest
 
 
 def fov_ladder(lo: float, hi: float, ladder_deg2: float) -> list[tuple[float, float]]:
@@ -268,7 +277,10 @@ class BlindIdentifier(CameraRefit):
         spent = [0] * len(sections)
         exhausted: set[int] = set()
         for upto in sorted({min(n_pat, k) for k in BATCH_STARS if k <= n_pat} | {n_pat}):
-            batch = np.flatnonzero((quads.max(axis=1) < upto) & (quads.max(axis=1) >= state.done_upto))
+            # the quads whose faintest star is below `upto` and not below the last batch's: a run of them, the
+            # quads being in the order of their faintest star
+            faintest = _faintest_of_quads(n_pat)
+            batch = np.arange(int(np.searchsorted(faintest, state.done_upto)), int(np.searchsorted(faintest, upto)))
             state.done_upto = upto
             if len(batch) == 0:
                 continue
@@ -438,8 +450,7 @@ class BlindIdentifier(CameraRefit):
             perm = PERMUTATIONS[int(np.argmin(cost))]
             rows4 = rows4[perm]
             r = r[perm]
-            U, _, Vt = np.linalg.svd(b.T @ r)
-            R = U @ np.diag([1.0, 1.0, np.linalg.det(U) * np.linalg.det(Vt)]) @ Vt
+            R = proper_rotation(b.T @ r)
             fit_px = np.hypot(*(cam.project(r @ R.T)[0] - uv[obs4]).T)
             if fit_px.max() > max(3.0 * p.quick_radius_px, 0.01 * width):
                 continue  # a mirror image, or a pattern that only shares its ratios
