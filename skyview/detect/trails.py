@@ -20,6 +20,8 @@ A tight double, a close triple or a cluster is not a line, and Orion's belt is t
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 MIN_LENGTH_WIDTHS = 15.0  # a trail runs at least this many widths: shorter rows are a tight group
@@ -56,6 +58,14 @@ def trail_members(uv: np.ndarray, *, max_width_px: float = 1.5, max_gap_px: floa
         free &= ~on
 
 
+@lru_cache(maxsize=64)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """np.triu_indices(n, k=1), made once per n (read-only)."""
+    i, j = np.triu_indices(n, k=1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
+
+
 def _longest_line(p: np.ndarray, width: float, gap: float, min_members: int):
     """(centre, unit direction, extent along it from, to) of the longest run of points of p on one line
     (within `width`, neighbours within `gap` along it), refitted to its members; None when no run has
@@ -63,7 +73,7 @@ def _longest_line(p: np.ndarray, width: float, gap: float, min_members: int):
     n = len(p)
     if n < min_members:
         return None
-    i, j = np.triu_indices(n, k=1)
+    i, j = _pairs(n)
     dirs = p[j] - p[i]
     lengths = np.hypot(dirs[:, 0], dirs[:, 1])
     ok = (lengths > 0) & (lengths <= gap * (min_members - 1))
@@ -74,7 +84,9 @@ def _longest_line(p: np.ndarray, width: float, gap: float, min_members: int):
     normal = np.stack([dirs[:, 1], -dirs[:, 0]], axis=1)
     across = np.abs(normal @ p.T - np.einsum("ij,ij->i", normal, p[i])[:, None])
     members = across <= width
-    counts = members.sum(axis=1)
+    counts = np.count_nonzero(members, axis=1)
+    if int(counts.max()) < min_members:  # (the usual frame: no line holds enough of them)
+        return None
     best = None
     for k in np.argsort(-counts, kind="stable"):
         if counts[k] < min_members or (best is not None and counts[k] <= len(best)):
