@@ -217,3 +217,19 @@ def test_proper_rotation_is_markleys_svd_step():
     mirror = np.diag([1.0, 1.0, -1.0])
     Rm = proper_rotation(mirror)
     assert np.isclose(np.linalg.det(Rm), 1.0) and np.allclose(Rm @ Rm.T, np.eye(3))
+
+
+def test_half_diagonal_is_the_farthest_corners_angle():
+    """Camera.half_diagonal_rad (a pinhole's from its corners in Python floats) is the angle between the
+    boresight and the farthest corner's unprojected ray, for off-centre, non-square and distorted cameras."""
+    from skyview.core.camera import Camera
+
+    rng = np.random.default_rng(8)
+    for _ in range(300):
+        w, h = (int(x) for x in rng.integers(16, 6000, 2))
+        f = float(rng.uniform(0.3, 20.0)) * w
+        cam = Camera(w, h, f, f * float(rng.uniform(0.95, 1.05)), float(rng.uniform(0, w)), float(rng.uniform(0, h)),
+                     float(rng.choice([0.0, 1.0]) * rng.uniform(-0.1, 0.1)), float(rng.choice([0.0, 1.0]) * rng.uniform(-0.02, 0.02)))
+        corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+        expected = float(np.max(np.arccos(np.clip(cam.unproject(corners)[:, 2], -1.0, 1.0))))
+        assert cam.half_diagonal_rad == pytest.approx(expected, rel=1e-12, abs=1e-15)

@@ -645,3 +645,38 @@ print(sorted(m for m in sys.modules if m.startswith("scipy.spatial")))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_frame_stars_with_shared_near_stars_are_a_fresh_fetchs(catalog):
+    """`frame_stars(..., near=)` with the stars fetched around an earlier attitude and camera of the same
+    frame (a blind hypothesis' quick check, then its fits) gives the rows a fresh fetch gives: undistorted
+    and distorted pinholes (the verification frame's in-place projection), the fit moving the boresight and
+    the FOV; and for a distortion that folds back before the corner (a fit pushed to its bounds), the rows
+    stay the field's however wide the earlier fetch was."""
+    from skyview.core.camera_fit import MAX_STRETCH
+    from skyview.identify.verify import NearStars, frame_stars
+
+    rng = np.random.default_rng(21)
+    for R in random_attitudes(40, rng):
+        fov = float(rng.uniform(5.0, 40.0))
+        k1 = float(rng.choice([0.0, 1.0]) * rng.uniform(-0.15, 0.15))
+        near = NearStars(catalog)
+        first = Camera.from_fov(fov * 1.05, 1024, 768, k1=k1)
+        frame_stars(catalog, first, R, near=near)  # the quick check's camera, a little wide
+        nudge = R_from_radec_roll(0.0, 0.0, 0.0)  # then the fits: the boresight moved by ~20"
+        turn = np.array([[1.0, 0.0, 1e-4], [0.0, 1.0, 0.0], [-1e-4, 0.0, 1.0]])
+        for cam, Rk in ((Camera.from_fov(fov, 1024, 768, k1=k1), turn @ R), (Camera.from_fov(fov, 1024, 768, k1=k1,
+                                                                                              k2=0.01), nudge @ R)):
+            shared = frame_stars(catalog, cam, Rk, near=near)
+            fresh = frame_stars(catalog, cam, Rk)
+            assert np.array_equal(shared, fresh)
+            uv, front = cam.project(catalog.xyz[fresh] @ Rk.T)
+            assert front.all() and cam.in_image(uv).all()
+    # a barrel term at the fit's bound: the model turns back inside the image
+    R = random_attitudes(1, rng)[0]
+    folding = Camera.from_fov(30.0, 1024, 768)
+    rc2 = (np.hypot(1024, 768) / 2.0 / folding.fx) ** 2
+    folding = Camera.from_fov(30.0, 1024, 768, k1=-MAX_STRETCH / rc2)
+    near = NearStars(catalog)
+    frame_stars(catalog, Camera.from_fov(39.0, 1024, 768), R, near=near)
+    assert np.array_equal(frame_stars(catalog, folding, R, near=near), frame_stars(catalog, folding, R))

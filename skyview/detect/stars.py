@@ -145,7 +145,8 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     if binning is None:
         # the centroider measured its stars' width from the unsaturated bright ones: when they are
         # compact, none of the brightest is saturated and there are enough, there is nothing to bin
-        compact = math.isfinite(c.psf_sigma_px) and c.psf_sigma_px < 1.5 and not c.saturated[:15].any()
+        compact = (math.isfinite(c.psf_sigma_px) and c.psf_sigma_px < 1.5
+                   and not c.saturated[:WIDTH_CHECK_STARS].any())
         # few compact stars and faint_search=False: the width check (is the frame one of wide stars that
         # binning would gather?) waits with the matched filter for `fainter_stars`
         deferred = not faint_search and compact and len(c) < FEW_STARS
@@ -276,6 +277,7 @@ def _saturated_by_aperture(image: np.ndarray, c: Centroids, b: int, known_flux: 
         flux[seen] = known_flux[sat[seen]]
         if not seen.all():
             flux[~seen] = star_moments(image, scaled, sat[~seen])[1]
+        flux *= b * b
     else:
         flux = star_moments(image, scaled, sat)[1] * b * b
     brightness = c.brightness.copy()

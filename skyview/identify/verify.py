@@ -654,7 +654,13 @@ def frame_stars(catalog: GuideCatalog, camera: Camera, R: np.ndarray, margin_rad
     near: the catalog stars fetched around an earlier attitude of the same frame (`NearStars`), reused
     while they still cover this one (a camera fit moves the boresight by arcseconds) and fetched again
     when they do not: the same rows."""
-    return _Frame(catalog, camera, R, margin_rad, margin_rad, near, count=False).rows
+    frame = _Frame(catalog, camera, R, margin_rad, margin_rad, near, count=False)
+    if camera.distorted and not camera.fisheye and len(frame.rows):
+        # a distortion that turns back before the corner (the model pushed to its bounds by a bad fit)
+        # folds stars from beyond the field onto the sensor: kept to the field's cone, so that the rows do
+        # not depend on how wide the stars fetched were (a lens that does not fold has none there)
+        return frame.rows[frame.v[:, 2] >= math.cos(camera.half_diagonal_rad + max(margin_rad, 0.0)) - 1e-12]
+    return frame.rows
 
 
 @lru_cache(maxsize=64)
@@ -677,9 +683,10 @@ _NO_XYZ = np.zeros((0, 3))
 
 
 class NearStars:
-    """The catalog stars within some radius of a direction, fetched once per verification and reused
-    by every re-estimated attitude whose frame they still cover (a refit moves the boresight by
-    arcseconds): `rows(b, radius)` is catalog.within(b, radius) or a superset of it, ascending; and
+    """The catalog stars within some radius of a direction, fetched once (per verification, or per blind
+    hypothesis for its quick check, camera fits and depth: `frame_stars(..., near=)`) and reused by every
+    later attitude whose frame they still cover (a refit moves the boresight by arcseconds):
+    `rows(b, radius)` is catalog.within(b, radius) or a superset of it, ascending; and
     `wide`, the stars within `wide_rad` (the local density's reach) or a superset (`wide_xyz`: their
     directions)."""
 
