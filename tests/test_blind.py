@@ -464,6 +464,53 @@ def test_the_calibrated_mode_never_widens(catalog):
     assert not res.solved and res.method == "angle"  # exact FOV asked for: no blind search behind it
 
 
+def test_an_fov_typed_a_little_off_is_fitted_when_the_answer_rests_on_a_group_off_the_boresight(catalog,
+                                                                                                     monkeypatch):
+    """A 20 deg frame (sun20's kind) given an FOV 1.13 % short: the fast path's first angle (the one with the
+    fewest candidates, short) identifies a group of stars that fits at the wrong scale, and the attitude
+    fitted to it is right at the group and 5.5 px off at the boresight. The similarity of the matched stars
+    taken to the boresight says so, the camera is fitted and the stars matched again: the boresight within a
+    tenth of a pixel. Without that check the answer keeps the typed camera and its error."""
+    from skyview.core.attitude import random_attitudes
+    from skyview.simulate.scenarios import get_scenario
+    from skyview.solver import pipeline
+
+    sc = get_scenario("sun20")
+    R = random_attitudes(100, np.random.default_rng(7))[54]
+    frame = simulate_image(catalog, sc.camera(), R, sc.sensor(), seed=54, **sc.render_kwargs())
+    px = 3600.0 * 20.0 / 1024  # arcsec a pixel
+    res = solve_image(frame.image, fov_deg=20.0 * (1 - 0.0113))
+    assert res.solved and res.method == "angle" and res.camera_fitted  # the fast path's answer, refitted
+    assert res.camera.fov_deg == pytest.approx(20.0, rel=1e-4)
+    assert attitude_error_arcsec(res.R, R)["boresight"] < 0.1 * px
+    assert not wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in res.matches], frame.truth)
+    monkeypatch.setattr(pipeline, "_boresight_moved", lambda *a: False)
+    kept = solve_image(frame.image, fov_deg=20.0 * (1 - 0.0113))
+    assert kept.solved and not kept.camera_fitted and attitude_error_arcsec(kept.R, R)["boresight"] > 3 * px
+
+
+def test_the_boresight_check_keeps_a_right_camera_and_flags_one_it_cannot_pin():
+    """`_boresight_moved` on tangent-plane positions: stars over the field at the right scale keep the camera;
+    a group off the boresight whose attitude was fitted at a scale 2 % off (residuals e (x - mean)) moves it
+    (the shift -e mean is beyond its standard errors); two stars close together pin it to a pixel only
+    when their noise is small."""
+    from skyview.solver.pipeline import _boresight_moved
+
+    rng = np.random.default_rng(3)
+    px, sigma = 3.4e-4, 3e-5  # a pixel, the noise (rad)
+    spread = rng.uniform(-0.15, 0.15, (30, 2))
+    assert not _boresight_moved(spread, rng.normal(0, sigma, 60), sigma, px, 3.0)
+    group = np.array([0.12, 0.05]) + rng.uniform(-0.03, 0.03, (8, 2))
+    e = 0.02
+    y = (e * (group - group.mean(axis=0)) + rng.normal(0, sigma, (8, 2))).ravel()
+    assert _boresight_moved(group, y, sigma, px, 3.0)
+    exact = rng.normal(0, sigma, 16)
+    assert not _boresight_moved(group, exact, sigma, px, 3.0)  # the same group at the right scale: pinned
+    # two of them, at the fast path's half-pixel sigma: the boresight is pinned to ~2 px only
+    assert _boresight_moved(group[:2], exact[:4], 0.5 * px, px, 3.0)
+    assert not _boresight_moved(spread[:2] * 4, exact[:4], 0.5 * px, px, 3.0)  # two far apart across it: pinned
+
+
 def test_blend_table_is_the_ball_query_it_replaces(catalog):
     """resolved_matches reads one table: each star's chord to its nearest companion that could blend with
     it. On 3,000 random stars it must give what the k-d tree's ball query gives at every blend radius."""
