@@ -197,7 +197,7 @@ class TriangleMethod(TriangleLookup, PivotMethod):
 
         pair_i, pair_j, self.kv_pairs, info = load_pair_database(catalog, camera)
         # both stars of each pair side by side: the pairs of an angle range are one contiguous block (`join_pairs`)
-        self.pair_ends = np.stack([pair_i, pair_j], axis=1)
+        self.pair_ends = np.stack([pair_i, pair_j], axis=1).astype(np.int64)  # (from the int32 columns)
         self.pair_i, self.pair_j = self.pair_ends[:, 0], self.pair_ends[:, 1]
         self.pair_max_sep_rad = float(info["max_sep_rad"])
         params = {"max_radius_rad": self.max_radius_rad, "depth": self.depth, "moment_sigma": MOMENT_PARAMS,
