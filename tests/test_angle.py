@@ -60,7 +60,7 @@ def test_database_built_once_then_loaded(tmp_path, monkeypatch, cat, cam):
     np.testing.assert_array_equal(a.kv.sorted_values, b.kv.sorted_values)
     # the cached file is mapped, not read (a process reads the pages its look-ups touch), and the
     # candidates a look-up gives are the built database's, widened to int64
-    assert isinstance(b.pair_i, np.memmap) and not b.kv.sorted_values.flags.owndata
+    assert isinstance(b.pair_i, np.memmap) and b.kv.sorted_values.flags.owndata  # (the searched angles: copied)
     ctx = {"counts": type("Span", (), {"span": lambda self, k: (100, 160)})()}
     for x, y in zip(a._candidates(ctx, 0), b._candidates(ctx, 0)):
         assert x.dtype == y.dtype == np.int64 and np.array_equal(x, y)
