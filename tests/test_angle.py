@@ -53,6 +53,9 @@ def test_database_built_once_then_loaded(tmp_path, monkeypatch, cat, cam):
     assert a.database_info["source"] == "built"
     path = tmp_path / "databases" / f"{a.database_key_string}.npz"
     assert path.exists() and a.database_info["path"] == str(path)
+    import skyview.identify.angle as angle_module
+
+    monkeypatch.setattr(angle_module, "_LOADED", {})  # a new process: the file, not this one's arrays
     b = AngleMethod(cat, cam, SIGMA, beta=2.0, max_pivots=None)  # search parameters: same database
     assert b.database_info["source"] == "cache"
     assert b.database_key == a.database_key
@@ -64,6 +67,10 @@ def test_database_built_once_then_loaded(tmp_path, monkeypatch, cat, cam):
     ctx = {"counts": type("Span", (), {"span": lambda self, k: (100, 160)})()}
     for x, y in zip(a._candidates(ctx, 0), b._candidates(ctx, 0)):
         assert x.dtype == y.dtype == np.int64 and np.array_equal(x, y)
+    # another solver of a camera of the same range shares the process's map and its copy of the angles
+    b2 = AngleMethod(cat, Camera.from_fov(cam.fov_deg * 0.999, 1024), SIGMA)
+    assert b2.pair_i is b.pair_i and b2.kv.sorted_values is b.kv.sorted_values
+    assert b2.database_info["source"] == "cache" and b2.database_info["fov_deg"] != b.database_info["fov_deg"]
     # keys differ when what the database depends on differs
     c = AngleMethod(cat, cam, SIGMA, kvector_fit="parabola")
     d = AngleMethod(cat, Camera.from_fov(10.0, 1024), SIGMA)

@@ -470,7 +470,8 @@ def test_an_fov_typed_a_little_off_is_fitted_when_the_answer_rests_on_a_group_of
     fewest candidates, short) identifies a group of stars that fits at the wrong scale, and the attitude
     fitted to it is right at the group and 5.5 px off at the boresight. The similarity of the matched stars
     taken to the boresight says so, the camera is fitted and the stars matched again: the boresight within a
-    tenth of a pixel. Without that check the answer keeps the typed camera and its error."""
+    tenth of a pixel; when that refit does not verify, the blind search fits it. Without the check the answer
+    keeps the typed camera and its error."""
     from skyview.core.attitude import random_attitudes
     from skyview.simulate.scenarios import get_scenario
     from skyview.solver import pipeline
@@ -484,6 +485,13 @@ def test_an_fov_typed_a_little_off_is_fitted_when_the_answer_rests_on_a_group_of
     assert res.camera.fov_deg == pytest.approx(20.0, rel=1e-4)
     assert attitude_error_arcsec(res.R, R)["boresight"] < 0.1 * px
     assert not wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in res.matches], frame.truth)
+    # a refit that does not verify: the blind search fits the camera from the start
+    with monkeypatch.context() as m:
+        m.setattr(pipeline, "_refit_camera", lambda fast, *a: fast)
+        blind = solve_image(frame.image, fov_deg=20.0 * (1 - 0.0113))
+    assert blind.solved and blind.method == "blind" and blind.camera_fitted
+    assert attitude_error_arcsec(blind.R, R)["boresight"] < 0.1 * px
+    assert any("did not fit it" in n for n in blind.notes)
     monkeypatch.setattr(pipeline, "_boresight_moved", lambda *a: False)
     kept = solve_image(frame.image, fov_deg=20.0 * (1 - 0.0113))
     assert kept.solved and not kept.camera_fitted and attitude_error_arcsec(kept.R, R)["boresight"] > 3 * px

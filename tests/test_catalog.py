@@ -266,3 +266,17 @@ def test_a_large_catalogs_sky_index_is_built_once_and_read_from_the_cache(tmp_pa
     assert len(list((tmp_path / "databases").glob("sky_index-*.npz"))) == 2 and "sky" in other.__dict__
     small = database.with_cached_sky_index(load_guide_catalog().brighter_than(5.0))
     assert "sky" not in small.__dict__
+
+
+def test_a_magnitude_cut_is_made_once_and_the_cuts_kept_are_bounded(cat):
+    from skyview.core.catalog import MAX_KEPT_CUTS
+
+    a = cat.brighter_than(5.5)
+    assert cat.brighter_than(5.5) is a  # the same cut, not a copy hashed again for the database keys
+    assert len(a) == int(np.count_nonzero(cat.mag <= 5.5)) and np.all(a.mag <= 5.5)
+    assert a.fingerprint == cat.select(cat.mag <= 5.5, "again").fingerprint
+    for k in range(MAX_KEPT_CUTS):
+        cat.brighter_than(4.0 + 0.1 * k)
+    assert len(cat.__dict__["_cuts"]) == MAX_KEPT_CUTS
+    assert cat.brighter_than(5.5) is not a  # the oldest cut went; made again, the same stars
+    assert np.array_equal(cat.brighter_than(5.5).hip, a.hip)

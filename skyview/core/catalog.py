@@ -265,6 +265,10 @@ def squared_chords(points: np.ndarray, centers: np.ndarray) -> np.ndarray:
     return s
 
 
+MAX_KEPT_CUTS = 8  # the magnitude cuts a catalog keeps (`GuideCatalog.brighter_than`)
+MAX_KEPT_CUT_STARS = 200_000  # ... when it has at most this many stars
+
+
 @dataclass(frozen=True, eq=False)
 class GuideCatalog:
     """Stars as unit vectors at `epoch`. Index i is the row; `hip[i]` its catalog number: the Hipparcos
@@ -374,8 +378,24 @@ class GuideCatalog:
         return out
 
     def brighter_than(self, mag_limit: float) -> "GuideCatalog":
-        """Stars with Hp <= mag_limit."""
-        return self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}")
+        """Stars with Hp <= mag_limit. A catalog is never changed, so each cut is made once and kept (the
+        last MAX_KEPT_CUTS): the default pipeline makes a solver for each camera a user gives, all of them at
+        a few depths, and a new cut would copy the rows again and hash them again for the database keys
+        (`fingerprint`: ~3 ms for a cut at Hp 7.5). Memory: a cut of the guide catalog at Hp 7.5, the deepest
+        the solvers ask for, is 23,270 stars, 2.5 MB with its sky index (all 78,352: 8.5 MB), so the cuts
+        kept stay under ~20 MB (~70 MB at the very most); a catalog of over MAX_KEPT_CUT_STARS stars (the deep
+        one) keeps none."""
+        if len(self) > MAX_KEPT_CUT_STARS:
+            return self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}")
+        cuts = self.__dict__.setdefault("_cuts", {})
+        key = float(mag_limit)
+        out = cuts.pop(key, None)  # (re-inserted below: the dict's order is the order of use)
+        if out is None:
+            out = self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}")
+            while len(cuts) >= MAX_KEPT_CUTS:
+                cuts.pop(next(iter(cuts)))
+        cuts[key] = out
+        return out
 
     def without_flags(self, bits: int) -> "GuideCatalog":
         """Drop stars carrying any of the FLAG_* bits (doubles, variables)."""

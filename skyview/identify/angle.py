@@ -125,6 +125,12 @@ def load_pair_database(catalog: GuideCatalog, camera: Camera, kvector_fit: str =
     max_sep_rad = database.angular_range(2.0 * camera.half_diagonal_rad)
     params = {"max_sep_rad": max_sep_rad, "kvector_fit": kvector_fit, "version": DATABASE_VERSION}
     key = database.make_key("angle", params, catalog, None)
+    path = database.database_path(key)
+    kept = _LOADED.pop(str(path), None)  # (re-inserted: the order of use)
+    if kept is not None and kept[0] == _stamp(path):  # the same file as when it was loaded
+        _LOADED[str(path)] = kept
+        _, pair_i, pair_j, kv, info = kept
+        return pair_i, pair_j, kv, {**info, "source": "cache", "load_s": 0.0, "build_s": None}
     # ~48 bytes and ~0.5 us a pair while it is built (the pair list, the angles, the sorted copies, the k-vector)
     n_pairs = database.pairs_estimate(len(catalog), max_sep_rad)
     what = (f"the angle database ({len(catalog):,} stars, pairs up to {np.degrees(max_sep_rad):.1f} deg, "
@@ -138,7 +144,28 @@ def load_pair_database(catalog: GuideCatalog, camera: Camera, kvector_fit: str =
     # memory, where the kernel backs them with huge pages (a 10-24 MB table searched through the file's
     # 4 kB pages misses the TLB at every level: sun20's 66 look-ups ~0.3 ms instead of ~0.1)
     kv.sorted_values = np.array(kv.sorted_values)
+    stamp = _stamp(path)
+    if stamp is not None:  # (a database that could not be cached is not kept either)
+        while len(_LOADED) >= MAX_LOADED:
+            _LOADED.pop(next(iter(_LOADED)))
+        _LOADED[str(path)] = (stamp, arrays["pair_i"], arrays["pair_j"], kv, dict(info))
     return arrays["pair_i"], arrays["pair_j"], kv, info
+
+
+# the pair databases this process has loaded, by file (the last MAX_LOADED): the solvers of the cameras whose
+# diagonals round to one range (a user's photographs at FOVs a few per cent apart) share one map and one copy
+# of its sorted angles
+_LOADED: dict[str, tuple] = {}
+MAX_LOADED = 4
+
+
+def _stamp(path) -> tuple[int, int] | None:
+    """(modification time in ns, size) of a database file, None when it is not there."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_mtime_ns, st.st_size
 
 
 @dataclass(frozen=True)

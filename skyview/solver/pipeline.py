@@ -573,13 +573,18 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         fast = None
         if method is None and fov_deg is not None and not wide:
             # the fastest path that can answer runs first: the improved angle method at the FOV given, on
-            # the brightest stars (what `bench --speed` times); the blind search over +-fov_error only when
-            # that does not verify (a wrong FOV, a distorted lens), and never for the calibrated mode
+            # the brightest stars (what `bench --speed` times); its camera refitted when its stars say it is
+            # off (`_camera_is_off`); the blind search over +-fov_error only when that does not verify (a
+            # wrong FOV, a distorted lens) or the refit does not, and never for the calibrated mode
             fast = calibrated("angle", Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2), "improved", centroids,
                               first_try=not exact)
+            unpinned = None  # the first try's answer whose camera its stars say is off and could not refit
             if fast.solved and not exact:
-                result = (_refit_camera(fast, centroids, epoch, max_stars, estimator) if _camera_is_off(fast)
-                          else fast)
+                result = fast
+                if _camera_is_off(fast):
+                    result = _refit_camera(fast, centroids, epoch, max_stars, estimator)
+                    if result is fast:  # the blind search fits the camera from the start; kept if it fails
+                        result, unpinned = None, fast
             elif exact:
                 result = fast
         if result is None and not exact:
@@ -589,7 +594,15 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             if result.solved:
                 fitted = result.camera
                 blind_depth = result.mag_limit
-            if fast is not None:  # the time of the first try counts; its reason too when nothing solved
+            if unpinned is not None:
+                if result.solved:
+                    _with_time_of(result, fast)
+                    result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) identified "
+                                        "stars that did not fit it (the camera refitted to them did not verify): "
+                                        f"solved by the blind search over +-{100 * fov_error:g} %")
+                else:  # the first try's answer, its camera as given
+                    result = _with_time_of(unpinned, result)
+            elif fast is not None:  # the time of the first try counts; its reason too when nothing solved
                 _with_time_of(result, fast)
                 if result.solved:
                     result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) did not "
