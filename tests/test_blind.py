@@ -492,6 +492,13 @@ def test_an_fov_typed_a_little_off_is_fitted_when_the_answer_rests_on_a_group_of
     assert blind.solved and blind.method == "blind" and blind.camera_fitted
     assert attitude_error_arcsec(blind.R, R)["boresight"] < 0.1 * px
     assert any("did not fit it" in n for n in blind.notes)
+    # ... and when the blind search fails too (searching only +-0.2 % around the FOV typed, 1.1 % off), the
+    # first try's answer is what there is: kept, its camera as given, and said so
+    with monkeypatch.context() as m:
+        m.setattr(pipeline, "_refit_camera", lambda fast, *a: fast)
+        kept = solve_image(frame.image, fov_deg=20.0 * (1 - 0.0113), fov_error=0.002)
+    assert kept.solved and kept.method == "angle" and not kept.camera_fitted
+    assert any("neither the camera refitted" in n for n in kept.notes) and kept.searches
     monkeypatch.setattr(pipeline, "_boresight_moved", lambda *a: False)
     kept = solve_image(frame.image, fov_deg=20.0 * (1 - 0.0113))
     assert kept.solved and not kept.camera_fitted and attitude_error_arcsec(kept.R, R)["boresight"] > 3 * px

@@ -280,3 +280,8 @@ def test_a_magnitude_cut_is_made_once_and_the_cuts_kept_are_bounded(cat):
     assert len(cat.__dict__["_cuts"]) == MAX_KEPT_CUTS
     assert cat.brighter_than(5.5) is not a  # the oldest cut went; made again, the same stars
     assert np.array_equal(cat.brighter_than(5.5).hip, a.hip)
+    # a numpy float64 limit compares in float64, a Python float in float32 (the magnitudes' type): at 6.3 the
+    # two cuts differ, and each keeps its own
+    wide, narrow = cat.brighter_than(6.3), cat.brighter_than(np.float64(6.3))
+    assert len(wide) == int(np.count_nonzero(cat.mag <= 6.3))
+    assert len(narrow) == int(np.count_nonzero(cat.mag <= np.float64(6.3))) < len(wide)

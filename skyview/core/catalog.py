@@ -16,6 +16,7 @@ import hashlib
 import json
 import math
 import os
+import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -267,6 +268,7 @@ def squared_chords(points: np.ndarray, centers: np.ndarray) -> np.ndarray:
 
 MAX_KEPT_CUTS = 8  # the magnitude cuts a catalog keeps (`GuideCatalog.brighter_than`)
 MAX_KEPT_CUT_STARS = 200_000  # ... when it has at most this many stars
+_CUTS_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True, eq=False)
@@ -387,14 +389,17 @@ class GuideCatalog:
         one) keeps none."""
         if len(self) > MAX_KEPT_CUT_STARS:
             return self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}")
-        cuts = self.__dict__.setdefault("_cuts", {})
-        key = float(mag_limit)
-        out = cuts.pop(key, None)  # (re-inserted below: the dict's order is the order of use)
-        if out is None:
-            out = self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}")
-            while len(cuts) >= MAX_KEPT_CUTS:
-                cuts.pop(next(iter(cuts)))
-        cuts[key] = out
+        # (the limit's type is part of the key: a Python float is compared with the float32 magnitudes in
+        # float32, a numpy float64 in float64, and at 6.3 the two cuts differ by two stars)
+        key = (type(mag_limit), float(mag_limit))
+        with _CUTS_LOCK:  # (the viewer makes solvers on several threads)
+            cuts = self.__dict__.setdefault("_cuts", {})
+            out = cuts.pop(key, None)  # (re-inserted below: the dict's order is the order of use)
+            if out is None:
+                out = self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}")
+                while len(cuts) >= MAX_KEPT_CUTS:
+                    cuts.pop(next(iter(cuts)))
+            cuts[key] = out
         return out
 
     def without_flags(self, bits: int) -> "GuideCatalog":

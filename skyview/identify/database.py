@@ -129,7 +129,7 @@ def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap
         if arrays is not None:
             info.update(source="cache", load_s=time.perf_counter() - t0, build_s=None,
                         file_bytes=path.stat().st_size, nbytes=_nbytes(arrays))
-            _touch(path)
+            touch(path)
             return arrays, info
         print(f"skyview: the cached database {path.name} is damaged or from another version; rebuilding it",
               file=sys.stderr, flush=True)
@@ -297,7 +297,7 @@ def cache_budget_bytes() -> int:
         return DEFAULT_CACHE_MB * 2 ** 20
 
 
-def _touch(path: Path) -> None:
+def touch(path: Path) -> None:
     """Mark a database as just used (its modification time), for the least-recently-used eviction."""
     try:
         os.utime(path)

@@ -571,6 +571,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         result = None
         fitted = None
         fast = None
+        unpinned = None  # the first try's answer whose stars say its camera is off, and whose refit did not verify
         if method is None and fov_deg is not None and not wide:
             # the fastest path that can answer runs first: the improved angle method at the FOV given, on
             # the brightest stars (what `bench --speed` times); its camera refitted when its stars say it is
@@ -578,7 +579,6 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             # wrong FOV, a distorted lens) or the refit does not, and never for the calibrated mode
             fast = calibrated("angle", Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2), "improved", centroids,
                               first_try=not exact)
-            unpinned = None  # the first try's answer whose camera its stars say is off and could not refit
             if fast.solved and not exact:
                 result = fast
                 if _camera_is_off(fast):
@@ -602,6 +602,9 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                                         f"solved by the blind search over +-{100 * fov_error:g} %")
                 else:  # the first try's answer, its camera as given
                     result = _with_time_of(unpinned, result)
+                    result.notes.append(f"the stars identified at the FOV given ({fov_deg:g} deg) say the camera is "
+                                        "off, but neither the camera refitted to them nor the blind search verified: "
+                                        "the attitude is the one at the FOV given")
             elif fast is not None:  # the time of the first try counts; its reason too when nothing solved
                 _with_time_of(result, fast)
                 if result.solved:
@@ -810,7 +813,10 @@ def _refit_camera(fast: SolveResult, centroids: Centroids, epoch: float, max_sta
     checks = int(ident.verification.get("n_hypotheses") or 1)
     again = refit.refit(centroids.uv, dict(zip(obs, rows.tolist())), fast.camera, fast.R, checks=checks,
                         steps=ident.steps, method=fast.method)
-    if not again.identified:
+    if not again.identified:  # (its time counts with the first try's)
+        spent = (time.perf_counter() - t0) * 1e3
+        for stage in ("identify", "solve"):
+            fast.time_ms[stage] = fast.time_ms.get(stage, 0.0) + spent
         return fast
     again.stats = _refit_stats(ident.stats, again.stats)
     identify_ms = fast.time_ms.get("identify", 0.0) + (time.perf_counter() - t0) * 1e3
