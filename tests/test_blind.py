@@ -508,22 +508,34 @@ def test_the_boresight_check_keeps_a_right_camera_and_flags_one_it_cannot_pin():
     """`_boresight_moved` on tangent-plane positions: stars over the field at the right scale keep the camera;
     a group off the boresight whose attitude was fitted at a scale 2 % off (residuals e (x - mean)) moves it
     (the shift -e mean is beyond its standard errors); two stars close together pin it to a pixel only
-    when their noise is small."""
+    when their noise is small. Its closed form is the 4-parameter least-squares fit, solved as one."""
     from skyview.solver.pipeline import _boresight_moved
 
     rng = np.random.default_rng(3)
     px, sigma = 3.4e-4, 3e-5  # a pixel, the noise (rad)
     spread = rng.uniform(-0.15, 0.15, (30, 2))
-    assert not _boresight_moved(spread, rng.normal(0, sigma, 60), sigma, px, 3.0)
+    assert not _boresight_moved(spread, rng.normal(0, sigma, (30, 2)), sigma, px, 3.0)
     group = np.array([0.12, 0.05]) + rng.uniform(-0.03, 0.03, (8, 2))
     e = 0.02
-    y = (e * (group - group.mean(axis=0)) + rng.normal(0, sigma, (8, 2))).ravel()
-    assert _boresight_moved(group, y, sigma, px, 3.0)
-    exact = rng.normal(0, sigma, 16)
+    d = e * (group - group.mean(axis=0)) + rng.normal(0, sigma, (8, 2))
+    assert _boresight_moved(group, d, sigma, px, 3.0)
+    exact = rng.normal(0, sigma, (8, 2))
     assert not _boresight_moved(group, exact, sigma, px, 3.0)  # the same group at the right scale: pinned
     # two of them, at the fast path's half-pixel sigma: the boresight is pinned to ~2 px only
-    assert _boresight_moved(group[:2], exact[:4], 0.5 * px, px, 3.0)
-    assert not _boresight_moved(spread[:2] * 4, exact[:4], 0.5 * px, px, 3.0)  # two far apart across it: pinned
+    assert _boresight_moved(group[:2], exact[:2], 0.5 * px, px, 3.0)
+    assert not _boresight_moved(spread[:2] * 4, exact[:2], 0.5 * px, px, 3.0)  # two far apart across it: pinned
+    assert _boresight_moved(group[[0, 0]], exact[:2], sigma, px, 3.0)  # two stars at one place: nothing fixed
+    # the closed form is the least-squares fit of d = t + w J x + s x (rows interleaved x, y): the same shift,
+    # and the shift's variance from the normal equations' inverse
+    A = np.zeros((16, 4))
+    A[0::2, 0] = A[1::2, 1] = 1.0
+    A[0::2, 2], A[1::2, 2] = -group[:, 1], group[:, 0]
+    A[0::2, 3], A[1::2, 3] = group[:, 0], group[:, 1]
+    coef, rss = np.linalg.lstsq(A, d.ravel(), rcond=None)[:2]
+    var_t = float(rss[0]) / 12 * float(np.trace(np.linalg.inv(A.T @ A)[:2, :2]))
+    shift2 = float(coef[0] ** 2 + coef[1] ** 2)
+    for z in (0.5 * math.sqrt(shift2 / var_t), 0.99 * math.sqrt(shift2 / var_t), 1.01 * math.sqrt(shift2 / var_t)):
+        assert _boresight_moved(group, d, 1e-12, 1.0, z) == (shift2 > z * z * var_t)
 
 
 def test_blend_table_is_the_ball_query_it_replaces(catalog):

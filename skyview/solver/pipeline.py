@@ -726,12 +726,13 @@ def _camera_is_off(res: SolveResult, z: float = 3.0) -> bool:
     - a scale (FOV) or a radial (k1-like) term differs from zero by more than z of its standard errors; or
     - the similarity (shift, turn, scale) that carries the catalog stars onto the observed ones, taken to
       the boresight, moves it: by more than BORESIGHT_Z of its standard errors, or with a standard error
-      over BORESIGHT_PINNED_PX pixels. The attitude fitted to a group of stars off the boresight at a wrong scale
-      is right at the group and off at the boresight by the scale error times the group's distance; the
-      similarity's shift at the boresight measures that (its standard error grows with the distance the
+      over BORESIGHT_PINNED_PX pixels. The attitude fitted to a group of stars off the boresight at a wrong
+      scale is right at the group and off at the boresight by the scale error times the group's distance;
+      the similarity's shift at the boresight measures that (its standard error grows with the distance the
       group's stars reach over: two stars far off the boresight pin it to several pixels only).
-    Cheap (a 2 x 2 and a 4 x 4 solve); a camera that is right to the stars' noise is kept, one that is off
-    is fitted (`_refit_camera`). The noise is the residuals', at least the solve's sigma."""
+    Both fits from the stars' sums, in closed form (`_scale_or_radial_off`, `_boresight_moved`); a camera
+    that is right to the stars' noise is kept, one that is off is fitted (`_refit_camera`). The noise is the
+    residuals', at least the solve's sigma for the shift."""
     ident = res.identification
     obs = sorted(ident.matches)
     if len(obs) < 2:
@@ -739,10 +740,9 @@ def _camera_is_off(res: SolveResult, z: float = 3.0) -> bool:
     p = res.catalog.xyz[[ident.matches[o] for o in obs]] @ res.R.T  # catalog stars in the camera frame
     b = res.camera.unproject(res.centroids.uv[obs])
     xc, xo = p[:, :2] / p[:, 2:], b[:, :2] / b[:, 2:]
-    y = (xo - xc).ravel()
-    if len(obs) >= 5 and _scale_or_radial_off(xc, y, z):
+    if len(obs) >= 5 and _scale_or_radial_off(xc, xo - xc, z):
         return True
-    return _boresight_moved(xc, y, float(res.sigma_rad), res.camera.pixel_scale_rad, BORESIGHT_Z)
+    return _boresight_moved(xc, xo - xc, float(res.sigma_rad), res.camera.pixel_scale_rad, BORESIGHT_Z)
 
 
 BORESIGHT_PINNED_PX = 1.0  # the largest standard error of the boresight's place the matched stars may leave
@@ -753,47 +753,49 @@ BORESIGHT_PINNED_PX = 1.0  # the largest standard error of the boresight's place
 BORESIGHT_Z = 2.0
 
 
-def _scale_or_radial_off(xc: np.ndarray, y: np.ndarray, z: float) -> bool:
-    """x_obs = x_cat (1 + ds + k |x_cat|^2): ds or k beyond z standard errors (y = x_obs - x_cat, raveled)."""
-    rho2 = np.einsum("ij,ij->i", xc, xc)[:, None]
-    A = np.stack([xc.ravel(), (xc * rho2).ravel()], axis=1)
-    (a, b), (_, c) = A.T @ A  # the 2 x 2 normal equations, solved in closed form
+def _scale_or_radial_off(xc: np.ndarray, d: np.ndarray, z: float) -> bool:
+    """x_obs = x_cat (1 + ds + k |x_cat|^2) (xc: x_cat, (n, 2); d: x_obs - x_cat): ds or k beyond z standard
+    errors. The 2 x 2 normal equations from the sums of |x|^2, |x|^4, |x|^6, x.d and |x|^2 x.d."""
+    r2 = np.einsum("ij,ij->i", xc, xc)
+    q = np.einsum("ij,ij->i", xc, d)
+    a, b, c, g0, g1, dd = (float(v) for v in np.stack([r2, r2 * r2, r2 * r2 * r2, q, r2 * q,
+                                                        np.einsum("ij,ij->i", d, d)]).sum(axis=1))
     det = a * c - b * b
     if not det > 1e-12 * a * c:  # the two terms cannot be told apart (the stars all at one radius)
         return False
-    g = A.T @ y
-    coef = np.array([c * g[0] - b * g[1], a * g[1] - b * g[0]]) / det
-    s2 = float(np.sum((y - A @ coef) ** 2)) / (len(y) - 2)
-    se = np.sqrt(np.maximum(s2 * np.array([c, a]) / det, 1e-300))
-    return bool(np.any(np.abs(coef) > z * se))
+    ds, k = (c * g0 - b * g1) / det, (a * g1 - b * g0) / det
+    s2 = max(dd - (ds * g0 + k * g1), 0.0) / (2 * len(xc) - 2)  # the residuals' sum of squares, per degree
+    return abs(ds) > z * math.sqrt(max(s2 * c / det, 1e-300)) or abs(k) > z * math.sqrt(max(s2 * a / det, 1e-300))
 
 
-def _boresight_moved(xc: np.ndarray, y: np.ndarray, sigma_rad: float, pixel_rad: float, z: float) -> bool:
-    """The similarity x_obs - x_cat = t + w J x_cat + s x_cat (J: a quarter turn) fitted to the stars: its
-    shift t (where the boresight goes) beyond z standard errors, or their root sum of squares over
-    BORESIGHT_PINNED_PX pixels; its noise the residuals' (at least sigma_rad per axis). True also when the
-    stars cannot fix it (two stars at one place)."""
+def _boresight_moved(xc: np.ndarray, d: np.ndarray, sigma_rad: float, pixel_rad: float, z: float) -> bool:
+    """The similarity d = t + w J x + s x (x: xc, the catalog stars' tangent-plane positions, (n, 2); d: the
+    observed less them; J: a quarter turn) fitted to the stars: its shift t (where the boresight goes) beyond
+    z standard errors, or their root sum of squares over BORESIGHT_PINNED_PX pixels; its noise the residuals'
+    (at least sigma_rad per axis). True also when the stars cannot fix it (all at one place). In closed form:
+    about the stars' centroid m the turn and scale separate from the shift, (w, s) = (sum x' x d, sum x'.d) / c
+    with x' = x - m and c = sum |x'|^2, then t = mean(d) - (s m + w J m), whose variance per axis is
+    s2 (1/n + |m|^2 / c)."""
     n = len(xc)
-    A = np.zeros((2 * n, 4))
-    A[0::2, 0] = 1.0
-    A[1::2, 1] = 1.0
-    A[0::2, 2] = -xc[:, 1]
-    A[1::2, 2] = xc[:, 0]
-    A[0::2, 3] = xc[:, 0]
-    A[1::2, 3] = xc[:, 1]
-    N = A.T @ A
-    try:
-        cov = np.linalg.inv(N)
-    except np.linalg.LinAlgError:
+    m = xc.mean(axis=0)
+    x = xc - m
+    c = float(np.einsum("ij,ij->", x, x))
+    if not c > 0.0:
         return True
-    coef = cov @ (A.T @ y)
+    dm = d.mean(axis=0)
+    dc = d - dm
+    w = float(np.einsum("i,i->", x[:, 0], dc[:, 1]) - np.einsum("i,i->", x[:, 1], dc[:, 0])) / c
+    s = float(np.einsum("ij,ij->", x, dc)) / c
+    mx, my = float(m[0]), float(m[1])
+    tx = float(dm[0]) - (s * mx - w * my)
+    ty = float(dm[1]) - (s * my + w * mx)
     dof = 2 * n - 4
-    s2 = max(float(np.sum((y - A @ coef) ** 2)) / dof if dof > 0 else 0.0, sigma_rad * sigma_rad)
-    var_t = s2 * (cov[0, 0] + cov[1, 1])
-    if not (math.isfinite(var_t) and var_t >= 0.0):
+    rss = float(np.einsum("ij,ij->", dc, dc)) - c * (w * w + s * s)  # the centred residuals less the fit's
+    s2 = max(max(rss, 0.0) / dof if dof > 0 else 0.0, sigma_rad * sigma_rad)
+    var_t = s2 * 2.0 * (1.0 / n + (mx * mx + my * my) / c)
+    if not (math.isfinite(var_t) and math.isfinite(tx) and math.isfinite(ty)):
         return True
-    shift2 = float(coef[0] ** 2 + coef[1] ** 2)
-    return shift2 > z * z * var_t or var_t > (BORESIGHT_PINNED_PX * pixel_rad) ** 2
+    return tx * tx + ty * ty > z * z * var_t or var_t > (BORESIGHT_PINNED_PX * pixel_rad) ** 2
 
 
 def _refit_camera(fast: SolveResult, centroids: Centroids, epoch: float, max_stars: int,
