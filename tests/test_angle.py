@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 from skyview.core.attitude import attitude_error_arcsec, random_attitudes
 from skyview.core.camera import Camera
 from skyview.core.errors import BadInput
+from skyview.core.lru import LRU
 from skyview.identify import FAILED, IDENTIFIED, METHODS, database, make_identifier
 from skyview.identify.angle import AngleMethod, _close, _join, _Ranges
 from skyview.identify.base import Observation
@@ -55,7 +56,7 @@ def test_database_built_once_then_loaded(tmp_path, monkeypatch, cat, cam):
     assert path.exists() and a.database_info["path"] == str(path)
     import skyview.identify.angle as angle_module
 
-    monkeypatch.setattr(angle_module, "_LOADED", {})  # a new process: the file, not this one's arrays
+    monkeypatch.setattr(angle_module, "_LOADED", LRU(angle_module.MAX_LOADED))  # a new process: the file
     b = AngleMethod(cat, cam, SIGMA, beta=2.0, max_pivots=None)  # search parameters: same database
     assert b.database_info["source"] == "cache"
     assert b.database_key == a.database_key

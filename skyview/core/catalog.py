@@ -16,7 +16,6 @@ import hashlib
 import json
 import math
 import os
-import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -24,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from skyview.core.errors import BadInput, SkyviewError
+from skyview.core.lru import LRU
 
 try:  # the C function np.einsum calls when not optimising: the same numbers without its Python dispatch
     # (~1 us a call); the hot paths of the catalog, the verification and the triangle method use it
@@ -268,7 +268,6 @@ def squared_chords(points: np.ndarray, centers: np.ndarray) -> np.ndarray:
 
 MAX_KEPT_CUTS = 8  # the magnitude cuts a catalog keeps (`GuideCatalog.brighter_than`)
 MAX_KEPT_CUT_STARS = 200_000  # ... when it has at most this many stars
-_CUTS_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True, eq=False)
@@ -391,16 +390,13 @@ class GuideCatalog:
             return self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}")
         # (the limit's type is part of the key: a Python float is compared with the float32 magnitudes in
         # float32, a numpy float64 in float64, and at 6.3 the two cuts differ by two stars)
-        key = (type(mag_limit), float(mag_limit))
-        with _CUTS_LOCK:  # (the viewer makes solvers on several threads)
-            cuts = self.__dict__.setdefault("_cuts", {})
-            out = cuts.pop(key, None)  # (re-inserted below: the dict's order is the order of use)
-            if out is None:
-                out = self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}")
-                while len(cuts) >= MAX_KEPT_CUTS:
-                    cuts.pop(next(iter(cuts)))
-            cuts[key] = out
-        return out
+        return self._cuts.get_or_make((type(mag_limit), float(mag_limit)),
+                                      lambda: self.select(self.mag <= mag_limit, f"mag<={mag_limit:g}"))
+
+    @cached_property
+    def _cuts(self) -> LRU:
+        """The magnitude cuts kept (`brighter_than`)."""
+        return LRU(MAX_KEPT_CUTS)
 
     def without_flags(self, bits: int) -> "GuideCatalog":
         """Drop stars carrying any of the FLAG_* bits (doubles, variables)."""

@@ -78,7 +78,6 @@ shared verification is not here.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, replace
 from functools import lru_cache, partial
 
@@ -87,6 +86,7 @@ import numpy as np
 from skyview.core.attitude import RAD_TO_ARCSEC
 from skyview.core.camera import Camera
 from skyview.core.catalog import GuideCatalog
+from skyview.core.lru import LRU
 from skyview.identify import database
 from skyview.identify.base import Search
 from skyview.identify.kvector import KVector
@@ -127,12 +127,10 @@ def load_pair_database(catalog: GuideCatalog, camera: Camera, kvector_fit: str =
     params = {"max_sep_rad": max_sep_rad, "kvector_fit": kvector_fit, "version": DATABASE_VERSION}
     key = database.make_key("angle", params, catalog, None)
     path = database.database_path(key)
-    with _LOADED_LOCK:  # (the viewer makes solvers on several threads)
-        kept = _LOADED.pop(str(path), None)  # (re-inserted: the order of use)
-        if kept is not None and kept[0] != _stamp(path):  # not the file that was mapped (rebuilt, evicted)
-            kept = None
-        if kept is not None:
-            _LOADED[str(path)] = kept
+    kept = _LOADED.get(str(path))
+    if kept is not None and kept[0] != _stamp(path):  # not the file that was mapped (rebuilt, evicted)
+        _LOADED.pop(str(path))
+        kept = None
     if kept is not None:
         database.touch(path)  # used: last in the cache's eviction order
         _, pair_i, pair_j, kv, info = kept
@@ -152,19 +150,15 @@ def load_pair_database(catalog: GuideCatalog, camera: Camera, kvector_fit: str =
     kv.sorted_values = np.array(kv.sorted_values)
     stamp = _stamp(path)
     if info.get("source") == "cache" and stamp is not None:  # (one just built is in memory: not kept)
-        with _LOADED_LOCK:
-            while len(_LOADED) >= MAX_LOADED:
-                _LOADED.pop(next(iter(_LOADED)))
-            _LOADED[str(path)] = (stamp, arrays["pair_i"], arrays["pair_j"], kv, dict(info))
+        _LOADED.put(str(path), (stamp, arrays["pair_i"], arrays["pair_j"], kv, dict(info)))
     return arrays["pair_i"], arrays["pair_j"], kv, info
 
 
 # the pair databases this process has mapped, by file (the last MAX_LOADED): the solvers of the cameras whose
 # diagonals round to one range (a user's photographs at FOVs a few per cent apart) share one map and one copy
 # of its sorted angles (8 bytes a pair: ~10 MB for a 20 deg camera at Hp 6.25)
-_LOADED: dict[str, tuple] = {}
-_LOADED_LOCK = threading.Lock()
 MAX_LOADED = 4
+_LOADED = LRU(MAX_LOADED)
 
 
 def _stamp(path) -> tuple[int, int, int] | None:

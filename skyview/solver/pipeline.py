@@ -30,6 +30,7 @@ from skyview.core.attitude import ESTIMATORS
 from skyview.core.camera import EQUIDISTANT, EQUISOLID, FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
+from skyview.core.lru import LRU
 from skyview.detect.centroids import Centroids, detect_centroids, finite_image, load_image, to_gray
 from skyview.detect.stars import detect_stars, fainter_stars
 from skyview.identify import make_identifier
@@ -405,21 +406,7 @@ def explain_failure(reason: str, n_stars: int, fov_deg, fov_error, fov_range) ->
             f"FOV is not that, leave out --fov-deg or widen --fov-error")
 
 
-class _LRU(dict):
-    """A small least-recently-used cache of solvers (each holds a database)."""
-
-    def get_or_make(self, key, make):
-        if key in self:
-            value = self.pop(key)
-        else:
-            value = make()
-            while len(self) >= MAX_CACHED_SOLVERS:
-                self.pop(next(iter(self)))
-        self[key] = value
-        return value
-
-
-_SOLVERS = _LRU()
+_SOLVERS = LRU(MAX_CACHED_SOLVERS)  # the process's solvers (each holds a database), by configuration
 
 
 # The default pipeline's first try at a given FOV is the improved angle method with at most this many
@@ -571,7 +558,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         result = None
         fitted = None
         fast = None
-        unpinned = None  # the first try's answer whose stars say its camera is off, and whose refit did not verify
+        unpinned = False  # the first try's stars say its camera is off, and the camera refitted to them did not verify
         if method is None and fov_deg is not None and not wide:
             # the fastest path that can answer runs first: the improved angle method at the FOV given, on
             # the brightest stars (what `bench --speed` times); its camera refitted when its stars say it is
@@ -584,7 +571,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                 if _camera_is_off(fast):
                     result = _refit_camera(fast, centroids, epoch, max_stars, estimator)
                     if result is fast:  # the blind search fits the camera from the start; kept if it fails
-                        result, unpinned = None, fast
+                        result, unpinned = None, True
             elif exact:
                 result = fast
         if result is None and not exact:
@@ -594,14 +581,14 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             if result.solved:
                 fitted = result.camera
                 blind_depth = result.mag_limit
-            if unpinned is not None:
+            if unpinned:
                 if result.solved:
                     _with_time_of(result, fast)
                     result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) identified "
                                         "stars that did not fit it (the camera refitted to them did not verify): "
                                         f"solved by the blind search over +-{100 * fov_error:g} %")
                 else:  # the first try's answer, its camera as given
-                    result = _with_time_of(unpinned, result)
+                    result = _with_time_of(fast, result)
                     result.notes.append(f"the stars identified at the FOV given ({fov_deg:g} deg) say the camera is "
                                         "off, but neither the camera refitted to them nor the blind search verified: "
                                         "the attitude is the one at the FOV given")
@@ -739,10 +726,11 @@ def _camera_is_off(res: SolveResult, z: float = 3.0) -> bool:
         return False
     p = res.catalog.xyz[[ident.matches[o] for o in obs]] @ res.R.T  # catalog stars in the camera frame
     b = res.camera.unproject(res.centroids.uv[obs])
-    xc, xo = p[:, :2] / p[:, 2:], b[:, :2] / b[:, 2:]
-    if len(obs) >= 5 and _scale_or_radial_off(xc, xo - xc, z):
+    xc = p[:, :2] / p[:, 2:]
+    d = b[:, :2] / b[:, 2:] - xc  # observed less predicted, in the tangent plane
+    if len(obs) >= 5 and _scale_or_radial_off(xc, d, z):
         return True
-    return _boresight_moved(xc, xo - xc, float(res.sigma_rad), res.camera.pixel_scale_rad, BORESIGHT_Z)
+    return _boresight_moved(xc, d, float(res.sigma_rad), res.camera.pixel_scale_rad, BORESIGHT_Z)
 
 
 BORESIGHT_PINNED_PX = 1.0  # the largest standard error of the boresight's place the matched stars may leave
