@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import skyview.identify.verify as verify_module
 from skyview.bench.runner import score_trial
 from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes
 from skyview.core.camera import Camera
@@ -29,7 +30,8 @@ from skyview.identify.ellipticity import (
     pattern_features,
     singular_vector_attitude,
 )
-from skyview.identify.synthetic import add_noise, synthetic_frame
+from skyview.identify.ellipticity_batch import first_hypotheses
+from skyview.identify.synthetic import add_noise, synthetic_frame, synthetic_frames
 from skyview.identify.verify import angular_distance
 from skyview.simulate.render import SensorModel, simulate_image
 from skyview.solver.pipeline import MethodSolver
@@ -288,3 +290,65 @@ def test_sweep_grid_and_a_small_sweep():
     assert s["boresights"] == 7 * 6
     assert s["counts"]["incorrect"] == 0
     assert s["counts"]["correct"] + s["counts"]["not identified"] == s["boresights"]
+
+
+# ---------------------------------------------------------------------- many frames at once (a sweep's)
+
+@pytest.mark.parametrize("variant, noise, sigma, max_stars", [
+    ("improved", 10e-6, 10e-6, 1000),  # Sun et al.'s sweep: the first hypothesis decides almost every frame
+    ("paper", 10e-6, 10e-6, 1000),  # one pivot: many frames end with no hypothesis
+    ("improved", 40e-6, 12e-6, 40),  # noisier than told: first hypotheses fail, the walk goes on
+])
+def test_a_batch_identifies_every_frame_as_identify_does(cat, cam, variant, noise, sigma, max_stars, monkeypatch):
+    ident = make_identifier("ellipticity", cat, cam, sigma, variant=variant)
+    n = 160
+    Rs = random_attitudes(n, np.random.default_rng(26))
+    frames = synthetic_frames(cat, cam, Rs, noise, [np.random.default_rng([26, i]) for i in range(n)])
+    obs = [Observation(f.obs.vectors[:max_stars], f.obs.uv[:max_stars], f.obs.brightness[:max_stars], sigma)
+           for f in frames]
+    # each frame's first hypothesis is the one the method's walk yields first
+    firsts = first_hypotheses(ident, [o.vectors for o in obs], np.full(n, sigma))
+    for o, first in zip(obs, firsts):
+        search = ident.begin(o)
+        walk = None if ident.too_few(search) else next(ident.hypotheses(search), None)
+        if first is not None:
+            assert walk is not None and first == walk.matches
+    decided = sum(f is not None for f in firsts)
+    # and every identification is identify's: status, matches, attitude, verification
+    made = []
+    real_verify = verify_module.verify
+    monkeypatch.setattr(verify_module, "verify", lambda *a, **k: made.append(1) or real_verify(*a, **k))
+    batch = ident.identify_batch(obs)
+    # each hypothesis verified once: a walk after a failed first hypothesis takes the batch's verification
+    assert len(made) == sum(b.stats["verifications"] for b in batch)
+    monkeypatch.undo()
+    one = [ident.identify(o) for o in obs]
+    for a, b in zip(one, batch):
+        assert (a.status, a.matches, a.reason) == (b.status, b.matches, b.reason)
+        assert (a.R is None and b.R is None) or np.array_equal(a.R, b.R)
+        assert a.verification.get("p_false") == b.verification.get("p_false")
+        if not b.stats.get("batched"):  # walked: the same steps too
+            assert [s.to_dict() for s in a.steps] == [s.to_dict() for s in b.steps]
+        assert b.stats["time_s"] > 0
+    batched = sum(bool(b.stats.get("batched")) for b in batch)
+    walked_after_a_failed_first = sum(not b.stats.get("batched") and b.stats.get("verifications", 0) >= 2
+                                      for b in batch)
+    if variant == "improved" and noise == sigma:
+        assert decided == batched >= 0.95 * n and sum(a.identified for a in one) >= 0.95 * n
+    elif variant == "paper":
+        assert 0.3 * n <= decided < n and sum(a.identified for a in one) == batched
+    else:
+        # the walk goes on after the batch's verification of its first hypothesis (reused, not made again)
+        assert walked_after_a_failed_first >= 10 and batched >= 0.3 * n
+
+
+def test_a_method_without_its_own_batch_identifies_frame_by_frame(cat):
+    cam8 = Camera.from_fov(8.0, 1024)
+    ident = make_identifier("angle", cat, cam8, SIGMA, variant="improved")
+    Rs = random_attitudes(20, np.random.default_rng(3))
+    frames = [synthetic_frame(cat, cam8, R, SIGMA, np.random.default_rng(i)) for i, R in enumerate(Rs)]
+    batch = ident.identify_batch([f.obs for f in frames])
+    for f, b in zip(frames, batch):
+        a = ident.identify(f.obs)
+        assert (a.status, a.matches) == (b.status, b.matches) and b.stats["time_s"] > 0
+    assert sum(b.identified and correct(b, f.truth) for f, b in zip(frames, batch)) >= 15

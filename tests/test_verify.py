@@ -7,10 +7,16 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec, random_attitudes, svd_attitude
+from skyview.core.attitude import (
+    R_from_radec_roll,
+    attitude_error_arcsec,
+    attitudes_from_radec_roll,
+    random_attitudes,
+    svd_attitude,
+)
 from skyview.core.camera import Camera
 from skyview.core.catalog import load_guide_catalog, vec_to_radec
-from skyview.identify.synthetic import synthetic_frame
+from skyview.identify.synthetic import synthetic_frame, synthetic_frames
 from skyview.identify.verify import (
     CALIBRATED,
     DEFAULT_THRESHOLD,
@@ -680,3 +686,27 @@ def test_frame_stars_with_shared_near_stars_are_a_fresh_fetchs(catalog):
     near = NearStars(catalog)
     frame_stars(catalog, Camera.from_fov(39.0, 1024, 768), R, near=near)
     assert np.array_equal(frame_stars(catalog, folding, R, near=near), frame_stars(catalog, folding, R))
+
+
+@pytest.mark.parametrize("camera, mag", [
+    (Camera.from_fov(20.0, 1024), 6.0),
+    (Camera.from_fov(30.0, 800, 600, k1=-0.2, k2=0.05), 6.0),  # barrel: frame_stars keeps the corner's cone
+    (Camera.from_fov(150.0, 640, 480, model="equisolid", k1=-0.05), 4.0),  # a fisheye beyond its half-diagonal
+])
+def test_many_synthetic_frames_at_once_are_those_made_one_by_one(catalog, camera, mag):
+    cat = catalog.brighter_than(mag)
+    rng = np.random.default_rng(11)
+    n = 300
+    ra, dec, roll = rng.uniform(0, 2 * np.pi, n), np.arcsin(rng.uniform(-1, 1, n)), rng.uniform(-np.pi, np.pi, n)
+    Rs = attitudes_from_radec_roll(ra, dec, roll)
+    assert np.allclose(Rs, [R_from_radec_roll(*o) for o in zip(ra, dec, roll)], rtol=0, atol=1e-15)
+    many = synthetic_frames(cat, camera, Rs, 20e-6, [np.random.default_rng([4, i]) for i in range(n)])
+    stars = 0
+    for i, (R, b) in enumerate(zip(Rs, many)):
+        a = synthetic_frame(cat, camera, R, 20e-6, np.random.default_rng([4, i]))
+        assert np.array_equal(a.truth, b.truth)  # the same stars, brightest first
+        assert np.allclose(a.obs.vectors, b.obs.vectors, rtol=0, atol=1e-15)  # the same noise draws
+        assert np.allclose(a.obs.uv, b.obs.uv, rtol=0, atol=1e-9) and np.array_equal(a.obs.brightness, b.obs.brightness)
+        assert b.obs.sigma_rad == 20e-6 and np.array_equal(b.R, R)
+        stars += len(a.truth)
+    assert stars > 20 * n

@@ -215,14 +215,21 @@ def _sequence_outcome(cfg: CoverageConfig, cat, cam, ident, R0: np.ndarray, firs
     if not done:
         return INCONCLUSIVE, ms
     k = done[-1]
-    return (SOLVED if all(frames[k].truth[o] == c for o, c in ids[k].matches.items()) else WRONG), ms
+    return (SOLVED if _all_right(frames[k].truth, ids[k].matches) else WRONG), ms
+
+
+def _all_right(truth: np.ndarray, matches: dict[int, int]) -> bool:
+    """Whether every match (observed index -> catalog row) is the observed star's true row."""
+    n = len(matches)
+    return bool(np.array_equal(truth[np.fromiter(matches.keys(), np.int64, n)],
+                               np.fromiter(matches.values(), np.int64, n)))
 
 
 def run_task(cfg_dict: dict, task: int) -> dict[str, np.ndarray]:
     """Identify the orientations of task `task`: arrays of TASK_FIELDS (one entry per orientation).
     Orientation i's noise comes from the seed and i alone: any split into tasks gives the same answer."""
-    from skyview.core.attitude import R_from_radec_roll
-    from skyview.identify.synthetic import synthetic_frame
+    from skyview.core.attitude import attitudes_from_radec_roll
+    from skyview.identify.synthetic import synthetic_frame, synthetic_frames
 
     t_task = time.perf_counter()
     cfg = CoverageConfig(**cfg_dict)
@@ -232,23 +239,22 @@ def run_task(cfg_dict: dict, task: int) -> dict[str, np.ndarray]:
     stars = np.zeros(len(idx), dtype=np.int32)
     outcome = np.zeros(len(idx), dtype=np.int8)
     times = np.zeros(len(idx))
-    for n, i in enumerate(idx):
-        ra, dec, roll = ori[i]
-        R = R_from_radec_roll(math.radians(ra), math.radians(dec), math.radians(roll))
-        rng = np.random.default_rng([cfg.seed, int(i)])
-        f = synthetic_frame(cat, cam, R, cfg.noise_rad, rng)
-        stars[n] = len(f.obs)
-        if (cfg.frames or 1) > 1:
-            outcome[n], times[n] = _sequence_outcome(cfg, cat, cam, ident, R, f, rng)
-            continue
-        obs = _brightest(f.obs, cfg.max_stars)
-        t0 = time.perf_counter()
-        r = ident.identify(obs)
-        times[n] = (time.perf_counter() - t0) * 1e3
-        if not r.identified:
-            outcome[n] = INCONCLUSIVE
-        else:
-            outcome[n] = SOLVED if all(f.truth[o] == c for o, c in r.matches.items()) else WRONG
+    Rs = attitudes_from_radec_roll(*np.radians(ori[idx]).T)
+    rngs = [np.random.default_rng([cfg.seed, int(i)]) for i in idx]
+    if (cfg.frames or 1) > 1:
+        frames = []
+        for n in range(len(idx)):
+            f = synthetic_frame(cat, cam, Rs[n], cfg.noise_rad, rngs[n])
+            stars[n] = len(f.obs)
+            outcome[n], times[n] = _sequence_outcome(cfg, cat, cam, ident, Rs[n], f, rngs[n])
+    else:  # every frame made at once (`synthetic_frames`: the same stars and noise draws as one by one)
+        frames = synthetic_frames(cat, cam, Rs, cfg.noise_rad, rngs)
+        stars[:] = [len(f.obs) for f in frames]
+    if frames:  # single frames: identified together (`identify_batch`: the same answers as one by one)
+        results = ident.identify_batch([_brightest(f.obs, cfg.max_stars) for f in frames])
+        for n, (f, r) in enumerate(zip(frames, results)):
+            times[n] = r.stats["time_s"] * 1e3
+            outcome[n] = INCONCLUSIVE if not r.identified else SOLVED if _all_right(f.truth, r.matches) else WRONG
     return {"index": idx, "ra_deg": ori[idx, 0], "dec_deg": ori[idx, 1], "roll_deg": ori[idx, 2], "stars": stars,
             "outcome": outcome, "time_ms": times, "task_s": np.float64(time.perf_counter() - t_task)}
 

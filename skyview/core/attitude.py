@@ -59,6 +59,16 @@ def R_from_radec_roll(ra_rad: float, dec_rad: float, roll_rad: float) -> np.ndar
     return np.stack([x, y, b])
 
 
+def attitudes_from_radec_roll(ra_rad: np.ndarray, dec_rad: np.ndarray, roll_rad: np.ndarray) -> np.ndarray:
+    """R_from_radec_roll for arrays of orientations (radians): (N, 3, 3), the rows x, y, boresight."""
+    ra, dec, roll = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (ra_rad, dec_rad, roll_rad))
+    b = radec_to_vec(ra, dec)
+    east = np.stack([-np.sin(ra), np.cos(ra), np.zeros_like(ra)], axis=-1)
+    north = np.cross(b, east)
+    y = -(np.cos(roll)[:, None] * north + np.sin(roll)[:, None] * east)
+    return np.stack([np.cross(y, b), y, b], axis=1)
+
+
 def radec_roll_from_R(R: np.ndarray) -> tuple[float, float, float]:
     """(RA in [0, 2pi), Dec, roll in (-pi, pi]) of an attitude, radians."""
     R = np.asarray(R, dtype=np.float64)

@@ -345,10 +345,29 @@ class Identifier(ABC):
         'verify' step; `result.verification` keeps its figures. On the search's terms, or on the
         hypothesis' own `frame` (its matches then told in the method's catalog rows)."""
         mod = _VERIFY or _verify_module()
-        verification_step, verify = mod.verification_step, mod.verify
+        ver = self.verification(search, hyp)
+        on, hypothesis = hyp.frame, hyp.matches
+        if on is not None and on.parent_rows is not None:
+            hypothesis = {o: int(on.parent_rows[c]) for o, c in hyp.matches.items()}
+        numbers, record = hyp.judge(ver) if hyp.judge is not None else ({}, {})
+        vd = ver.to_dict()
+        search.steps.append(mod.verification_step(ver, hypothesis, numbers={**hyp.numbers, **numbers}, vd=vd,
+                                                  groups=list(hyp.groups), layers=tuple(hyp.layers)))
+        if record:
+            vd |= record
+        search.result.verification = vd
+        return ver
+
+    def verification(self, search: Search, hyp: Hypothesis):
+        """The shared verification of one hypothesis, counted in the Bonferroni factor (no step recorded;
+        `verify` records it). On the search's terms, or on the hypothesis' own `frame`."""
+        mod = _VERIFY or _verify_module()
         search.n_hypotheses += int(hyp.count)
         search.verifications += 1
         on, pred = hyp.frame, hyp.prediction
+        made = search.data.pop("first_verification", None)  # (`identify_batch`'s, of this frame's first hypothesis)
+        if made is not None and search.verifications == 1 and made[0] == (hyp.matches, hyp.count, on, pred):
+            return made[1]
         if pred is not None:
             ver = mod.verify_prediction(search.V, hyp.matches, self.catalog, search.sigma, pred.P, pred.density_sr,
                                         pred.min_stars, n_hypotheses=search.n_hypotheses, threshold=self.threshold,
@@ -359,22 +378,25 @@ class Identifier(ABC):
             else:
                 V, catalog, camera, sigma = on.vectors, on.catalog, on.camera, on.sigma_rad
                 radius = mod.match_radius(sigma, self.radius_sigmas)
-            ver = verify(V, hyp.matches, catalog, camera, sigma,
-                         n_hypotheses=search.n_hypotheses, n_patterns=self.n_patterns, statistic=self.statistic,
-                         threshold=self.threshold, radius_rad=radius,
-                         window_sr=search.obs.window_sr if on is None else None)
-        hypothesis = hyp.matches
+            ver = mod.verify(V, hyp.matches, catalog, camera, sigma,
+                             n_hypotheses=search.n_hypotheses, n_patterns=self.n_patterns, statistic=self.statistic,
+                             threshold=self.threshold, radius_rad=radius,
+                             window_sr=search.obs.window_sr if on is None else None)
         if on is not None and on.parent_rows is not None:
             ver = ver.in_rows(on.parent_rows)
-            hypothesis = {o: int(on.parent_rows[c]) for o, c in hyp.matches.items()}
-        numbers, record = hyp.judge(ver) if hyp.judge is not None else ({}, {})
-        vd = ver.to_dict()
-        search.steps.append(verification_step(ver, hypothesis, numbers={**hyp.numbers, **numbers}, vd=vd,
-                                              groups=list(hyp.groups), layers=tuple(hyp.layers)))
-        if record:
-            vd |= record
-        search.result.verification = vd
         return ver
+
+    def identify_batch(self, observations) -> list[Identification]:
+        """Identify many frames (a sweep's): the same identifications as `identify` frame by frame. A method
+        may find them faster together (`EllipticityMethod` does: the frames its first hypothesis decides
+        then carry no steps). Each result's stats["time_s"]: the time it took, its share of a batch included."""
+        out = []
+        for obs in observations:
+            t0 = time.perf_counter()
+            result = self.identify(obs)
+            result.stats["time_s"] = time.perf_counter() - t0
+            out.append(result)
+        return out
 
     def drive(self, search: Search, source: HypothesisSource) -> bool:
         """Verify what `source` yields until a hypothesis is accepted (True) or the source ends."""

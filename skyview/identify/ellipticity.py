@@ -94,6 +94,7 @@ from skyview.core.catalog import FLAG_MULTIPLE, GuideCatalog, chord
 from skyview.core.errors import BadInput
 from skyview.identify import database
 from skyview.identify.base import Hypothesis, Identifier, Search, Step
+from skyview.identify.ellipticity_batch import eps_sigma_stacked, first_hypotheses
 from skyview.identify.layers import Attitudes, Hypotheses
 from skyview.identify.params import MethodParams, positive
 from skyview.identify.steps import LazyStep
@@ -395,7 +396,7 @@ class EllipticityMethod(Identifier):
         eps = s[:, 2] / s[:, 1]
         theta = angular_distance(W[:, 1:, :], W[:, :1, :])
         if self.adaptive_thresholds:
-            tol_eps = self.beta * _eps_sigma_stacked(np.swapaxes(W, 1, 2), U, s, Vt, sigma)
+            tol_eps = self.beta * eps_sigma_stacked(np.swapaxes(W, 1, 2), U, s, Vt, sigma)
         else:
             tol_eps = np.full(len(eps), self.eps_threshold)
         lo = np.searchsorted(self.eps, eps - tol_eps, side="left")
@@ -452,6 +453,39 @@ class EllipticityMethod(Identifier):
                                        layers=(Attitudes.of(R_sv, name="singular-vector attitude"),), on_accept=record)
                 reasons.append(f"candidate {rows.tolist()} failed verification: {ver.reason}")
 
+    def identify_batch(self, observations) -> list:
+        """Identify many frames: each frame's first hypothesis found for all of them as arrays
+        (`skyview.identify.ellipticity_batch`) and verified; a frame whose first hypothesis is verified
+        is identified as `identify` identifies it (the same matches, attitude and verification), without
+        the steps; every other frame is identified by the walk (`run`: its steps recorded, the first
+        hypothesis' verification the one made here). Each result's stats["time_s"] is its own
+        time plus its share of the batch."""
+        t0 = time.perf_counter()
+        searches = [self.begin(obs) for obs in observations]
+        firsts = first_hypotheses(self, [s.V for s in searches], np.array([s.sigma for s in searches]))
+        shared = (time.perf_counter() - t0) / max(len(searches), 1)
+        out = []
+        for search, first in zip(searches, firsts):
+            t1 = time.perf_counter()
+            if first is not None:
+                hyp = Hypothesis(first)
+                ver = self.verification(search, hyp)
+                if ver.passed:
+                    result = search.result
+                    result.accept(ver)
+                    result.verification = ver.to_dict()
+                    result.stats = {"stars": search.n, "verifications": 1, "batched": True,
+                                    "time_s": shared + time.perf_counter() - t1}
+                    out.append(result)
+                    continue
+                # the walk from the start, its first hypothesis' verification this one (not made twice)
+                search = self.begin(search.obs)
+                search.data["first_verification"] = ((hyp.matches, hyp.count, None, None), ver)
+            result = self.run(search)
+            result.stats["time_s"] = shared + time.perf_counter() - t1
+            out.append(result)
+        return out
+
     def _assign(self, W: np.ndarray, k: int, theta: np.ndarray, tol_theta: float, sigma: float) -> np.ndarray:
         """Catalog rows (pivot, adjacent 1..3) for the observed pattern W and database pattern k.
 
@@ -470,14 +504,6 @@ class EllipticityMethod(Identifier):
             if best_loss is None or loss < best_loss:
                 best, best_loss = r, loss
         return best
-
-
-def _eps_sigma_stacked(A: np.ndarray, U: np.ndarray, s: np.ndarray, Vt: np.ndarray, sigma_rad: float) -> np.ndarray:
-    """eps_sigma for a stack of (m, 3, 4) pattern matrices, from their SVD."""
-    eps = s[:, 2] / s[:, 1]
-    g = U[:, :, 2, None] * Vt[:, 2, None, :] - eps[:, None, None] * U[:, :, 1, None] * Vt[:, 1, None, :]
-    gt = g - A * np.sum(g * A, axis=1, keepdims=True)
-    return sigma_rad * np.sqrt(np.sum(gt * gt, axis=(1, 2))) / s[:, 1]
 
 
 def _pattern_note(p: int, o: list[int], eps: float, theta: np.ndarray) -> str:
