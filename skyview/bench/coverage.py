@@ -23,7 +23,8 @@ frames turning FOV/3 about the camera y axis, the turn given, identified togethe
 
 Engine. The orientations are cut into tasks of `chunk` orientations; each task runs on a Dask worker
 (`run_task`: the worker builds the catalog, camera and identifier once per configuration and keeps
-them) and its records are written to DIR/chunks/task-NNNNN.npz as it completes (atomic rename).
+them; a task's single frames are made in one pass, `synthetic_frames`, and identified together,
+`identify_batch`: the same answers as one by one) and its records are written to DIR/chunks/task-NNNNN.npz as it completes (atomic rename).
 Run again on the same DIR with the same configuration and only the missing tasks run: an
 interrupted sweep resumes. `scheduler=None` starts a `LocalCluster` on this machine (n_workers
 processes, one thread each, 127.0.0.1, no dashboard); an address ("tcp://host:8786") uses that

@@ -72,6 +72,11 @@ Improvements (options, off by default; `IMPROVED_PARAMS` turns them on, with n_a
   swap ranks between the image and the catalog; the assignment of such stars is the permutation
   (within the thresholds) with the smallest attitude residual, instead of the rank order.
 
+Many frames (a coverage sweep's task): `identify_batch` finds every frame's first hypothesis as arrays
+(`skyview.identify.ellipticity_batch`: the same hypothesis the walk below yields first) and verifies
+it; a frame it verifies is identified as `identify` would (without the steps), any other is walked by
+`identify`'s template, its first verification the one already made.
+
 Images. A 20 deg field at Hp 6 holds a median of ~39 stars, over 100 in the Milky Way. The MethodSolver
 hands the identifier only its max_stars = 40 brightest centroids (its default); the faint stars it
 drops are adjacent stars of the patterns. On sun20 (300 attitudes) the improved variant identifies
