@@ -248,3 +248,16 @@ def test_a_dask_worker_lost_mid_sweep_is_replaced_and_the_sweep_gives_the_same_t
     for k in ("index", "ra_deg", "dec_deg", "roll_deg", "stars", "outcome"):
         assert np.array_equal(a[k], b[k]), k
     assert s["counts"] == ref["counts"]
+
+
+def test_a_task_in_batches_of_frames_gives_the_answer_of_one_batch(monkeypatch):
+    from skyview.bench import coverage
+
+    cfg = CoverageConfig("ellipticity", "improved", fov_deg=20.0, mag_limit=6.0, grid="sun", sample=40,
+                         noise_urad=10, max_stars=1000, chunk=40).checked()
+    whole = coverage.run_task(cfg.to_dict(), 0)
+    monkeypatch.setattr(coverage, "BATCH_FRAMES", 7)  # six batches of 7 frames, one of 5
+    parts = coverage.run_task(cfg.to_dict(), 0)
+    for k in ("index", "stars", "outcome"):
+        assert np.array_equal(whole[k], parts[k]), k
+    assert np.all(whole["outcome"] == SOLVED) and whole["stars"].min() >= 4  # Sun's grid: every one solved

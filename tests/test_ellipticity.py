@@ -318,7 +318,9 @@ def test_a_batch_identifies_every_frame_as_identify_does(cat, cam, variant, nois
     made = []
     real_verify = verify_module.verify
     monkeypatch.setattr(verify_module, "verify", lambda *a, **k: made.append(1) or real_verify(*a, **k))
+    monkeypatch.setattr("skyview.identify.ellipticity.BATCH_FRAMES", 64)  # three batches: 64, 64, 32
     batch = ident.identify_batch(obs)
+    assert len(batch) == n
     # each hypothesis verified once: a walk after a failed first hypothesis takes the batch's verification
     assert len(made) == sum(b.stats["verifications"] for b in batch)
     monkeypatch.undo()

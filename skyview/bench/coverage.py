@@ -53,6 +53,7 @@ DEFAULT_CHUNK = 64
 MAX_NSIDE = 1024
 SEQUENCE_FRAMES = 5  # a sequence method (stochastic) identifies over this many frames per orientation
 DEFAULT_NOISE_PX = 0.5  # vector-level noise per axis, in pixels of the camera (as the centroider's default sigma)
+BATCH_FRAMES = 256  # single frames made and identified together (a task's memory: this many frames at a time)
 TASK_FIELDS = ("index", "ra_deg", "dec_deg", "roll_deg", "stars", "outcome", "time_ms")
 
 
@@ -241,21 +242,28 @@ def run_task(cfg_dict: dict, task: int) -> dict[str, np.ndarray]:
     outcome = np.zeros(len(idx), dtype=np.int8)
     times = np.zeros(len(idx))
     Rs = attitudes_from_radec_roll(*np.radians(ori[idx]).T)
-    rngs = [np.random.default_rng([cfg.seed, int(i)]) for i in idx]
+
+    def rng(i):
+        return np.random.default_rng([cfg.seed, int(i)])
+
     if (cfg.frames or 1) > 1:
-        frames = []
-        for n in range(len(idx)):
-            f = synthetic_frame(cat, cam, Rs[n], cfg.noise_rad, rngs[n])
+        for n, i in enumerate(idx.tolist()):
+            r = rng(i)
+            f = synthetic_frame(cat, cam, Rs[n], cfg.noise_rad, r)
             stars[n] = len(f.obs)
-            outcome[n], times[n] = _sequence_outcome(cfg, cat, cam, ident, Rs[n], f, rngs[n])
-    else:  # every frame made at once (`synthetic_frames`: the same stars and noise draws as one by one)
-        frames = synthetic_frames(cat, cam, Rs, cfg.noise_rad, rngs)
-        stars[:] = [len(f.obs) for f in frames]
-    if frames:  # single frames: identified together (`identify_batch`: the same answers as one by one)
-        results = ident.identify_batch([_brightest(f.obs, cfg.max_stars) for f in frames])
-        for n, (f, r) in enumerate(zip(frames, results)):
-            times[n] = r.stats["time_s"] * 1e3
-            outcome[n] = INCONCLUSIVE if not r.identified else SOLVED if _all_right(f.truth, r.matches) else WRONG
+            outcome[n], times[n] = _sequence_outcome(cfg, cat, cam, ident, Rs[n], f, r)
+    else:
+        # single frames, BATCH_FRAMES at a time (the memory of a task of any size bounded): made at once
+        # (`synthetic_frames`: the same stars and noise draws as one by one) and identified together
+        # (`identify_batch`: the same answers as one by one)
+        for a in range(0, len(idx), BATCH_FRAMES):
+            frames = synthetic_frames(cat, cam, Rs[a:a + BATCH_FRAMES], cfg.noise_rad,
+                                      [rng(i) for i in idx[a:a + BATCH_FRAMES].tolist()])
+            results = ident.identify_batch([_brightest(f.obs, cfg.max_stars) for f in frames])
+            for n, (f, r) in enumerate(zip(frames, results), start=a):
+                stars[n] = len(f.obs)
+                times[n] = r.stats["time_s"] * 1e3
+                outcome[n] = INCONCLUSIVE if not r.identified else SOLVED if _all_right(f.truth, r.matches) else WRONG
     return {"index": idx, "ra_deg": ori[idx, 0], "dec_deg": ori[idx, 1], "roll_deg": ori[idx, 2], "stars": stars,
             "outcome": outcome, "time_ms": times, "task_s": np.float64(time.perf_counter() - t_task)}
 

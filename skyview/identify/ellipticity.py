@@ -118,6 +118,7 @@ N_ADJACENT = 3  # adjacent stars per pattern (the paper's option for fake stars:
 DROP_FLAGS = FLAG_MULTIPLE
 
 CAP = 200  # catalog rows / groups kept in one step
+BATCH_FRAMES = 256  # frames whose first hypotheses `identify_batch` finds together
 DATABASE_VERSION = 2
 
 
@@ -465,6 +466,10 @@ class EllipticityMethod(Identifier):
         the steps; every other frame is identified by the walk (`run`: its steps recorded, the first
         hypothesis' verification the one made here). Each result's stats["time_s"] is its own
         time plus its share of the batch."""
+        observations = list(observations)
+        if len(observations) > BATCH_FRAMES:  # (the batch's arrays bounded: frames x stars)
+            return [r for a in range(0, len(observations), BATCH_FRAMES)
+                    for r in self.identify_batch(observations[a:a + BATCH_FRAMES])]
         t0 = time.perf_counter()
         searches = [self.begin(obs) for obs in observations]
         firsts = first_hypotheses(self, [s.V for s in searches], np.array([s.sigma for s in searches]))
