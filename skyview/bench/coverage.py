@@ -260,7 +260,7 @@ def run_task(cfg_dict: dict, task: int) -> dict[str, np.ndarray]:
             frames = synthetic_frames(cat, cam, Rs[a:a + BATCH_FRAMES], cfg.noise_rad,
                                       [rng(i) for i in idx[a:a + BATCH_FRAMES].tolist()])
             results = ident.identify_batch([_brightest(f.obs, cfg.max_stars) for f in frames])
-            for n, (f, r) in enumerate(zip(frames, results), start=a):
+            for n, (f, r) in enumerate(zip(frames, results), start=a):  # (each result let go once read)
                 stars[n] = len(f.obs)
                 times[n] = r.stats["time_s"] * 1e3
                 outcome[n] = INCONCLUSIVE if not r.identified else SOLVED if _all_right(f.truth, r.matches) else WRONG

@@ -26,7 +26,7 @@ import inspect
 import math
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -386,17 +386,17 @@ class Identifier(ABC):
             ver = ver.in_rows(on.parent_rows)
         return ver
 
-    def identify_batch(self, observations) -> list[Identification]:
-        """Identify many frames (a sweep's): the same identifications as `identify` frame by frame. A method
-        may find them faster together (`EllipticityMethod` does: the frames its first hypothesis decides
-        then carry no steps). Each result's stats["time_s"]: the time it took, its share of a batch included."""
-        out = []
+    def identify_batch(self, observations) -> Iterator[Identification]:
+        """Identify many frames (a sweep's): yields, frame after frame, the same identifications as
+        `identify`. A method may find them faster together (`EllipticityMethod` does: the frames its first
+        hypothesis decides then carry no steps and only a few stats). Each result's stats["time_s"]: the
+        time it took, its share of a batch included. (Yielded: a caller that uses each and lets it go
+        holds one frame's steps at a time.)"""
         for obs in observations:
             t0 = time.perf_counter()
             result = self.identify(obs)
             result.stats["time_s"] = time.perf_counter() - t0
-            out.append(result)
-        return out
+            yield result
 
     def drive(self, search: Search, source: HypothesisSource) -> bool:
         """Verify what `source` yields until a hypothesis is accepted (True) or the source ends."""

@@ -98,8 +98,8 @@ from skyview.core.camera import Camera
 from skyview.core.catalog import FLAG_MULTIPLE, GuideCatalog, chord
 from skyview.core.errors import BadInput
 from skyview.identify import database
-from skyview.identify.base import Hypothesis, Identifier, Search, Step
-from skyview.identify.ellipticity_batch import eps_sigma_stacked, first_hypotheses
+from skyview.identify.base import INCONCLUSIVE, Hypothesis, Identifier, Search, Step
+from skyview.identify.ellipticity_batch import NoHypothesis, eps_sigma_stacked, first_hypotheses
 from skyview.identify.layers import Attitudes, Hypotheses
 from skyview.identify.params import MethodParams, positive
 from skyview.identify.steps import LazyStep
@@ -459,24 +459,43 @@ class EllipticityMethod(Identifier):
                                        layers=(Attitudes.of(R_sv, name="singular-vector attitude"),), on_accept=record)
                 reasons.append(f"candidate {rows.tolist()} failed verification: {ver.reason}")
 
-    def identify_batch(self, observations) -> list:
-        """Identify many frames: each frame's first hypothesis found for all of them as arrays
-        (`skyview.identify.ellipticity_batch`) and verified; a frame whose first hypothesis is verified
-        is identified as `identify` identifies it (the same matches, attitude and verification), without
-        the steps; every other frame is identified by the walk (`run`: its steps recorded, the first
-        hypothesis' verification the one made here). Each result's stats["time_s"] is its own
-        time plus its share of the batch."""
-        observations = list(observations)
-        if len(observations) > BATCH_FRAMES:  # (the batch's arrays bounded: frames x stars)
-            return [r for a in range(0, len(observations), BATCH_FRAMES)
-                    for r in self.identify_batch(observations[a:a + BATCH_FRAMES])]
+    def identify_batch(self, observations):
+        """Identify many frames, yielding each frame's identification in turn: each frame's first hypothesis
+        found for BATCH_FRAMES frames at a time as arrays (`skyview.identify.ellipticity_batch`) and
+        verified. A frame whose first hypothesis is verified is identified as `identify` identifies it (the
+        same status, matches, attitude and verification) without the steps, and its stats hold only
+        stars, verifications (1), batched (True) and time_s (not the walk's pivots, patterns, candidates,
+        first_pivot_adjacent, first_chain); so is a frame whose walk would find no candidate at all
+        (inconclusive, the walk's reason, verifications 0); every other frame is identified by the walk (`run`: its steps and
+        stats recorded, the first hypothesis' verification the one made here). stats["time_s"]: the frame's
+        own time plus its share of the batch. A subclass with its own walk identifies frame by frame."""
+        cls = type(self)
+        if cls.hypotheses is not EllipticityMethod.hypotheses or cls._pivot is not EllipticityMethod._pivot:
+            yield from super().identify_batch(observations)
+            return
+        batch = []
+        for obs in observations:
+            batch.append(obs)
+            if len(batch) == BATCH_FRAMES:  # (the batch's arrays bounded: frames x stars)
+                yield from self._identify_together(batch)
+                batch = []
+        if batch:
+            yield from self._identify_together(batch)
+
+    def _identify_together(self, observations: list):
         t0 = time.perf_counter()
         searches = [self.begin(obs) for obs in observations]
         firsts = first_hypotheses(self, [s.V for s in searches], np.array([s.sigma for s in searches]))
         shared = (time.perf_counter() - t0) / max(len(searches), 1)
-        out = []
         for search, first in zip(searches, firsts):
             t1 = time.perf_counter()
+            if isinstance(first, NoHypothesis):  # the walk would find no candidate: its reason, no steps
+                result = search.result
+                result.status, result.reason = INCONCLUSIVE, first.reason
+                result.stats = {"stars": search.n, "verifications": 0, "batched": True,
+                                "time_s": shared + time.perf_counter() - t1}
+                yield result
+                continue
             if first is not None:
                 hyp = Hypothesis(first)
                 ver = self.verification(search, hyp)
@@ -486,15 +505,14 @@ class EllipticityMethod(Identifier):
                     result.verification = ver.to_dict()
                     result.stats = {"stars": search.n, "verifications": 1, "batched": True,
                                     "time_s": shared + time.perf_counter() - t1}
-                    out.append(result)
+                    yield result
                     continue
                 # the walk from the start, its first hypothesis' verification this one (not made twice)
                 search = self.begin(search.obs)
                 search.data["first_verification"] = ((hyp.matches, hyp.count, None, None), ver)
             result = self.run(search)
             result.stats["time_s"] = shared + time.perf_counter() - t1
-            out.append(result)
-        return out
+            yield result
 
     def _assign(self, W: np.ndarray, k: int, theta: np.ndarray, tol_theta: float, sigma: float) -> np.ndarray:
         """Catalog rows (pivot, adjacent 1..3) for the observed pattern W and database pattern k.

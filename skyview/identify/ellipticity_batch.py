@@ -9,13 +9,15 @@ frame's pivot and adjacent stars in one pass, then the first pattern of every fr
 of the patterns of the frames whose first pattern found no candidate. Each number is computed by the
 same operations as the walk's (an SVD of each 3 x 4 matrix, the same searchsorted windows, the same
 cost and the same first-minimum), so each frame's first hypothesis is the one `hypotheses` yields
-first. A frame the batch does not decide (fewer than 4 stars, no pivot within the radius, a first
-pivot with fewer than 3 adjacent stars, no candidate among the first pivot's patterns) gets None:
-the caller identifies it with `identify`, which walks on to the next pivots as the method does.
+first. The rounds go on to the next pivot (passing over a pivot with fewer than 3 adjacent stars, up to
+max_pivots, the paper's variant stopping after its first) for the frames whose pivot found no candidate. A
+frame whose walk would find none at all gets `NoHypothesis`, with the reason the walk gives; a frame with
+fewer stars than the method needs gets None (the caller identifies it with `identify`).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from itertools import combinations, permutations
 
 import numpy as np
@@ -26,12 +28,21 @@ BORESIGHT = np.array([0.0, 0.0, 1.0])
 PERMUTATIONS = np.array(list(permutations(range(3))), dtype=np.int64)  # (`_assign`'s order, the identity first)
 
 
-def first_hypotheses(method, V_list: list[np.ndarray], sigmas: np.ndarray) -> list[dict[int, int] | None]:
-    """The first hypothesis (observed index -> catalog row) `method.hypotheses` would yield for each frame
-    (V_list[f]: (n_f, 3) camera-frame unit vectors, brightest first; sigmas[f]: its sigma), or None
-    where the batch leaves the frame to `identify` (the module docstring)."""
+@dataclass(frozen=True)
+class NoHypothesis:
+    """A frame whose walk yields no hypothesis at all (no pattern of any pivot it takes has a database
+    candidate): the reason `identify` gives it (`EllipticityMethod.failure_reason` of the walk's reasons)."""
+
+    reason: str
+
+
+def first_hypotheses(method, V_list: list[np.ndarray], sigmas: np.ndarray) -> list[dict[int, int] | NoHypothesis | None]:
+    """For each frame (V_list[f]: (n_f, 3) camera-frame unit vectors, brightest first; sigmas[f]: its sigma)
+    the first hypothesis (observed index -> catalog row) `method.hypotheses` would yield; `NoHypothesis`
+    where it would yield none; None where the batch leaves the frame to `identify` (fewer stars than the
+    method needs)."""
     F = len(V_list)
-    out: list[dict[int, int] | None] = [None] * F
+    out: list[dict[int, int] | NoHypothesis | None] = [None] * F
     counts = np.array([len(v) for v in V_list], dtype=np.int64)
     live = np.flatnonzero(counts >= method.min_stars)
     if len(live) == 0:
@@ -53,6 +64,9 @@ def first_hypotheses(method, V_list: list[np.ndarray], sigmas: np.ndarray) -> li
     k_adj = method.n_adjacent
     subsets = np.array(list(combinations(range(k_adj), 3)), dtype=np.int64)  # (the walk's order)
     tried = np.zeros(len(live), dtype=np.int64)
+    # the walk's failure reasons of a frame that finds no candidate: how many, and the last
+    n_reasons = np.zeros(len(live), dtype=np.int64)
+    last: list[str] = [""] * len(live)
     todo = rows
     for rank in range(n_max):
         todo = todo[within[todo, rank] & (tried[todo] < method.max_pivots)]
@@ -67,10 +81,30 @@ def first_hypotheses(method, V_list: list[np.ndarray], sigmas: np.ndarray) -> li
         enough = n_adj >= 3  # (a pivot with fewer is passed over: the walk takes the next)
         tried[todo[enough]] += 1
         gone = enough.copy() if not method.next_pivot else np.zeros(len(todo), dtype=bool)
-        gone[enough] |= _decide(method, out, live, Vp, sig, tol_theta, todo[enough], pivot[enough], adj[enough],
-                                n_adj[enough], subsets)
+        decided = _decide(method, out, live, Vp, sig, tol_theta, todo[enough], pivot[enough], adj[enough],
+                          n_adj[enough], subsets)
+        gone[enough] |= decided
+        for i in np.flatnonzero(~enough).tolist():
+            a = int(todo[i])
+            n_reasons[a] += 1
+            last[a] = f"pivot {int(pivot[i])} has {int(n_adj[i])} adjacent star(s) in the image"
+        for i in np.flatnonzero(enough)[~decided].tolist():  # every pattern of the pivot without a candidate
+            a, k = int(todo[i]), int(n_adj[i])
+            n_reasons[a] += k * (k - 1) * (k - 2) // 6
+            last[a] = f"no pattern matches pivot {int(pivot[i])} with adjacent {adj[i, k - 3:k].tolist()}"
         # a frame whose pivot found no candidate: the next pivot (the paper's method stops there)
         todo = todo[~gone]
+    radius_deg = np.degrees(method.pivot_radius)
+    for a, f in enumerate(live.tolist()):
+        if out[f] is not None:
+            continue
+        if not within[a, 0]:
+            out[f] = NoHypothesis(f"no observed star within {radius_deg:g} deg of the boresight")
+            continue
+        n, reason = int(n_reasons[a]), last[a]
+        if tried[a] == 0:
+            n, reason = n + 1, f"no pivot within {radius_deg:g} deg of the boresight has 3 adjacent stars in the image"
+        out[f] = NoHypothesis(reason if n == 1 else f"{n} failures, the last: {reason}")
     return out
 
 

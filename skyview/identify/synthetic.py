@@ -73,9 +73,6 @@ def synthetic_frame(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sigma_
     return SyntheticFrame(obs=obs, truth=truth[sel], R=R)
 
 
-FRAMES_BLOCK = 4_000_000  # catalog stars x frames compared at once in `synthetic_frames` (32 MB of cosines)
-
-
 def synthetic_frames(catalog: GuideCatalog, camera: Camera, Rs: np.ndarray, sigma_rad: float,
                      rngs: list[np.random.Generator]) -> list[SyntheticFrame]:
     """`synthetic_frame` for many attitudes at once (a sweep's): Rs (F, 3, 3), frame f's noise drawn from
@@ -84,29 +81,25 @@ def synthetic_frames(catalog: GuideCatalog, camera: Camera, Rs: np.ndarray, sigm
     instead of one per frame)."""
     Rs = np.asarray(Rs, dtype=np.float64).reshape(-1, 3, 3)
     F = len(Rs)
-    # the stars of every frame's cone (frame_stars's: the sensor's half-diagonal and the slack of the stars
-    # it fetches), frames ascending, rows ascending within one: a float32 test with a margin (~1e-7
-    # rounding) keeps a superset, the cone's own test and the sensor's below decide
-    cone = min(camera.half_diagonal_rad + NEAR_SLACK_RAD + 1e-9, np.pi)
-    cos_max = np.cos(cone) - 1e-5
-    xyz32 = catalog.xyz.T.astype(np.float32)
-    b32 = Rs[:, 2].astype(np.float32)
-    block = max(1, FRAMES_BLOCK // max(len(catalog), 1))
-    fr, st = [], []
-    for a in range(0, F, block):
-        f, s = (b32[a:a + block] @ xyz32 >= cos_max).nonzero()
-        fr.append(f + a)
-        st.append(s)
-    fr, st = np.concatenate(fr), np.concatenate(st)
+    if len(rngs) != F:
+        raise ValueError(f"{F} attitudes need {F} random generators, got {len(rngs)}")
+    if F == 0:
+        return []
+    # the stars frame_stars fetches around each boresight (the sky index's cone of the sensor's
+    # half-diagonal and its slack, rows ascending), then the sensor's test for all frames at once
+    cone = camera.half_diagonal_rad + 0.0 + 1e-9 + NEAR_SLACK_RAD
+    rows = [catalog.sky.cap_cosines(Rs[f, 2], cone)[0] for f in range(F)]
+    st = np.concatenate(rows).astype(np.int64)
+    fr = np.repeat(np.arange(F), [len(r) for r in rows])
     v = np.einsum("kij,kj->ki", Rs[fr], catalog.xyz[st])
     uv, front = camera.project(v)
-    on = front & camera.in_image(uv) & (v[:, 2] >= np.cos(cone) - 1e-9)
+    on = front & camera.in_image(uv)
     if camera.distorted and not camera.fisheye:  # (frame_stars: a lens folding stars from beyond the corner)
         on &= v[:, 2] >= np.cos(camera.half_diagonal_rad) - 1e-12
     fr, st, v = fr[on], st[on], v[on]
     # the noise, frame by frame from its own generator (synthetic_frame's draws), then for all at once
     n = np.bincount(fr, minlength=F)
-    e = np.concatenate([rngs[f].normal(0.0, sigma_rad, size=(int(n[f]), 3)) for f in range(F)] + [np.zeros((0, 3))])
+    e = np.concatenate([rngs[f].normal(0.0, sigma_rad, size=(int(n[f]), 3)) for f in range(F)])
     e -= np.sum(e * v, axis=1, keepdims=True) * v
     w = v + e
     w /= np.linalg.norm(w, axis=1, keepdims=True)
@@ -114,10 +107,8 @@ def synthetic_frames(catalog: GuideCatalog, camera: Camera, Rs: np.ndarray, sigm
     keep = front & camera.in_image(uv)
     mags = catalog.mag[st].astype(np.float64)
     sel = np.flatnonzero(keep)
-    # by frame, brightest first, rows ascending on a tie (frame * 100 + magnitude: exact in float64, the
-    # frames ascending already)
-    sel = sel[np.argsort(fr[sel] * 100.0 + mags[sel], kind="stable")]
-    w, uv, mags, truth = w[sel], uv[sel], mags[sel], st[sel].astype(np.int64)
+    sel = sel[np.lexsort((mags[sel], fr[sel]))]  # by frame, brightest first (stable: rows ascending on a tie)
+    w, uv, mags, truth = w[sel], uv[sel], mags[sel], st[sel]
     brightness = 10.0 ** (-0.4 * mags)
     bounds = np.searchsorted(fr[sel], np.arange(F + 1))
     out = []
