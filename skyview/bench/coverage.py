@@ -186,8 +186,8 @@ def _worker_state(cfg: CoverageConfig):
         ident = make_identifier(cfg.method, cat, cam, cfg.noise_rad if cfg.noise_rad > 0 else 1e-6,
                                 variant=cfg.variant, **params)
         _WORKER.clear()
-        _WORKER.update(key=key, cat=cat, cam=cam, ident=ident)
-    return _WORKER["cat"], _WORKER["cam"], _WORKER["ident"]
+        _WORKER.update(key=key, cat=cat, cam=cam, ident=ident, ori=orientations(cfg))  # (made once, not per task)
+    return _WORKER["cat"], _WORKER["cam"], _WORKER["ident"], _WORKER["ori"]
 
 
 def _brightest(obs, k: int):
@@ -235,8 +235,7 @@ def run_task(cfg_dict: dict, task: int) -> dict[str, np.ndarray]:
 
     t_task = time.perf_counter()
     cfg = CoverageConfig(**cfg_dict)
-    cat, cam, ident = _worker_state(cfg)
-    ori = orientations(cfg)
+    cat, cam, ident, ori = _worker_state(cfg)
     idx = np.arange(task * cfg.chunk, min((task + 1) * cfg.chunk, len(ori)))
     stars = np.zeros(len(idx), dtype=np.int32)
     outcome = np.zeros(len(idx), dtype=np.int8)
