@@ -99,7 +99,7 @@ from skyview.core.catalog import FLAG_MULTIPLE, GuideCatalog, chord
 from skyview.core.errors import BadInput
 from skyview.identify import database
 from skyview.identify.base import INCONCLUSIVE, Hypothesis, Identifier, Search, Step
-from skyview.identify.ellipticity_batch import NoHypothesis, eps_sigma_stacked, first_hypotheses
+from skyview.identify.ellipticity_batch import NoHypothesis, first_hypotheses, pattern_lookup
 from skyview.identify.layers import Attitudes, Hypotheses
 from skyview.identify.params import MethodParams, positive
 from skyview.identify.steps import LazyStep
@@ -398,21 +398,9 @@ class EllipticityMethod(Identifier):
         subsets = np.array(list(combinations(range(len(adj)), 3)), dtype=np.int64)
         idx = np.concatenate([np.full((len(subsets), 1), p), adj[subsets]], axis=1)  # (m, 4) observed
         W = V[idx]  # (m, 4, 3)
-        U, s, Vt = np.linalg.svd(np.swapaxes(W, 1, 2), full_matrices=False)
-        eps = s[:, 2] / s[:, 1]
-        theta = angular_distance(W[:, 1:, :], W[:, :1, :])
-        if self.adaptive_thresholds:
-            tol_eps = self.beta * eps_sigma_stacked(np.swapaxes(W, 1, 2), U, s, Vt, sigma)
-        else:
-            tol_eps = np.full(len(eps), self.eps_threshold)
-        lo = np.searchsorted(self.eps, eps - tol_eps, side="left")
-        hi = np.searchsorted(self.eps, eps + tol_eps, side="right")
-        # the angle test for every pattern in every eps window at once (ragged gather)
-        cnt = hi - lo
-        seg = np.repeat(np.arange(len(idx)), cnt)
-        pos = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)
-        ok = np.all(np.abs(self.theta[pos] - theta[seg]) <= tol_theta, axis=1)
-        hit_pos, hit_seg = pos[ok], seg[ok]
+        # the features, eps windows and angle test of every pattern at once
+        eps, theta, s, tol_eps, lo, hi, hit_pos, hit_seg = pattern_lookup(self, W, sigma,
+                                                                            np.full(len(idx), tol_theta))
         bounds = np.searchsorted(hit_seg, np.arange(len(idx) + 1))
         for m in range(len(idx)):
             o = idx[m].tolist()

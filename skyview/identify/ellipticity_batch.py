@@ -150,6 +150,21 @@ def _first_candidates(method, W: np.ndarray, sigma: np.ndarray, tol_theta: np.nd
     """The patterns (W: (m, 4, 3) observed vectors, the pivot first) with a database candidate within the
     thresholds, ascending; each one's best candidate (a database row) and its pivot-adjacent angles.
     The numbers of `_pivot`."""
+    eps, theta, _, tol_eps, _, _, pos, seg = pattern_lookup(method, W, sigma, tol_theta)
+    # the first of the smallest cost in each pattern (np.argsort(cost, kind="stable")[0] of its hits)
+    cost = ((method.eps[pos] - eps[seg]) / tol_eps[seg]) ** 2 + np.sum(
+        ((method.theta[pos] - theta[seg]) / tol_theta[seg, None]) ** 2, axis=1)
+    order = np.lexsort((np.arange(len(pos)), cost, seg))
+    first = order[np.r_[True, seg[order][1:] != seg[order][:-1]]] if len(pos) else order
+    return seg[first], pos[first], theta[seg[first]]
+
+
+def pattern_lookup(method, W: np.ndarray, sigma, tol_theta: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The method's look-up of observed patterns W ((m, 4, 3) unit vectors, the pivot first; sigma: one, or
+    one per pattern; tol_theta (m,): each one's angle threshold): (eps, theta (m, 3), the singular values
+    (m, 3), the eps thresholds, the eps windows' first and end rows lo and hi, and the database rows
+    within every threshold with their patterns (pos, seg, seg ascending)). One SVD of each 3 x 4 matrix,
+    a binary search of the eps column, the angle test on every window at once (a ragged gather)."""
     A = np.swapaxes(W, 1, 2)
     U, s, Vt = np.linalg.svd(A, full_matrices=False)
     eps = s[:, 2] / s[:, 1]
@@ -164,13 +179,7 @@ def _first_candidates(method, W: np.ndarray, sigma: np.ndarray, tol_theta: np.nd
     seg = np.repeat(np.arange(len(W)), cnt)
     pos = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)
     hit = np.all(np.abs(method.theta[pos] - theta[seg]) <= tol_theta[seg, None], axis=1)
-    pos, seg = pos[hit], seg[hit]
-    # the first of the smallest cost in each pattern (np.argsort(cost, kind="stable")[0] of its hits)
-    cost = ((method.eps[pos] - eps[seg]) / tol_eps[seg]) ** 2 + np.sum(
-        ((method.theta[pos] - theta[seg]) / tol_theta[seg, None]) ** 2, axis=1)
-    order = np.lexsort((np.arange(len(pos)), cost, seg))
-    first = order[np.r_[True, seg[order][1:] != seg[order][:-1]]] if len(pos) else order
-    return seg[first], pos[first], theta[seg[first]]
+    return eps, theta, s, tol_eps, lo, hi, pos[hit], seg[hit]
 
 
 def eps_sigma_stacked(A: np.ndarray, U: np.ndarray, s: np.ndarray, Vt: np.ndarray, sigma_rad: float) -> np.ndarray:
