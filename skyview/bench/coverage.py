@@ -22,9 +22,10 @@ frames turning FOV/3 about the camera y axis, the turn given, identified togethe
 (`identify_sequence`); the orientation's outcome is that of the last frame identified.
 
 Engine. The orientations are cut into tasks of `chunk` orientations; each task runs on a Dask worker
-(`run_task`: the worker builds the catalog, camera and identifier once per configuration and keeps
-them; a task's single frames are made in one pass, `synthetic_frames`, and identified together,
-`identify_batch`: the same answers as one by one) and its records are written to DIR/chunks/task-NNNNN.npz as it completes (atomic rename).
+(`run_task`: the worker builds the catalog, camera, identifier and orientations once per configuration
+and keeps them; a task's single frames are made in one pass, `synthetic_frames`, and identified
+together, `identify_batch`: the same answers as one by one) and its records are written to
+DIR/chunks/task-NNNNN.npz as it completes (atomic rename).
 Run again on the same DIR with the same configuration and only the missing tasks run: an
 interrupted sweep resumes. `scheduler=None` starts a `LocalCluster` on this machine (n_workers
 processes, one thread each, 127.0.0.1, no dashboard); an address ("tcp://host:8786") uses that

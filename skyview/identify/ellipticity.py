@@ -448,15 +448,16 @@ class EllipticityMethod(Identifier):
                 reasons.append(f"candidate {rows.tolist()} failed verification: {ver.reason}")
 
     def identify_batch(self, observations):
-        """Identify many frames, yielding each frame's identification in turn: each frame's first hypothesis
-        found for BATCH_FRAMES frames at a time as arrays (`skyview.identify.ellipticity_batch`) and
-        verified. A frame whose first hypothesis is verified is identified as `identify` identifies it (the
-        same status, matches, attitude and verification) without the steps, and its stats hold only
+        """Identify many frames, yielding each frame's identification in turn: each frame's first
+        hypothesis found for BATCH_FRAMES frames at a time as arrays (`skyview.identify.ellipticity_batch`)
+        and verified. A frame whose first hypothesis is verified is identified as `identify` identifies it
+        (the same status, matches, attitude and verification) without the steps, and its stats hold only
         stars, verifications (1), batched (True) and time_s (not the walk's pivots, patterns, candidates,
         first_pivot_adjacent, first_chain); so is a frame whose walk would find no candidate at all
-        (inconclusive, the walk's reason, verifications 0); every other frame is identified by the walk (`run`: its steps and
-        stats recorded, the first hypothesis' verification the one made here). stats["time_s"]: the frame's
-        own time plus its share of the batch. A subclass with its own walk identifies frame by frame."""
+        (inconclusive, the walk's reason, verifications 0). Every other frame is identified by the walk
+        (`run`: its steps and stats recorded, the first hypothesis' verification the one made here).
+        stats["time_s"]: the frame's own time plus its share of the batch. A subclass with its own walk
+        identifies frame by frame."""
         cls = type(self)
         if cls.hypotheses is not EllipticityMethod.hypotheses or cls._pivot is not EllipticityMethod._pivot:
             yield from super().identify_batch(observations)

@@ -36,7 +36,8 @@ class NoHypothesis:
     reason: str
 
 
-def first_hypotheses(method, V_list: list[np.ndarray], sigmas: np.ndarray) -> list[dict[int, int] | NoHypothesis | None]:
+def first_hypotheses(method, V_list: list[np.ndarray], sigmas: np.ndarray
+                     ) -> list[dict[int, int] | NoHypothesis | None]:
     """For each frame (V_list[f]: (n_f, 3) camera-frame unit vectors, brightest first; sigmas[f]: its sigma)
     the first hypothesis (observed index -> catalog row) `method.hypotheses` would yield; `NoHypothesis`
     where it would yield none; None where the batch leaves the frame to `identify` (fewer stars than the
