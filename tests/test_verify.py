@@ -11,6 +11,7 @@ from skyview.core.attitude import (
     R_from_radec_roll,
     attitude_error_arcsec,
     attitudes_from_radec_roll,
+    radec_roll_from_R,
     random_attitudes,
     svd_attitude,
 )
@@ -699,7 +700,12 @@ def test_many_synthetic_frames_at_once_are_those_made_one_by_one(catalog, camera
     n = 300
     ra, dec, roll = rng.uniform(0, 2 * np.pi, n), np.arcsin(rng.uniform(-1, 1, n)), rng.uniform(-np.pi, np.pi, n)
     Rs = attitudes_from_radec_roll(ra, dec, roll)
-    assert np.allclose(Rs, [R_from_radec_roll(*o) for o in zip(ra, dec, roll)], rtol=0, atol=1e-15)
+    # proper rotations whose boresight, RA, Dec and roll are the ones asked for (R_from_radec_roll is one of them)
+    assert np.allclose(Rs @ Rs.transpose(0, 2, 1), np.eye(3), rtol=0, atol=1e-14) and np.all(np.linalg.det(Rs) > 0)
+    back = np.array([radec_roll_from_R(R) for R in Rs])
+    assert np.allclose(back[:, 0], ra, rtol=0, atol=1e-12) and np.allclose(back[:, 1], dec, rtol=0, atol=1e-12)
+    assert np.allclose(np.angle(np.exp(1j * (back[:, 2] - roll))), 0.0, rtol=0, atol=1e-12)
+    assert np.array_equal(R_from_radec_roll(ra[0], dec[0], roll[0]), Rs[0])
     many = synthetic_frames(cat, camera, Rs, 20e-6, [np.random.default_rng([4, i]) for i in range(n)])
     stars = 0
     for i, (R, b) in enumerate(zip(Rs, many)):

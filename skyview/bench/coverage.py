@@ -218,14 +218,7 @@ def _sequence_outcome(cfg: CoverageConfig, cat, cam, ident, R0: np.ndarray, firs
     if not done:
         return INCONCLUSIVE, ms
     k = done[-1]
-    return (SOLVED if _all_right(frames[k].truth, ids[k].matches) else WRONG), ms
-
-
-def _all_right(truth: np.ndarray, matches: dict[int, int]) -> bool:
-    """Whether every match (observed index -> catalog row) is the observed star's true row."""
-    n = len(matches)
-    return bool(np.array_equal(truth[np.fromiter(matches.keys(), np.int64, n)],
-                               np.fromiter(matches.values(), np.int64, n)))
+    return (SOLVED if frames[k].all_right(ids[k].matches) else WRONG), ms
 
 
 def run_task(cfg_dict: dict, task: int) -> dict[str, np.ndarray]:
@@ -263,7 +256,7 @@ def run_task(cfg_dict: dict, task: int) -> dict[str, np.ndarray]:
             for n, (f, r) in enumerate(zip(frames, results), start=a):  # (each result let go once read)
                 stars[n] = len(f.obs)
                 times[n] = r.stats["time_s"] * 1e3
-                outcome[n] = INCONCLUSIVE if not r.identified else SOLVED if _all_right(f.truth, r.matches) else WRONG
+                outcome[n] = INCONCLUSIVE if not r.identified else SOLVED if f.all_right(r.matches) else WRONG
     return {"index": idx, "ra_deg": ori[idx, 0], "dec_deg": ori[idx, 1], "roll_deg": ori[idx, 2], "stars": stars,
             "outcome": outcome, "time_ms": times, "task_s": np.float64(time.perf_counter() - t_task)}
 

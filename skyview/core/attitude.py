@@ -50,17 +50,13 @@ def cross3(a, b) -> np.ndarray:
 
 def R_from_radec_roll(ra_rad: float, dec_rad: float, roll_rad: float) -> np.ndarray:
     """Attitude for a boresight at (RA, Dec) and a roll (image up from north towards east)."""
-    b = radec_to_vec(ra_rad, dec_rad)
-    east = np.array([-np.sin(ra_rad), np.cos(ra_rad), 0.0])
-    north = cross3(b, east)
-    up = np.cos(roll_rad) * north + np.sin(roll_rad) * east
-    y = -up
-    x = cross3(y, b)
-    return np.stack([x, y, b])
+    return attitudes_from_radec_roll(ra_rad, dec_rad, roll_rad)[0]
 
 
 def attitudes_from_radec_roll(ra_rad: np.ndarray, dec_rad: np.ndarray, roll_rad: np.ndarray) -> np.ndarray:
-    """R_from_radec_roll for arrays of orientations (radians): (N, 3, 3), the rows x, y, boresight."""
+    """R_from_radec_roll for arrays of orientations (radians): (N, 3, 3), the rows x, y, boresight (the
+    boresight b, east e = [-sin ra, cos ra, 0], north n = b x e, image up u = cos(roll) n + sin(roll) e,
+    y = -u, x = y x b)."""
     ra, dec, roll = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (ra_rad, dec_rad, roll_rad))
     b = radec_to_vec(ra, dec)
     east = np.stack([-np.sin(ra), np.cos(ra), np.zeros_like(ra)], axis=-1)

@@ -126,7 +126,7 @@ def _chunk(job: tuple[int, np.ndarray, np.ndarray]) -> dict:
             if fpa is not None and fpa < 3:
                 first_few += 1
             if r.identified:
-                ok = all(f.truth[o] == c for o, c in r.matches.items())
+                ok = f.all_right(r.matches)
                 counts["correct" if ok else "incorrect"] += 1
                 if ok:
                     continue

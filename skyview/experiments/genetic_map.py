@@ -406,7 +406,7 @@ def verify_every_answer(fov_deg: float = 8.0, frames: int = 300, attempts: int =
                 continue
             n_hyp += n_pair
             ver = verify(V, hyp, cat, cam, sigma_rad, n_hypotheses=n_hyp, radius_rad=r)
-            right = all(f.truth[o] == c for o, c in hyp.items())
+            right = f.all_right(hyp)
             tally["answers"] += 1
             if not right:
                 tally["wrong_answers"] += 1

@@ -60,14 +60,14 @@ def run(method: str, configs: dict, n: int, seed: int, fov_deg: float, width: in
             r = ident.identify(f.obs)
             times.append(time.perf_counter() - t0)
             if r.identified:
-                ok = all(f.truth[o] == c for o, c in r.matches.items())
+                ok = f.all_right(r.matches)
                 counts["correct" if ok else "incorrect"] += 1
                 pfalse.append(r.verification.get("p_false", np.nan))
             else:
                 counts[r.status] += 1
             fc = r.stats.get("first_chain")
             if fc and fc["outcome"] == "unique":
-                ok = all(f.truth[o] == c for o, c in fc["matches"].items())
+                ok = f.all_right(fc["matches"])
                 paper["correct" if ok else "incorrect"] += 1
             else:
                 paper["none"] += 1

@@ -212,6 +212,10 @@ class Search:
     verifications: int = 0
     n_hypotheses: int = 0
     data: dict[str, Any] = field(default_factory=dict)  # the method's own working values
+    # (matches, Verification): this search's first hypothesis verified already (`identify_batch`'s), taken
+    # by the search's first verification when it is of those matches (a plain hypothesis: count 1, no frame
+    # or prediction of its own) instead of verifying them again
+    first_verified: tuple[dict[int, int], Any] | None = None
 
     @property
     def n(self) -> int:
@@ -365,8 +369,9 @@ class Identifier(ABC):
         search.n_hypotheses += int(hyp.count)
         search.verifications += 1
         on, pred = hyp.frame, hyp.prediction
-        made = search.data.pop("first_verification", None)  # (`identify_batch`'s, of this frame's first hypothesis)
-        if made is not None and search.verifications == 1 and made[0] == (hyp.matches, hyp.count, on, pred):
+        made, search.first_verified = search.first_verified, None
+        if (made is not None and search.verifications == 1 and made[0] == hyp.matches and hyp.count == 1
+                and on is None and pred is None):
             return made[1]
         if pred is not None:
             ver = mod.verify_prediction(search.V, hyp.matches, self.catalog, search.sigma, pred.P, pred.density_sr,

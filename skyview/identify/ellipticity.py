@@ -478,8 +478,8 @@ class EllipticityMethod(Identifier):
         shared = (time.perf_counter() - t0) / max(len(searches), 1)
         for search, first in zip(searches, firsts):
             t1 = time.perf_counter()
+            result = search.result
             if isinstance(first, NoHypothesis):  # the walk would find no candidate: its reason, no steps
-                result = search.result
                 result.status, result.reason = INCONCLUSIVE, first.reason
                 result.stats = {"stars": search.n, "verifications": 0, "batched": True,
                                 "time_s": shared + time.perf_counter() - t1}
@@ -489,7 +489,6 @@ class EllipticityMethod(Identifier):
                 hyp = Hypothesis(first)
                 ver = self.verification(search, hyp)
                 if ver.passed:
-                    result = search.result
                     result.accept(ver)
                     result.verification = ver.to_dict()
                     result.stats = {"stars": search.n, "verifications": 1, "batched": True,
@@ -498,7 +497,7 @@ class EllipticityMethod(Identifier):
                     continue
                 # the walk from the start, its first hypothesis' verification this one (not made twice)
                 search = self.begin(search.obs)
-                search.data["first_verification"] = ((hyp.matches, hyp.count, None, None), ver)
+                search.first_verified = (hyp.matches, ver)
             result = self.run(search)
             result.stats["time_s"] = shared + time.perf_counter() - t1
             yield result

@@ -30,6 +30,12 @@ class SyntheticFrame:
     def n_true(self) -> int:
         return int(np.sum(self.truth >= 0))
 
+    def all_right(self, matches: dict[int, int]) -> bool:
+        """Whether every match (observed index -> catalog row) is the observed star's true row."""
+        n = len(matches)
+        return bool(np.array_equal(self.truth[np.fromiter(matches.keys(), np.int64, n)],
+                                   np.fromiter(matches.values(), np.int64, n)))
+
 
 def add_noise(v: np.ndarray, sigma_rad: float, rng: np.random.Generator) -> np.ndarray:
     """Gaussian tangent-plane error of sigma per axis, renormalised."""
