@@ -261,3 +261,13 @@ def test_a_task_in_batches_of_frames_gives_the_answer_of_one_batch(monkeypatch):
     for k in ("index", "stars", "outcome"):
         assert np.array_equal(whole[k], parts[k]), k
     assert np.all(whole["outcome"] == SOLVED) and whole["stars"].min() >= 4  # Sun's grid: every one solved
+
+
+def test_an_out_that_is_a_file_is_refused_in_one_line_and_the_file_is_kept(tmp_path, capsys):
+    f = tmp_path / "results.txt"
+    f.write_text("the user's notes")
+    rc = main(["coverage", "--method", "angle", "--fov-deg", "8", "--mag-limit", "6", "--nside", "1", "--rolls", "1",
+               "--out", str(f)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--out" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert f.read_text() == "the user's notes"

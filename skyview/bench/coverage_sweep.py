@@ -32,8 +32,13 @@ def _save_task(out: Path, task: int, rec: dict) -> None:
 
 def _prepare(cfg: CoverageConfig, out: Path) -> None:
     """DIR/config.json: written on the first run; a later run must have the same configuration."""
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "chunks").mkdir(exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"--out {out} is a file, not a folder: give the folder the sweep is written to")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "chunks").mkdir(exist_ok=True)
+    except OSError as exc:  # a file of that name, a folder not writable, a parent that is a file
+        raise BadInput(f"--out {out}: cannot make the sweep's folder there ({exc.strerror or exc})") from None
     path = out / "config.json"
     if path.exists():
         try:
