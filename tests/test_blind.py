@@ -405,8 +405,9 @@ def test_the_lookup_steps_tell_how_the_hits_thin_to_the_verified_pattern(blind):
 
 def test_the_default_pipeline_measures_the_stars_it_can_use_with_the_same_answer(catalog):
     """A dense frame (200 detections): the default pipeline measures its brightest measured_stars and counts
-    the rest; the answer, blind and with the FOV given, is the one measuring every star gives, bit for bit;
-    measure_all (the viewer, `skyview solve --record`) measures them all."""
+    the rest (given the FOV, its first try's 40 when that answers); the answer, blind and with the FOV given,
+    is the one measuring every star gives, bit for bit; measure_all (the viewer, `skyview solve --record`)
+    measures them all."""
     from skyview.simulate.scenarios import get_scenario
     from skyview.solver.pipeline import MEASURED_STARS, measured_stars
 
@@ -420,8 +421,9 @@ def test_the_default_pipeline_measures_the_stars_it_can_use_with_the_same_answer
         every = solve_image(image, fov_deg=fov, measure_all=True)
         assert some.solved and every.solved
         assert len(every.centroids) == every.centroids.n_detected > MEASURED_STARS
-        assert len(some.centroids) == MEASURED_STARS and some.centroids.n_detected == every.centroids.n_detected
-        assert np.array_equal(some.centroids.uv, every.centroids.uv[:MEASURED_STARS])
+        n = MEASURED_STARS if fov is None else 40
+        assert len(some.centroids) == n and some.centroids.n_detected == every.centroids.n_detected
+        assert np.array_equal(some.centroids.uv, every.centroids.uv[:n])
         assert np.array_equal(some.R, every.R) and some.matches == every.matches
         assert attitude_error_arcsec(some.R, R)["boresight"] < 10.0
 
@@ -456,6 +458,33 @@ def test_a_right_fov_is_solved_by_the_fast_path_and_a_wrong_one_by_the_blind_sea
     assert widened.time_ms["identify"] > 0
     for res in (fast, widened):
         assert not wrong_matches([(m["index"], m["u"], m["v"], m["hip"]) for m in res.matches], frame.truth)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.06, 1.0113])
+def test_the_fast_path_measures_its_brightest_stars_alone_and_answers_as_with_every_star(catalog, monkeypatch,
+                                                                                       scale):
+    """Given an FOV, the first try reads the brightest max_stars: they alone are measured first. Where it
+    verifies (the right FOV) that is the answer; where it does not (6 % off: the blind search) or its camera is
+    off (1.1 % off: refitted), the stars the searches after it read are measured and it is handed to them. The
+    answer is the one of measuring them all first, number for number."""
+    from skyview.solver import pipeline
+
+    _, _, frame = _frame(catalog, 12.0, 1)  # blind8's kind: ~100 stars detected
+    lean = solve_image(frame.image, fov_deg=12.0 * scale)
+    with monkeypatch.context() as m:
+        m.setattr(pipeline, "_brightest_first", lambda *a: None)  # every star the searches read, measured first
+        full = solve_image(frame.image, fov_deg=12.0 * scale)
+    assert lean.solved and full.solved and lean.method == full.method
+    assert np.array_equal(lean.R, full.R) and lean.matches == full.matches and lean.notes == full.notes
+    assert lean.camera == full.camera and lean.camera_fitted == full.camera_fitted
+    assert lean.identification.verification == full.identification.verification
+    assert lean.centroids.n_detected == full.centroids.n_detected > 40
+    if scale == 1.0:  # verified at the FOV given: only the brightest 40 measured
+        assert len(lean.centroids) == 40 and not lean.camera_fitted
+        np.testing.assert_array_equal(lean.centroids.uv, full.centroids.uv[:40])
+    else:  # widened (the blind search) or refitted: every star they read measured, as before
+        assert lean.camera_fitted and len(lean.centroids) == len(full.centroids) > 40
+        np.testing.assert_array_equal(lean.centroids.uv, full.centroids.uv)
 
 
 def test_the_calibrated_mode_never_widens(catalog):

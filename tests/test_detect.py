@@ -61,6 +61,34 @@ def test_a_broken_satellite_trail_is_taken_out_and_the_stars_kept(catalog):
     assert near_truth(stars.uv).sum() >= near_truth(plain.uv).sum() - 1
 
 
+def test_the_brightest_measured_alone_are_the_first_of_all_measured_unless_a_trail_or_saturation_says_not(
+        catalog):
+    """`_brightest_first` (the FOV-given first try's stars): the brightest max_stars measured alone are, field
+    for field, the first max_stars of the stars measured for the searches after it; where a trail was taken
+    out, or a saturated star was left unmeasured (its whole disk may rank it among them), it declines."""
+    from skyview.solver.pipeline import _brightest_first, measured_stars
+
+    frame = _frame(catalog, seed=4)  # blind8: 31 stars detected
+    every = detect_stars(frame.image, faint_search=False, max_stars=measured_stars(15))
+    few = _brightest_first(frame.image, 5.0, 15)
+    assert len(few) == 15 and few.n_detected == every.n_detected > 25 and few.n_unmeasured > 0
+    for f in ("uv", "brightness", "peak", "n_pixels", "saturated", "elongated", "edge", "blended", "axis_ratio"):
+        np.testing.assert_array_equal(getattr(few, f), getattr(every, f)[:15])
+    assert few.psf_sigma_px == every.psf_sigma_px and few.noise_sigma == every.noise_sigma
+    # an 8-bit frame saturates its bright stars: measuring only the brightest two leaves some unmeasured
+    bright = _frame(catalog, name="sun20", seed=2, bit_depth=8)
+    full, two = detect_centroids(bright.image), detect_centroids(bright.image, max_stars=2)
+    assert int(full.saturated.sum()) >= 3 and two.n_unmeasured_saturated == int(full.saturated.sum()) - int(two.saturated.sum())
+    assert full.n_unmeasured_saturated == 0 and _brightest_first(bright.image, 5.0, 2) is None
+    # a trail taken out among them
+    img = _frame(catalog, seed=11).image.copy()
+    peak = float(np.percentile(img, 99.99))
+    for k in range(10):
+        p0 = (120 + 40 * k, 600 - 25 * k)
+        cv2.line(img, p0, (p0[0] + 8, p0[1] - 5), peak, 2)
+    assert detect_stars(img, max_stars=40).params["n_trail_rejected"] > 0 and _brightest_first(img, 5.0, 40) is None
+
+
 def test_compact_stars_pass_unchanged(catalog):
     frame = _frame(catalog, seed=4)
     plain, stars = detect_centroids(frame.image), detect_stars(frame.image)

@@ -8,7 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skyview.bench.speed import STAGES, _peer_trials, boresight_error_px, format_markdown, run_speed_bench
+from skyview.bench.speed import (
+    PEER_ONE_THREAD,
+    STAGES,
+    _peer_trials,
+    _ratios,
+    _summarize,
+    boresight_error_px,
+    format_markdown,
+    run_speed_bench,
+)
 from skyview.cli import main
 from skyview.core.attitude import R_from_radec_roll
 from skyview.core.errors import BadInput
@@ -27,6 +36,8 @@ def test_speed_bench_scores_and_times_every_stage(tmp_path):
     assert st["total"]["median"] >= st["centroid"]["median"] > 0
     assert st["total+decode"]["median"] > st["total"]["median"]
     assert "tetra3rs" not in s["results"] and s["ratio_to_tetra3rs"] == {}
+    assert s["ratio_to_tetra3rs_one_thread"] == {}
+    assert r["cpu_ms"]["n"] == 3 and r["cpu_ms"]["median"] > 0 and r["cores"]["median"] > 0  # CPU over wall
     pngs = sorted(tmp_path.glob("trial*.png"))
     assert len(pngs) == 3  # the images the peers would read
     assert s["bit_depth"] == 16 and load_image(pngs[0]).dtype == np.uint16  # the frames tetra3rs is made for
@@ -62,6 +73,41 @@ def test_tetra3rs_answers_are_scored_by_the_boresight():
     trials = _peer_trials(answer, images, scale, max_error_px=5.0)["trials"]
     assert [t["outcome"] for t in trials] == ["correct", "incorrect", "inconclusive"]
     assert np.median([t["total"] for t in trials]) == 3.0
+
+
+def _entry(label, totals, cpus, walls=None):
+    trials = [{"name": f"t{k}", "outcome": "correct", "total": t, "cpu": c, **({"wall": walls[k]} if walls else {})}
+              for k, (t, c) in enumerate(zip(totals, cpus))]
+    return _summarize({"label": label, "trials": trials})
+
+
+def test_speed_summary_reports_the_cores_each_solver_kept_busy_and_both_peer_ratios():
+    # tetra3rs's extractor runs on a thread pool: CPU time above the wall time; its one-thread run is the
+    # comparison on one core, skyview's way
+    results = {"default, FOV given": _entry("skyview", [3.0, 3.0, 3.0], [3.1, 3.0, 3.2], [3.1, 3.0, 3.2]),
+               "tetra3rs": _entry("tetra3rs", [2.0, 2.5, 2.4], [3.6, 4.5, 4.3]),
+               PEER_ONE_THREAD: _entry("tetra3rs, 1 thread", [4.0, 4.0, 4.1], [4.0, 4.0, 4.1])}
+    assert results["tetra3rs"]["cores"]["median"] == pytest.approx(1.8)
+    assert results["default, FOV given"]["cores"]["median"] == pytest.approx(1.0)
+    assert _ratios(results, "tetra3rs") == {"default, FOV given": pytest.approx(3.0 / 2.4)}
+    assert _ratios(results, PEER_ONE_THREAD) == {"default, FOV given": pytest.approx(0.75)}
+    assert _ratios(results, "cedar") == {}  # no such peer in the run
+    s = {"scenario": get_scenario("sun20").to_dict(), "n": 3, "seed": 0, "rounds": 1, "bit_depth": 16,
+         "results": results, "ratio_to_tetra3rs": _ratios(results, "tetra3rs"),
+         "ratio_to_tetra3rs_one_thread": _ratios(results, PEER_ONE_THREAD), "peer_note": None,
+         "machine": {"python": "3.11", "cpu": "x86_64", "cores": 2, "load_average": [1.0, 1.0, 1.0]}}
+    md = format_markdown(s)
+    assert "| tetra3rs | 3 | 0 | 0 |" in md and md.count(" | 1.8 |") == 1  # its cores column
+    assert "default, FOV given 1.25x" in md and f"Over {PEER_ONE_THREAD}'s (both on one core): default, FOV given 0.75x" in md
+
+
+def test_peer_trials_keep_the_cpu_time_and_say_how_many_threads():
+    images = [{"name": "t0", "R": np.eye(3)}]
+    answer = {"results": {"tetra3rs-fov": [{"name": "t0", "solved": True, "R": np.eye(3).tolist(), "time_ms": 2.0,
+                                            "cpu_ms": 3.5}]}}
+    one = _peer_trials(answer, images, 1e-4, max_error_px=5.0, threads=1)
+    assert one["trials"][0]["cpu"] == 3.5 and "1 thread)" in one["label"]
+    assert "every core" in _peer_trials(answer, images, 1e-4, max_error_px=5.0)["label"]
 
 
 def test_cli_speed_bench(tmp_path, capsys):

@@ -109,14 +109,15 @@ def _time_solver(label: str, solve, images: list[dict], decoded: list[np.ndarray
     solve(decoded[0])
     trials = []
     for im, img in zip(images, decoded):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         res = solve(img)
         wall_ms = (time.perf_counter() - t0) * 1e3
+        cpu_ms = (time.process_time() - c0) * 1e3
         outcome, wrong = score_trial(res, im["truth"])
         t = res.time_ms
         trials.append({"name": im["name"], "outcome": outcome, "wrong_matches": len(wrong),
                        "centroid": t.get("centroid"), "identify": t.get("identify"), "attitude": t.get("attitude"),
-                       "total": t.get("total"), "wall": wall_ms, "decode": im["decode_ms"],
+                       "total": t.get("total"), "wall": wall_ms, "cpu": cpu_ms, "decode": im["decode_ms"],
                        "total+decode": (t.get("total") or 0.0) + im["decode_ms"],
                        "centroids": res.centroids.n_detected, "matches": len(res.matches),
                        "err_px": (boresight_error_px(res.R, im["R"], pixel_scale_rad) if res.solved else None)})
@@ -134,23 +135,27 @@ def peers_python(explicit: str | None = None) -> str | None:
     return None
 
 
-def run_tetra3rs(images: list[dict], python: str, fov_deg: float, cache_dir: Path) -> dict:
+def run_tetra3rs(images: list[dict], python: str, fov_deg: float, cache_dir: Path, threads: int | None = None
+                 ) -> dict:
     """tetra3rs (calibrated: database for the true FOV +-2 %, told the true FOV) on the image files,
-    in benchmarks/peers_worker.py inside the peers virtualenv; its answer as JSON."""
+    in benchmarks/peers_worker.py inside the peers virtualenv; its answer as JSON. threads: the size of
+    its extractor's thread pool (RAYON_NUM_THREADS); None leaves it its default, every core."""
     return run_peers_worker(images, python, cache_dir, ["tetra3rs-fov"], fov_deg=float(fov_deg),
-                            blind_fov_range_deg=[fov_deg, fov_deg])
+                            blind_fov_range_deg=[fov_deg, fov_deg], threads=threads)
 
 
 def run_peers_worker(images: list[dict], python: str, cache_dir: Path, solvers: list[str], *,
-                     fov_deg: float | None, blind_fov_range_deg) -> dict:
+                     fov_deg: float | None, blind_fov_range_deg, threads: int | None = None) -> dict:
     """benchmarks/peers_worker.py in the peers virtualenv on the image files (its job format there); its
-    answer as JSON."""
+    answer as JSON. threads: RAYON_NUM_THREADS for it (tetra3rs's thread pool), None: its default."""
     if not PEERS_WORKER.exists():
         raise BadInput(f"the peers worker {PEERS_WORKER} is missing (it ships with the repository, not the wheel)")
     job = {"images": [{k: im[k] for k in ("name", "path", "width", "height")} for im in images],
            "cache_dir": str(cache_dir), "fov_deg": fov_deg, "blind_fov_range_deg": list(blind_fov_range_deg),
            "solvers": list(solvers)}
     env = dict(os.environ, PYTHONNOUSERSITE="1", OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
+    if threads is not None:
+        env["RAYON_NUM_THREADS"] = str(int(threads))
     proc = subprocess.run([python, str(PEERS_WORKER)], input=json.dumps(job), text=True, stdout=subprocess.PIPE,
                           env=env)
     if proc.returncode != 0:
@@ -158,7 +163,8 @@ def run_peers_worker(images: list[dict], python: str, cache_dir: Path, solvers: 
     return json.loads(proc.stdout)
 
 
-def _peer_trials(answer: dict, images: list[dict], pixel_scale_rad: float, max_error_px: float) -> dict:
+def _peer_trials(answer: dict, images: list[dict], pixel_scale_rad: float, max_error_px: float,
+                 threads: int | None = None) -> dict:
     res = answer["results"].get("tetra3rs-fov", [])
     by_name = {r["name"]: r for r in res}
     trials = []
@@ -166,9 +172,10 @@ def _peer_trials(answer: dict, images: list[dict], pixel_scale_rad: float, max_e
         r = by_name.get(im["name"], {"solved": False, "time_ms": None})
         err = boresight_error_px(r["R"], im["R"], pixel_scale_rad) if r.get("solved") else None
         outcome = "inconclusive" if err is None else ("correct" if err <= max_error_px else "incorrect")
-        trials.append({"name": im["name"], "outcome": outcome, "total": r.get("time_ms"), "err_px": err,
-                       "centroids": r.get("centroids"), "matches": r.get("matches")})
-    return {"label": "tetra3rs 0.14 (calibrated: database for the true FOV +-2 %, told the true FOV)",
+        trials.append({"name": im["name"], "outcome": outcome, "total": r.get("time_ms"), "cpu": r.get("cpu_ms"),
+                       "err_px": err, "centroids": r.get("centroids"), "matches": r.get("matches")})
+    pool = "its thread pool on every core" if threads is None else f"{threads} thread{'s' if threads > 1 else ''}"
+    return {"label": f"tetra3rs 0.14 (calibrated: database for the true FOV +-2 %, told the true FOV; {pool})",
             "trials": trials, "setup": answer.get("setup", {}).get("tetra3rs-fov"),
             "versions": answer.get("versions")}
 
@@ -193,6 +200,11 @@ def _summarize(entry: dict) -> dict:
            "outcomes": {o: sum(t["outcome"] == o for t in trials) for o in ("correct", "inconclusive", "incorrect")},
            "stages_ms": {s: _stats(t.get(s) for t in trials) for s in STAGES if any(t.get(s) is not None
                                                                                     for t in trials)}}
+    # the cores a solve kept busy: its process's CPU time (every thread's) over the same span's wall time
+    cpu = [(t["cpu"], t.get("wall") or t.get("total")) for t in trials if t.get("cpu") is not None]
+    if cpu:
+        out["cpu_ms"] = _stats(c for c, _ in cpu)
+        out["cores"] = _stats(c / w for c, w in cpu if w)
     for k in ("setup", "versions"):
         if entry.get(k):
             out[k] = entry[k]
@@ -259,10 +271,12 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
         cache = Path(os.environ.get("SKYVIEW_CACHE") or Path.home() / ".cache" / "skyview") / "peers"
         runs: dict[str, list[dict]] = {}
         def peer_round(r):
-            say(f"round {r + 1}: timing tetra3rs in {py}")
-            answer = run_tetra3rs(images, py, scenario.fov_deg, cache)
-            runs.setdefault("tetra3rs", []).append(_peer_trials(answer, images, camera.pixel_scale_rad,
-                                                                max_error_px))
+            # as its users run it (its extractor's thread pool on every core), and on one core as skyview runs
+            for name, threads in (("tetra3rs", None), (PEER_ONE_THREAD, 1)):
+                say(f"round {r + 1}: timing {name} in {py}")
+                answer = run_tetra3rs(images, py, scenario.fov_deg, cache, threads=threads)
+                runs.setdefault(name, []).append(_peer_trials(answer, images, camera.pixel_scale_rad,
+                                                              max_error_px, threads))
 
         for r in range(max(1, int(rounds))):
             # tetra3rs goes first in every other round, so that neither side always meets the machine
@@ -278,18 +292,26 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
     finally:
         if tmp is not None:
             tmp.cleanup()
-    ratios = {}
-    peer = results.get("tetra3rs", {}).get("stages_ms", {}).get("total", {}).get("median")
-    if peer:
-        for name, r in results.items():
-            if name != "tetra3rs" and r["stages_ms"].get("total", {}).get("median") is not None:
-                ratios[name] = r["stages_ms"]["total"]["median"] / peer
+    ratios, ratios_one = _ratios(results, "tetra3rs"), _ratios(results, PEER_ONE_THREAD)
     return {"kind": "speed", "scenario": scenario.to_dict(), "n": n, "seed": seed, "rounds": int(rounds),
             "bit_depth": int(bit_depth),
             "results": results,
-            "setup_ms": setup, "ratio_to_tetra3rs": ratios, "peer_note": peer_note,
+            "setup_ms": setup, "ratio_to_tetra3rs": ratios, "ratio_to_tetra3rs_one_thread": ratios_one,
+            "peer_note": peer_note,
             "machine": {"python": platform.python_version(), "cpu": platform.machine(), "cores": os.cpu_count(),
                         "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}}
+
+
+PEER_ONE_THREAD = "tetra3rs, 1 thread"  # tetra3rs with RAYON_NUM_THREADS=1: on one core, as skyview solves
+
+
+def _ratios(results: dict, peer_name: str) -> dict:
+    """Each skyview solver's median total over the peer's (none without the peer)."""
+    peer = results.get(peer_name, {}).get("stages_ms", {}).get("total", {}).get("median")
+    if not peer:
+        return {}
+    return {name: r["stages_ms"]["total"]["median"] / peer for name, r in results.items()
+            if not name.startswith("tetra3rs") and r["stages_ms"].get("total", {}).get("median") is not None}
 
 
 def _f(x, fmt=".2f") -> str:
@@ -304,18 +326,25 @@ def format_markdown(s: dict) -> str:
              "rounds, the solvers taking turns), one image after the other in one process. `total` is "
              "centroids + identification (verification included) + attitude on the decoded image; `decode` is "
              "reading the file, counted only in `total+decode`. tetra3rs times itself the same way "
-             "(centroids + identification + attitude, decoded image).", "",
+             "(centroids + identification + attitude, decoded image). `cores` is the process's CPU time "
+             "(every thread's) over the wall time of the solve, median over the images: skyview solves on one "
+             "core; tetra3rs's centroid extractor runs on a thread pool of every core unless told otherwise "
+             f"(`{PEER_ONE_THREAD}`: RAYON_NUM_THREADS=1).", "",
              "| solver | correct | inconclusive | incorrect | decode | centroid | identify | attitude | total | "
-             "total+decode |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "total+decode | cores |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in s["results"].items():
         st, o = r["stages_ms"], r["outcomes"]
         cells = [f"{_f(st[k]['median'])} / {_f(st[k]['p95'])}" if k in st else "—" for k in STAGES]
+        cores = r.get("cores", {}).get("median")
         lines.append(f"| {name} | {o['correct']} | {o['inconclusive']} | {o['incorrect']} | "
-                     + " | ".join(cells) + " |")
+                     + " | ".join(cells) + f" | {_f(cores, '.1f')} |")
     lines.append("")
     if s["ratio_to_tetra3rs"]:
         lines.append("Median total over tetra3rs's median total, same images, same run: "
                      + ", ".join(f"{k} {v:.2f}x" for k, v in s["ratio_to_tetra3rs"].items()) + ".")
+        if s.get("ratio_to_tetra3rs_one_thread"):
+            lines.append(f"Over {PEER_ONE_THREAD}'s (both on one core): "
+                         + ", ".join(f"{k} {v:.2f}x" for k, v in s["ratio_to_tetra3rs_one_thread"].items()) + ".")
     elif s.get("peer_note"):
         lines.append(s["peer_note"] + ".")
     t3 = s["results"].get("tetra3rs")

@@ -153,6 +153,9 @@ class Centroids:
     n_small_rejected: int = 0  # other blobs smaller than min_pixels
     n_extended_rejected: int = 0  # blobs far larger than a star (roof, tree, Moon, glare)
     n_unmeasured: int = 0  # fainter stars detected but not measured (detect_centroids' max_stars)
+    # of them, the saturated ones: their window sums hold only a flat core, so their whole-disk brightness
+    # (`skyview.detect.stars`) may rank them among the measured ones
+    n_unmeasured_saturated: int = 0
     psf_sigma_px: float = float("nan")  # PSF sigma used by iwcog (measured or given)
     estimator: str = DEFAULT_ESTIMATOR
     image_shape: tuple[int, int] = (0, 0)
@@ -187,7 +190,7 @@ class Centroids:
             "n": len(self), "background_level": self.background_level, "noise_sigma": self.noise_sigma,
             "threshold": self.threshold, "n_hot_pixels_rejected": self.n_hot_pixels_rejected,
             "n_small_rejected": self.n_small_rejected, "n_extended_rejected": self.n_extended_rejected,
-            "n_unmeasured": self.n_unmeasured,
+            "n_unmeasured": self.n_unmeasured, "n_unmeasured_saturated": self.n_unmeasured_saturated,
             "psf_sigma_px": self.psf_sigma_px if math.isfinite(self.psf_sigma_px) else None,
             "estimator": self.estimator, "image_shape": list(self.image_shape), "params": self.params,
             "centroids": self.to_list(),
@@ -1141,6 +1144,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         if measured is not None:
             keep_s = measured
     n_eligible = len(pi) - n_extended
+    n_sat_eligible = int(np.count_nonzero(saturated & ~extended if n_extended else saturated))
     use = separable = separable_b = None
     if estimator == "fit":
         use = rawv < sat if valid is None else valid & (rawv < sat)  # the pixels the PSF fit uses
@@ -1229,6 +1233,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         background_level=level, noise_sigma=sigma, threshold=thr, n_hot_pixels_rejected=n_hot,
         n_small_rejected=n_small, psf_sigma_px=psf_used, estimator=estimator, image_shape=(H, W),
         params=params, n_extended_rejected=n_extended, n_unmeasured=n_eligible - len(order),
+        n_unmeasured_saturated=n_sat_eligible - int(np.count_nonzero(saturated[order])),
     )
 
 

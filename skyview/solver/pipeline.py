@@ -551,10 +551,17 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                        f"or leave out --method to solve blind" + (f" (the blind search failed: {blind.reason})"
                                                                   if blind is not None else ""))
 
+    def fast_try(centroids: Centroids) -> SolveResult:
+        """The default pipeline's first try given an FOV: the improved angle method at it."""
+        return calibrated("angle", Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2), "improved", centroids,
+                          first_try=not exact)
+
+    tried = None  # the first try made on the brightest max_stars alone (`_brightest_first`), when it did not answer
+
     def solve_stars(centroids: Centroids, checks_before: int, last: bool) -> SolveResult:
         """The default pipeline (or `method`) on these centroids; last: no other set of stars follows (a
         method that needs the FOV the blind search did not find says so only then)."""
-        nonlocal blind_depth
+        nonlocal blind_depth, tried
         result = None
         fitted = None
         fast = None
@@ -564,8 +571,11 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             # the brightest stars (what `bench --speed` times); its camera refitted when its stars say it is
             # off (`_camera_is_off`); the blind search over +-fov_error only when that does not verify (a
             # wrong FOV, a distorted lens) or the refit does not, and never for the calibrated mode
-            fast = calibrated("angle", Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2), "improved", centroids,
-                              first_try=not exact)
+            if tried is not None:  # made on these stars' first max_stars: the same identification
+                fast, tried = tried, None
+                fast.centroids = centroids
+            else:
+                fast = fast_try(centroids)
             if fast.solved and not exact:
                 result = fast
                 if _camera_is_off(fast):
@@ -612,7 +622,25 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         return result
 
     t0 = time.perf_counter()
-    result, t_cent = _plain_then_fainter(img, k_sigma, solve_stars, None if measure_all else measured_stars(max_stars))
+    result, t_cent, brightest = None, 0.0, None
+    if method is None and fov_deg is not None and not wide and not measure_all:
+        # given an FOV, the first try reads only the brightest max_stars: measured alone, they answer when
+        # it verifies at the FOV given (the usual case); else the stars the searches after it read are
+        # measured and the first try is handed to them (`_brightest_first`)
+        brightest = _brightest_first(img, k_sigma, max_stars)
+        t_cent = (time.perf_counter() - t0) * 1e3
+        if brightest is not None:
+            fast = fast_try(brightest)
+            if fast.solved and (exact or not _camera_is_off(fast)):
+                result = fast
+            else:
+                tried = fast
+    if result is None:
+        # (when the brightest max_stars were every star detected, they are what would be measured again)
+        every = brightest if tried is not None and not brightest.n_unmeasured else None
+        result, t_more = _plain_then_fainter(img, k_sigma, solve_stars,
+                                             None if measure_all else measured_stars(max_stars), stars=every)
+        t_cent += t_more
     if method is not None and fov_deg is None and result.method != method:
         needs_fov(result)  # the blind search found no FOV for the method, with either set of stars
     if try_flipped_rows is None:
@@ -645,15 +673,28 @@ def measured_stars(max_stars: int) -> int:
     return max(MEASURED_STARS, 2 * int(max_stars))
 
 
-def _plain_then_fainter(img: np.ndarray, k_sigma: float, solve, measured: int | None = None
-                        ) -> tuple[SolveResult, float]:
+def _brightest_first(img: np.ndarray, k_sigma: float, max_stars: int) -> Centroids | None:
+    """The frame's brightest max_stars stars, measured alone, when they are the first max_stars of the stars
+    `_plain_then_fainter` measures (`measured_stars`), field for field: the centroider ranks every detection
+    before measuring (`detect_centroids`' max_stars), and `detect_stars` keeps that order unless a trail was
+    taken out (its fainter fragments, and the stars after them, are then not the same) or a saturated star
+    left unmeasured could rank among them by its whole disk. None in those cases."""
+    stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=max_stars)
+    if stars.n_unmeasured and (stars.n_unmeasured_saturated or stars.params.get("n_trail_rejected")):
+        return None
+    return stars
+
+
+def _plain_then_fainter(img: np.ndarray, k_sigma: float, solve, measured: int | None = None,
+                        stars: Centroids | None = None) -> tuple[SolveResult, float]:
     """The stars a frame shows, solved by `solve(centroids, checks_before, last)`; when they do not solve, the
     stars `detect_stars` left for later on a sparse frame (`fainter_stars`: its width check, binning, the
     matched filter), their search counting the first one's hypotheses; `last` tells `solve` whether another
     set of stars may follow. measured: the brightest detections measured (None: every one). (the result,
     the detection's milliseconds)"""
     t0 = time.perf_counter()
-    stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=measured)
+    if stars is None:
+        stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=measured)
     t_cent = (time.perf_counter() - t0) * 1e3
     result = solve(stars, 0, stars.params.get("faint_search") != "deferred")
     if not result.solved:
