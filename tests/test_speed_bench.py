@@ -153,9 +153,11 @@ def test_photo_speed_scores_blind_solves_and_times_whole_processes(tmp_path):
     assert sk["outcomes"] == {"correct": 2, "inconclusive": 0, "incorrect": 0}
     assert [t["name"] for t in sk["trials"]] == names
     assert all(t["err_arcsec"] < 120 and t["total"] > 0 for t in sk["trials"])
+    assert all(t["cpu"] > 0 and t["wall"] >= t["total"] for t in sk["trials"]) and sk["cores"]["median"] > 0
     procs = s["processes"]["skyview solve PHOTO --json (wall s)"]
     assert 0 < procs["min"] <= procs["median"] <= procs["max"]
     assert "tetra3rs" not in s["results"] and s["ratio_to_tetra3rs"] is None  # peers=False: skyview alone
+    assert s["ratio_to_tetra3rs_one_thread"] is None
     md = format_photo_markdown(s)
     assert "| skyview blind" in md and "skyview solve PHOTO --json" in md
 

@@ -9,7 +9,10 @@ turns round by round (each photograph keeping its fastest round, as `bench --spe
   the verification, the attitude), no FOV given;
 - tetra3rs 0.14 blind, when the peers virtualenv exists (benchmarks/README.md): in
   benchmarks/peers_worker.py, its own centroids and a database for skyview's whole blind FOV range (the
-  same search space), timing itself around centroids + identification + attitude on the decoded image.
+  same search space), timing itself around centroids + identification + attitude on the decoded image;
+  twice: on its extractor's thread pool (every core, as its users run it) and on one thread
+  (RAYON_NUM_THREADS=1, one core as skyview). Every solver's `cores`: its process's CPU time over the
+  solve's wall time.
 
 An answer is correct when its boresight is within MAX_ERROR_ARCSEC of the reference's.
 
@@ -84,27 +87,30 @@ def _time_skyview(solver, photos, decoded) -> list[dict]:
     solver.solve_array(decoded[0])  # warm-up (first-call costs), not timed or scored
     trials = []
     for im, img in zip(photos, decoded):
+        c0, t0 = time.process_time(), time.perf_counter()
         res = solver.solve_array(img)
+        wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
         err = boresight_error_arcsec(res.R, im["R"]) if res.solved else None
         t = res.time_ms
         trials.append({"name": im["name"], "outcome": _outcome(err), "err_arcsec": err,
                        "centroid": t.get("centroid"), "identify": t.get("identify"), "total": t.get("total"),
-                       "fov_deg": res.camera.fov_deg if res.solved else None})
+                       "wall": wall, "cpu": cpu, "fov_deg": res.camera.fov_deg if res.solved else None})
     return trials
 
 
-def _time_tetra3rs(photos, python: str, fov_range: tuple[float, float], cache_dir: Path) -> tuple[list[dict], dict]:
+def _time_tetra3rs(photos, python: str, fov_range: tuple[float, float], cache_dir: Path,
+                   threads: int | None = None) -> tuple[list[dict], dict]:
     from skyview.bench.speed import run_peers_worker
 
     answer = run_peers_worker(photos, python, cache_dir, ["tetra3rs-blind"], fov_deg=None,
-                              blind_fov_range_deg=fov_range)
+                              blind_fov_range_deg=fov_range, threads=threads)
     by_name = {r["name"]: r for r in answer["results"].get("tetra3rs-blind", [])}
     trials = []
     for im in photos:
         r = by_name.get(im["name"], {"solved": False})
         err = boresight_error_arcsec(r["R"], im["R"]) if r.get("solved") else None
         trials.append({"name": im["name"], "outcome": _outcome(err), "err_arcsec": err, "total": r.get("time_ms"),
-                       "fov_deg": r.get("fov_deg")})
+                       "cpu": r.get("cpu_ms"), "fov_deg": r.get("fov_deg")})
     return trials, {"setup": answer.get("setup", {}).get("tetra3rs-blind"), "versions": answer.get("versions")}
 
 
@@ -126,11 +132,14 @@ def _stats(values) -> dict:
 
 
 def _summary(label: str, trials: list[dict]) -> dict:
+    # the cores a solve kept busy: its process's CPU time (every thread's) over the same span's wall time
+    cores = [t["cpu"] / (t.get("wall") or t["total"]) for t in trials
+             if t.get("cpu") is not None and (t.get("wall") or t.get("total"))]
     return {"label": label, "n": len(trials),
             "outcomes": {o: sum(t["outcome"] == o for t in trials) for o in ("correct", "inconclusive", "incorrect")},
             "stages_ms": {s: _stats(t.get(s) for t in trials) for s in ("centroid", "identify", "total")
                           if any(t.get(s) is not None for t in trials)},
-            "trials": trials}
+            "cores": _stats(cores), "trials": trials}
 
 
 def process_times(photos, rounds: int, env: dict) -> list[float]:
@@ -163,7 +172,7 @@ def run_photo_speed(folder: Path, *, rounds: int = 2, process_rounds: int = 3, p
     """The photograph speed benchmark (module docstring); a JSON-ready summary."""
     import cv2
 
-    from skyview.bench.speed import DEFAULT_PEERS_PYTHON, peers_python
+    from skyview.bench.speed import DEFAULT_PEERS_PYTHON, PEER_ONE_THREAD, peers_python
     from skyview.core.catalog import cache_dir
     from skyview.detect.centroids import load_image
     from skyview.solver.pipeline import BlindSolver
@@ -177,7 +186,7 @@ def run_photo_speed(folder: Path, *, rounds: int = 2, process_rounds: int = 3, p
     note = None
     if peers and py is None:
         note = f"tetra3rs not run: no peers virtualenv at {DEFAULT_PEERS_PYTHON} (benchmarks/README.md)"
-    runs: dict[str, list[list[dict]]] = {"skyview": [], "tetra3rs": []}
+    runs: dict[str, list[list[dict]]] = {"skyview": [], "tetra3rs": [], PEER_ONE_THREAD: []}
     peer_info: dict = {}
     for r in range(max(1, int(rounds))):
         order = ["skyview", "tetra3rs"] if r % 2 == 0 else ["tetra3rs", "skyview"]
@@ -186,15 +195,21 @@ def run_photo_speed(folder: Path, *, rounds: int = 2, process_rounds: int = 3, p
                 say(f"round {r + 1}: skyview blind on {len(photos)} photographs")
                 runs["skyview"].append(_time_skyview(solver, photos, decoded))
             elif py is not None:
-                say(f"round {r + 1}: tetra3rs blind (database {solver.fov_range_deg[0]:.2f}-"
-                    f"{solver.fov_range_deg[1]:.2f} deg) in {py}")
-                trials, peer_info = _time_tetra3rs(photos, py, tuple(solver.fov_range_deg), cache_dir() / "peers")
-                runs["tetra3rs"].append(trials)
+                # as its users run it (its extractor's thread pool on every core), and on one core as skyview runs
+                for name, threads in (("tetra3rs", None), (PEER_ONE_THREAD, 1)):
+                    say(f"round {r + 1}: {name} blind (database {solver.fov_range_deg[0]:.2f}-"
+                        f"{solver.fov_range_deg[1]:.2f} deg) in {py}")
+                    trials, peer_info = _time_tetra3rs(photos, py, tuple(solver.fov_range_deg), cache_dir() / "peers",
+                                                       threads)
+                    runs[name].append(trials)
     results = {"skyview": _summary("skyview blind (no FOV given): BlindSolver.solve_array, as `skyview solve PHOTO`",
                                    _fastest(runs["skyview"]))}
     if runs["tetra3rs"]:
         results["tetra3rs"] = {**_summary("tetra3rs 0.14 blind: its centroids, a database for skyview's whole blind "
-                                          "FOV range", _fastest(runs["tetra3rs"])), **peer_info}
+                                          "FOV range, its thread pool on every core", _fastest(runs["tetra3rs"])),
+                               **peer_info}
+        results[PEER_ONE_THREAD] = {**_summary("tetra3rs 0.14 blind, the same, on one thread (RAYON_NUM_THREADS=1)",
+                                               _fastest(runs[PEER_ONE_THREAD])), **peer_info}
     say(f"timing `skyview solve PHOTO --json` as a whole process, {process_rounds} x {len(photos)}")
     # as a user's machine runs it: Python keeps compiled bytecode (a shell with PYTHONDONTWRITEBYTECODE set
     # would compile every module on every start, ~0.1 s here)
@@ -204,14 +219,14 @@ def run_photo_speed(folder: Path, *, rounds: int = 2, process_rounds: int = 3, p
     if py is not None:
         processes["python -c 'import tetra3rs' in its virtualenv (wall s)"] = _stats(import_time(py, "tetra3rs",
                                                                                                   process_rounds))
-    ratio = None
-    sk, t3 = (results.get(k, {}).get("stages_ms", {}).get("total", {}).get("median") for k in ("skyview", "tetra3rs"))
-    if sk and t3:
-        ratio = sk / t3
+    sk, t3, t3_one = (results.get(k, {}).get("stages_ms", {}).get("total", {}).get("median")
+                      for k in ("skyview", "tetra3rs", PEER_ONE_THREAD))
+    ratio = sk / t3 if sk and t3 else None
+    ratio_one = sk / t3_one if sk and t3_one else None
     return {"kind": "photo-speed", "folder": str(folder), "n": len(photos), "rounds": int(rounds),
             "sizes": sorted({f"{im['width']}x{im['height']}" for im in photos}),
             "blind_fov_range_deg": list(solver.fov_range_deg), "results": results, "processes": processes,
-            "ratio_to_tetra3rs": ratio, "peer_note": note,
+            "ratio_to_tetra3rs": ratio, "ratio_to_tetra3rs_one_thread": ratio_one, "peer_note": note,
             "machine": {"python": platform.python_version(), "cpu": platform.machine(), "cores": os.cpu_count(),
                         "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}}
 
@@ -226,17 +241,21 @@ def format_photo_markdown(s: dict) -> str:
              f"Milliseconds per photograph (median / p95; each photograph's fastest of {s['rounds']} rounds, the "
              f"solvers taking turns), decoded image to attitude in one process. Correct: boresight within "
              f"{MAX_ERROR_ARCSEC:g}\" of the reference.", "",
-             "| solver | correct | inconclusive | incorrect | centroid | identify | total |",
-             "|---|---|---|---|---|---|---|"]
+             "`cores`: the process's CPU time (every thread's) over the wall time of the solve, median.", "",
+             "| solver | correct | inconclusive | incorrect | centroid | identify | total | cores |",
+             "|---|---|---|---|---|---|---|---|"]
     for name, r in s["results"].items():
         st, o = r["stages_ms"], r["outcomes"]
         cells = [f"{_f(st[k]['median'])} / {_f(st[k]['p95'])}" if k in st else "—"
                  for k in ("centroid", "identify", "total")]
+        cores = (r.get("cores") or {}).get("median")
         lines.append(f"| {r['label']} | {o['correct']} | {o['inconclusive']} | {o['incorrect']} | " + " | ".join(cells)
-                     + " |")
+                     + f" | {_f(cores, '.1f')} |")
     lines.append("")
     if s["ratio_to_tetra3rs"]:
         lines.append(f"skyview's median total over tetra3rs's: {s['ratio_to_tetra3rs']:.2f}x.")
+        if s.get("ratio_to_tetra3rs_one_thread"):
+            lines.append(f"Over tetra3rs's on one thread (both on one core): {s['ratio_to_tetra3rs_one_thread']:.2f}x.")
     elif s.get("peer_note"):
         lines.append(s["peer_note"] + ".")
     lines += ["", "Whole processes (seconds, wall clock from start to exit):", "",
