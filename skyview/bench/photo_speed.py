@@ -36,6 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
+from skyview.bench.speed import (
+    DEFAULT_PEERS_PYTHON,
+    PEER_ONE_THREAD,
+    PEER_RUNS,
+    cores_busy,
+    peers_python,
+    run_peers_worker,
+)
 from skyview.core.errors import BadInput
 
 MAX_ERROR_ARCSEC = 120.0
@@ -100,8 +108,6 @@ def _time_skyview(solver, photos, decoded) -> list[dict]:
 
 def _time_tetra3rs(photos, python: str, fov_range: tuple[float, float], cache_dir: Path,
                    threads: int | None = None) -> tuple[list[dict], dict]:
-    from skyview.bench.speed import run_peers_worker
-
     answer = run_peers_worker(photos, python, cache_dir, ["tetra3rs-blind"], fov_deg=None,
                               blind_fov_range_deg=fov_range, threads=threads)
     by_name = {r["name"]: r for r in answer["results"].get("tetra3rs-blind", [])}
@@ -132,14 +138,11 @@ def _stats(values) -> dict:
 
 
 def _summary(label: str, trials: list[dict]) -> dict:
-    # the cores a solve kept busy: its process's CPU time (every thread's) over the same span's wall time
-    cores = [t["cpu"] / (t.get("wall") or t["total"]) for t in trials
-             if t.get("cpu") is not None and (t.get("wall") or t.get("total"))]
     return {"label": label, "n": len(trials),
             "outcomes": {o: sum(t["outcome"] == o for t in trials) for o in ("correct", "inconclusive", "incorrect")},
             "stages_ms": {s: _stats(t.get(s) for t in trials) for s in ("centroid", "identify", "total")
                           if any(t.get(s) is not None for t in trials)},
-            "cores": _stats(cores), "trials": trials}
+            "cores": _stats(cores_busy(trials)), "trials": trials}
 
 
 def process_times(photos, rounds: int, env: dict) -> list[float]:
@@ -172,7 +175,6 @@ def run_photo_speed(folder: Path, *, rounds: int = 2, process_rounds: int = 3, p
     """The photograph speed benchmark (module docstring); a JSON-ready summary."""
     import cv2
 
-    from skyview.bench.speed import DEFAULT_PEERS_PYTHON, PEER_ONE_THREAD, peers_python
     from skyview.core.catalog import cache_dir
     from skyview.detect.centroids import load_image
     from skyview.solver.pipeline import BlindSolver
@@ -195,8 +197,7 @@ def run_photo_speed(folder: Path, *, rounds: int = 2, process_rounds: int = 3, p
                 say(f"round {r + 1}: skyview blind on {len(photos)} photographs")
                 runs["skyview"].append(_time_skyview(solver, photos, decoded))
             elif py is not None:
-                # as its users run it (its extractor's thread pool on every core), and on one core as skyview runs
-                for name, threads in (("tetra3rs", None), (PEER_ONE_THREAD, 1)):
+                for name, threads in PEER_RUNS:
                     say(f"round {r + 1}: {name} blind (database {solver.fov_range_deg[0]:.2f}-"
                         f"{solver.fov_range_deg[1]:.2f} deg) in {py}")
                     trials, peer_info = _time_tetra3rs(photos, py, tuple(solver.fov_range_deg), cache_dir() / "peers",

@@ -63,6 +63,10 @@ BIT_DEPTHS = (8, 16)
 DEFAULT_BIT_DEPTH = 16  # the frames tetra3rs's centroider is made for (8: as `skyview simulate` writes them)
 STAGES = ("decode", "centroid", "identify", "attitude", "total", "total+decode")
 MAX_ERROR_PX = 5.0
+PEER_ONE_THREAD = "tetra3rs, 1 thread"  # tetra3rs with RAYON_NUM_THREADS=1: on one core, as skyview solves
+# tetra3rs's runs (name, RAYON_NUM_THREADS): as its users run it (its extractor's thread pool on every core),
+# and on one core, as skyview solves
+PEER_RUNS = (("tetra3rs", None), (PEER_ONE_THREAD, 1))
 RAD_TO_ARCSEC = 180.0 / math.pi * 3600.0
 
 
@@ -71,6 +75,17 @@ def _stats(values) -> dict:
     if a.size == 0:
         return {"n": 0, "median": None, "p95": None}
     return {"n": int(a.size), "median": float(np.median(a)), "p95": float(np.percentile(a, 95))}
+
+
+def cores_busy(trials: list[dict]) -> list[float]:
+    """The cores each trial's solve kept busy: its process's CPU time (every thread's, "cpu") over the wall
+    time of the same span ("wall", or "total" where the solver timed itself)."""
+    out = []
+    for t in trials:
+        span = t.get("wall") or t.get("total")
+        if t.get("cpu") is not None and span:
+            out.append(t["cpu"] / span)
+    return out
 
 
 def boresight_error_px(R_est, R_true, pixel_scale_rad: float) -> float:
@@ -200,11 +215,9 @@ def _summarize(entry: dict) -> dict:
            "outcomes": {o: sum(t["outcome"] == o for t in trials) for o in ("correct", "inconclusive", "incorrect")},
            "stages_ms": {s: _stats(t.get(s) for t in trials) for s in STAGES if any(t.get(s) is not None
                                                                                     for t in trials)}}
-    # the cores a solve kept busy: its process's CPU time (every thread's) over the same span's wall time
-    cpu = [(t["cpu"], t.get("wall") or t.get("total")) for t in trials if t.get("cpu") is not None]
-    if cpu:
-        out["cpu_ms"] = _stats(c for c, _ in cpu)
-        out["cores"] = _stats(c / w for c, w in cpu if w)
+    if any(t.get("cpu") is not None for t in trials):
+        out["cpu_ms"] = _stats(t.get("cpu") for t in trials)
+        out["cores"] = _stats(cores_busy(trials))
     for k in ("setup", "versions"):
         if entry.get(k):
             out[k] = entry[k]
@@ -271,8 +284,7 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
         cache = Path(os.environ.get("SKYVIEW_CACHE") or Path.home() / ".cache" / "skyview") / "peers"
         runs: dict[str, list[dict]] = {}
         def peer_round(r):
-            # as its users run it (its extractor's thread pool on every core), and on one core as skyview runs
-            for name, threads in (("tetra3rs", None), (PEER_ONE_THREAD, 1)):
+            for name, threads in PEER_RUNS:
                 say(f"round {r + 1}: timing {name} in {py}")
                 answer = run_tetra3rs(images, py, scenario.fov_deg, cache, threads=threads)
                 runs.setdefault(name, []).append(_peer_trials(answer, images, camera.pixel_scale_rad,
@@ -300,9 +312,6 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
             "peer_note": peer_note,
             "machine": {"python": platform.python_version(), "cpu": platform.machine(), "cores": os.cpu_count(),
                         "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}}
-
-
-PEER_ONE_THREAD = "tetra3rs, 1 thread"  # tetra3rs with RAYON_NUM_THREADS=1: on one core, as skyview solves
 
 
 def _ratios(results: dict, peer_name: str) -> dict:
