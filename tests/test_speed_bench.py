@@ -118,6 +118,21 @@ def test_cli_speed_bench(tmp_path, capsys):
     assert saved["kind"] == "speed" and saved["results"]["blind"]["n"] == 1
 
 
+def test_a_peers_python_that_does_not_exist_is_an_error_not_another_one(tmp_path, capsys):
+    """--peers-python names the peers' interpreter: a path that is not there is a one-line error and exit 2,
+    before any image is rendered, never the default virtualenv used in its place."""
+    from skyview.bench.speed import peers_python
+
+    with pytest.raises(BadInput, match="does not exist"):
+        peers_python(str(tmp_path / "nowhere" / "python"))
+    out = tmp_path / "out"
+    assert main(["bench", "--speed", "--peers-python", str(tmp_path / "nowhere"), "-n", "1", "--quiet",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "does not exist" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
 def test_cli_speed_bench_refuses_other_modes(capsys):
     assert main(["bench", "--speed", "--blind", "-n", "1"]) == 2
     err = capsys.readouterr().err

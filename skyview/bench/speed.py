@@ -142,11 +142,13 @@ def _time_solver(label: str, solve, images: list[dict], decoded: list[np.ndarray
 def peers_python(explicit: str | None = None) -> str | None:
     """The peers virtualenv's python: the given one, $SKYVIEW_PEERS_PYTHON, or REPO/.venv-peers; None
     when there is none (the bench then runs skyview alone and says so)."""
-    for cand in (explicit, os.environ.get("SKYVIEW_PEERS_PYTHON"), str(DEFAULT_PEERS_PYTHON)):
+    if explicit:  # asked for by name: that one or an error, never another one in its place
+        if not Path(explicit).exists():
+            raise BadInput(f"--peers-python {explicit} does not exist")
+        return explicit
+    for cand in (os.environ.get("SKYVIEW_PEERS_PYTHON"), str(DEFAULT_PEERS_PYTHON)):
         if cand and Path(cand).exists():
             return cand
-    if explicit:
-        raise BadInput(f"--peers-python {explicit} does not exist")
     return None
 
 
@@ -240,6 +242,7 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
         raise BadInput("the number of images (-n) must be at least 1")
     if bit_depth not in BIT_DEPTHS:
         raise BadInput(f"bit depth {bit_depth} is not supported: use 8 or 16")
+    py = peers_python(python) if peers else None  # (an --peers-python that is not there: before any work)
     cv2.setNumThreads(1)
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if progress else (lambda msg: None)
     catalog = load_guide_catalog()
@@ -277,7 +280,6 @@ def run_speed_bench(scenario, n: int, *, seed: int = 0, methods=DEFAULT_METHODS,
             setup["blind"] = {"solver_ms": (time.perf_counter() - t0) * 1e3, **bsolver.setup_ms}
             solvers.append(("blind", "skyview blind pipeline, no FOV", bsolver.solve_array))
         peer_note = None
-        py = peers_python(python) if peers else None
         if peers and py is None:
             peer_note = (f"tetra3rs not run: no peers virtualenv at {DEFAULT_PEERS_PYTHON} (benchmarks/README.md "
                          f"says how to make one; or set SKYVIEW_PEERS_PYTHON / --peers-python)")

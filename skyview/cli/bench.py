@@ -159,13 +159,15 @@ def bench_scenario(a):
 def _bench_speed(a) -> int:
     """`bench --speed`: per-stage times of skyview (and tetra3rs when its virtualenv exists), same images."""
     from skyview.bench.runner import save_results
-    from skyview.bench.speed import DEFAULT_BIT_DEPTH, DEFAULT_METHODS, format_markdown, run_speed_bench
+    from skyview.bench.speed import DEFAULT_BIT_DEPTH, DEFAULT_METHODS, format_markdown, peers_python, run_speed_bench
 
     if a.blind or a.centroids or a.record_failures or a.jobs != 1 or a.fov_error is not None:
         raise BadInput("--speed times one process with the exact FOV: leave out --blind, --centroids, "
                        "--record-failures, --jobs and --fov-error")
     if a.rounds < 1:
         raise BadInput("--rounds must be at least 1")
+    if a.peers_python and not a.no_peers:
+        peers_python(a.peers_python)  # a path that is not there: an error before any folder or image is made
     if a.real is not None:
         return _bench_photo_speed(a)
     a.scenario = a.scenario or "cole8"
