@@ -89,6 +89,30 @@ def test_catalog_stars_sit_on_the_photographs_stars(session, crop):
     assert " · in Cassiopeia" in s.panel.status.content  # where it is, in words (RA 355 deg, Dec +58 deg)
 
 
+def test_a_mirror_image_is_drawn_turned_over_with_the_catalog_stars_on_its_stars(session):
+    """A photograph mirrored left to right (a star diagonal's) solves with its rows turned over, and the viewer
+    draws it so: the texture is the turned image, and every matched catalog star crosses the image plane on
+    its ring and lands on its blob there."""
+    server, s = session
+    photo = load_image(REAL / PHOTO)
+    run = _upload(s, np.ascontiguousarray(photo[:, ::-1]), "diagonal.png", typed_fov=8.0)
+    r, cam = run.result, run.source.camera
+    assert r.solved and r.rows_reversed and run.source.fitted
+    assert np.array_equal(run.source.image, photo[::-1, ::-1])  # the mirror, turned over: drawn the sky's way
+    idx = sorted(run.matches)
+    p = run.catalog.xyz[[run.matches[i] for i in idx]] @ r.R.T
+    on_plane = p[:, :2] / p[:, 2:]
+    px = np.hypot(*((on_plane - image_plane_xy(cam, r.centroids.uv[idx])) * cam.fx).T)
+    assert len(idx) >= 10 and np.median(px) < 0.5
+    tex = undistorted(texture(run.source.image), cam)[..., 0].astype(float)
+    scale = tex.shape[1] / cam.width
+    t_uv = (on_plane * [cam.fx, cam.fy] + [cam.cx, cam.cy] + 0.5) * scale - 0.5
+    bright = [tex[int(round(v)), int(round(u))] for u, v in t_uv
+              if 1 <= u < tex.shape[1] - 1 and 1 <= v < tex.shape[0] - 1]
+    assert np.mean(np.array(bright) > np.median(tex) + 15) > 0.9
+    assert "mirror image" in s.panel.status.content and "mirror image" in s.panel.result.content
+
+
 def test_a_distorted_camera_moves_the_rings_and_the_texture_together():
     """image_plane_xy and undistorted agree: a star's pixel, undistorted, lands where the remapped texture
     shows it (a synthetic dot through a strongly distorted camera)."""
@@ -315,8 +339,9 @@ def _texture_pixels(drawn: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @pytest.mark.browser
 def test_in_the_browser_the_identified_stars_sit_on_the_photographs_stars(tmp_path):
     """What a user checks by eye, read from the three.js scene of headless Chromium after uploading a bundled
-    photograph and then a crop of it (11.4 and 5.7 deg) through the page's upload control: every identified
-    star's ray from the drawn camera crosses the drawn texture on a bright blob of it."""
+    photograph, a crop of it (11.4 and 5.7 deg) and its mirror image (a star diagonal's) through the page's
+    upload control: every identified star's ray from the drawn camera crosses the drawn texture on a bright
+    blob of it."""
     pytest.importorskip("playwright.sync_api")
     from test_viewer import CHROMIUM, viewer_page
 
@@ -324,7 +349,8 @@ def test_in_the_browser_the_identified_stars_sit_on_the_photographs_stars(tmp_pa
         pytest.skip(f"no chromium at {CHROMIUM} (apt-get install chromium)")
     full = load_image(REAL / PHOTO)
     files = {}
-    for name, image in (("full.png", full), ("crop.png", _crop(full))):
+    # (the mirror image last: drawn turned over, its texture the width of the crop's predecessor)
+    for name, image in (("full.png", full), ("crop.png", _crop(full)), ("mirror.png", full[:, ::-1])):
         files[name] = tmp_path / name
         cv2.imwrite(str(files[name]), image)
     with viewer_page(tmp_path) as pg:

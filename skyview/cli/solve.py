@@ -111,7 +111,8 @@ def cmd_solve(a) -> int:
                          estimator=a.estimator, max_stars=a.max_stars, k_sigma=a.k_sigma,
                          distortion=tuple(a.distortion), method_params=mparams or None,
                          variant=a.variant, memory_mb=a.memory_mb, progress=progress_line,
-                         try_flipped_rows=order == "", deep=False if a.no_deep else None,
+                         try_flipped_rows=order == "", mirror=False if a.no_mirror else None,
+                         deep=False if a.no_deep else None,
                          measure_all=bool(a.record), **params)
     truth = None
     if a.truth:
@@ -181,6 +182,8 @@ def _record_solve(a, result, image, truth_path: Path | None, image_path: Path) -
     from skyview.record.recording import record_solve
 
     truth = read_truth(truth_path) if truth_path is not None else None
+    if result.rows_reversed:  # the image as it solved (its pixels are the ones the result's describe)
+        image = np.ascontiguousarray(image[::-1])
     info = record_solve(a.record, result, image, catalog=result.catalog, truth=truth, force=a.force,
                         meta={"image": str(image_path), "fov_deg": a.fov_deg, "truth": str(truth_path or "-")})
     print(f"recorded {info.path} ({info.steps} steps, {info.bytes / 1e6:.2f} MB, written in {info.write_ms:.0f} ms)",
@@ -212,6 +215,10 @@ def add_parsers(sub) -> None:
                    help="never search the deep catalog (Hipparcos-2 + Gaia DR3 to G 10) for a field narrower than "
                         "the guide catalog reaches (~0.7-3.1 deg; by default after the blind search fails on an image "
                         "of 5 or more stars; its database is built the first time: ~45 s, ~400 MB)")
+    v.add_argument("--no-mirror", action="store_true",
+                   help="do not search an image that did not solve as a mirror image of the sky (by default the "
+                        "default pipeline searches it once more with its rows turned over, as a star diagonal or a "
+                        "flipped export makes it; the JSON then says rows_reversed)")
     add_sigma(v, "centroid direction error")
     v.add_argument("--mag-limit", type=float_arg, default=None,
                    help="guide catalog limit, Hipparcos magnitude Hp (default: from the image; methods other "

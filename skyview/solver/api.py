@@ -120,6 +120,10 @@ class Solution:
         k1, k2: OpenCV radial distortion of that camera.
         camera: the `skyview.core.camera.Camera` itself.
         camera_fitted: True when FOV and distortion were fitted to the stars, False when given.
+        rows_reversed: True when the image solved with its rows turned over (a mirror image of the sky, as
+            a star diagonal or a flipped export makes it; or a FITS file read the other way up): ``R``, the
+            camera, the matches' ``u, v`` and ``wcs()`` are then those of the image so turned (its row ``v``
+            is row ``H - 1 - v`` of the image as given).
         mag_limit: the catalog depth (Hp) used.
         sigma_boresight_arcsec, sigma_roll_arcsec: 1-sigma of the attitude.
         p_false: probability that the verified match is a chance alignment.
@@ -147,6 +151,7 @@ class Solution:
     k2: float | None
     camera: Camera | None
     camera_fitted: bool
+    rows_reversed: bool
     mag_limit: float | None
     sigma_boresight_arcsec: float | None
     sigma_roll_arcsec: float | None
@@ -192,6 +197,7 @@ class Solution:
             k1=float(cam.k1) if cam is not None else None,
             k2=float(cam.k2) if cam is not None else None,
             camera=cam, camera_fitted=bool(result.camera_fitted) if solved else False,
+            rows_reversed=bool(result.rows_reversed) if solved else False,
             mag_limit=_finite(result.mag_limit),
             sigma_boresight_arcsec=_finite(result.sigma_boresight_arcsec) if solved else None,
             sigma_roll_arcsec=_finite(result.sigma_roll_arcsec) if solved else None,
@@ -226,7 +232,8 @@ class Solution:
             status=self.status, reason=self.reason, notes=self.notes, R=self.R,
             sigma_arcsec=(self.sigma_boresight_arcsec, self.sigma_roll_arcsec) if self.solved else None,
             p_false=self.p_false, method=self.method, variant=self.variant, camera=self.camera,
-            camera_fitted=self.camera_fitted, mag_limit=self.mag_limit, epoch=self.epoch,
+            camera_fitted=self.camera_fitted, rows_reversed=self.rows_reversed, mag_limit=self.mag_limit,
+            epoch=self.epoch,
             n_centroids=self.n_centroids, matches=[m.to_dict() for m in self.matches], time_ms=self.time_ms)
 
     def to_json(self, indent: int | None = None) -> str:

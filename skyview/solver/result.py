@@ -104,7 +104,7 @@ class SolveResult:
     mag_limit: float | None = None  # the catalog depth the solve used (Hp)
     camera_fitted: bool = False  # the camera (FOV, distortion) was fitted to the stars, not given
     notes: list[str] = field(default_factory=list)  # how the input was read, when it matters (FITS rows)
-    rows_reversed: bool = False  # solved with the image's rows turned over (try_flipped_rows)
+    rows_reversed: bool = False  # solved with the image's rows turned over (a mirror image, a FITS file's other order)
     catalog: GuideCatalog | None = field(default=None, repr=False)  # the solver's: the step rows index it
     # the blind searches that ran, in order: {"kind": "pinhole" | "narrow" | "fisheye", "fov_deg": [lo, hi],
     # "stars": centroids searched, "hypotheses": candidate attitudes checked, "solved": bool}
@@ -123,8 +123,9 @@ class SolveResult:
             status=self.status, reason=self.reason, notes=self.notes, R=self.R if self.solved else None,
             sigma_arcsec=(self.sigma_boresight_arcsec, self.sigma_roll_arcsec) if self.solved else None,
             p_false=ver.get("p_false") if self.solved else None, method=self.method, variant=self.variant,
-            camera=self.camera, camera_fitted=self.camera_fitted, mag_limit=self.mag_limit, epoch=self.epoch,
-            n_centroids=self.centroids.n_detected, matches=self.matches, time_ms=self.time_ms)
+            camera=self.camera, camera_fitted=self.camera_fitted, rows_reversed=self.rows_reversed,
+            mag_limit=self.mag_limit, epoch=self.epoch, n_centroids=self.centroids.n_detected, matches=self.matches,
+            time_ms=self.time_ms)
         out.update({
             "verification": plain(ver, nan_as_none=True),
             "identification": {"status": ident.status, "steps": len(ident.steps),

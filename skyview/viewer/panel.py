@@ -330,8 +330,9 @@ def status_markdown(run: Run) -> str:
         where = ""
         if run.source.truth is None:  # a user's image: where it is, in words (IAU constellations)
             where = " · in " + ", ".join(constellations_in_view(r.camera, r.R)[:3])
+        mirrored = " · a mirror image (drawn turned over)" if getattr(r, "rows_reversed", False) else ""
         return (f"<span style='color:rgb(90,230,130)'>● solved</span> by {head}: RA {ra:.3f}° Dec {dec:+.3f}° "
-                f"roll {roll:+.2f}°{err} · {len(r.matches)}/{len(r.centroids)} stars{where}")
+                f"roll {roll:+.2f}°{err} · {len(r.matches)}/{len(r.centroids)} stars{where}{mirrored}")
     note = (" (one image only: this method identifies over a sequence of frames, which the viewer runs on "
             "simulated scenes)") if needs_sequence(r.method) else ""
     why = _escape(blind_summary(r)) if r.method == "blind" else r.reason
@@ -355,6 +356,8 @@ def result_markdown(run: Run, viewer_ms: dict | None = None) -> str:
     if not r.solved:
         lines.append(f"**Why:** {why_not(r)}  ")
         lines.append(f"\n<small>the solver's own words: {_escape(r.reason)}</small>  ")
+    for note in getattr(r, "notes", ()):  # how the image was read or searched (a mirror image, a narrow field, ...)
+        lines.append(f"<small>note: {_escape(note)}</small>  ")
     rows = [("centroids", f"{len(r.centroids)} (brightest {run.n_used} used)"),
             ("matched", f"{len(r.matches)}")]
     if r.R is not None:

@@ -26,7 +26,7 @@ from skyview.identify.base import is_sequence_method
 from skyview.present.drawables import StepView, match_groups, step_views
 from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scoring import centroid_outcomes
-from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, BlindSolver, MethodSolver, SolveResult
+from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, MIRROR_MIN_STARS, BlindSolver, MethodSolver, SolveResult
 
 ARCSEC = math.pi / 180.0 / 3600.0
 RESOLUTIONS = ("512x512", "1024x1024", "1280x1024", "2048x2048")
@@ -262,9 +262,8 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
     method, variant = check_method(method, variant)
     mag_limit = _num("magnitude limit", mag_limit, *MAG_RANGE)
     if method == BLIND:  # the default pipeline: no FOV, depth from the image, the camera fitted
-        blind, lock = blind_solver_for(solvers)
-        with lock:
-            result = blind.solve_array(source.image, measure_all=True)  # every detected star drawn
+        source, result = blind_solve(source, solvers)
+        blind = blind_solver_for(solvers)[0]
         time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
         # (the result's own catalog: a narrow field is solved in the deep catalog, whose rows its matches index)
         catalog = result.catalog if result.catalog is not None else blind.catalog
@@ -298,10 +297,33 @@ def fit_camera_blind(source: Source, solvers: Solvers) -> Source:
     search fails. Simulated scenes keep their exact camera (the papers' calibrated mode)."""
     if source.truth is not None or source.fitted:
         return source
+    source, res = blind_solve(source, solvers)
+    return with_fitted_camera(source, res)
+
+
+def blind_solve(source: Source, solvers: Solvers) -> tuple[Source, SolveResult]:
+    """The blind search on the source's image, every detected star measured (to draw them all); a user's
+    image that does not solve and shows MIRROR_MIN_STARS stars or more is searched once more with its rows
+    turned over, as `solve_image` does (a mirror image of the sky: a star diagonal's, a flipped export). When
+    that solves, the source carries the image so turned, which the result's pixels describe: it is drawn on
+    the sky the right way round."""
     blind, lock = blind_solver_for(solvers)
     with lock:
-        res = blind.solve_array(source.image, measure_all=True)
-    return with_fitted_camera(source, res)
+        result = blind.solve_array(source.image, measure_all=True)
+    if result.solved or source.truth is not None or len(result.centroids) < MIRROR_MIN_STARS:
+        return source, result
+    turned = np.ascontiguousarray(source.image[::-1])
+    with lock:
+        other = blind.solve_array(turned, measure_all=True)
+    if not other.solved:
+        result.notes.append("also searched with its rows turned over (a mirror image of the sky): not solved")
+        return source, result
+    other.rows_reversed = True
+    other.notes.append("a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows "
+                       "turned over, and drawn so")
+    for stage, ms in result.time_ms.items():  # the first search's time counts
+        other.time_ms[stage] = other.time_ms.get(stage, 0.0) + ms
+    return dataclasses.replace(source, image=turned, name=f"{source.name} (mirrored: rows turned over)"), other
 
 
 def with_fitted_camera(source: Source, result: SolveResult) -> Source:
