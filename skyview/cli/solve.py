@@ -216,9 +216,9 @@ def add_parsers(sub) -> None:
                         "the guide catalog reaches (~0.7-3.1 deg; by default after the blind search fails on an image "
                         "of 5 or more stars; its database is built the first time: ~45 s, ~400 MB)")
     v.add_argument("--no-mirror", action="store_true",
-                   help="do not search an image that did not solve as a mirror image of the sky (by default the "
-                        "default pipeline searches it once more with its rows turned over, as a star diagonal or a "
-                        "flipped export makes it; the JSON then says rows_reversed)")
+                   help="do not take the image for a mirror image of the sky (by default the blind searches check "
+                        "patterns that fit only mirrored too, as a star diagonal or a flipped export makes them; one "
+                        "found so is reported with its rows turned over: rows_reversed in the JSON)")
     add_sigma(v, "centroid direction error")
     v.add_argument("--mag-limit", type=float_arg, default=None,
                    help="guide catalog limit, Hipparcos magnitude Hp (default: from the image; methods other "

@@ -48,6 +48,7 @@ from skyview.identify.layers import SkyPlaces, even_sample
 from skyview.identify.steps import LazyStep
 
 PERMUTATIONS = np.array(list(itertools.permutations(range(4))))
+_TURN_ROWS = np.array([1.0, -1.0, 1.0])  # a ray in the image with its rows turned over: its y changes sign
 # the pair index (in PAIRS_OF_FOUR order) of each ordered pair of the four stars
 _PAIR_INDEX = {(int(a), int(b)): k for k, (a, b) in enumerate(pdb.PAIRS_OF_FOUR)}
 _PAIR_INDEX.update({(b, a): k for (a, b), k in list(_PAIR_INDEX.items())})
@@ -148,9 +149,29 @@ class _Progress:
     gave_up: str = ""  # how many checks and how long, when the budget ran out
     reason: str = ""
     model: str = PINHOLE  # the lens searched through
+    mirror: bool = True  # also search the image as a mirror image of the sky (its rows turned over)
+    mirror_budget: int = 0  # the mirror image's checks at most (as many as the image's own)
+    normal_checks: int = 0  # the checks of the image as it is (its budget's) ...
+    mirror_checks: int = 0  # ... and of its mirror image; `checks` counts both (Bonferroni)
 
     def __post_init__(self):
         self.tree = NearestPixels(self.uv[: self.n_obs])
+        self._mirror = None
+
+    def mirrored(self) -> tuple[np.ndarray, NearestPixels]:
+        """The centroids with the image's rows turned over (v -> height - 1 - v), and their nearest-star table."""
+        if self._mirror is None:
+            uv = rows_turned_over(self.uv, self.height)
+            self._mirror = (uv, NearestPixels(uv[: self.n_obs]))
+        return self._mirror
+
+
+def rows_turned_over(uv: np.ndarray, height: int) -> np.ndarray:
+    """Pixel positions (N, 2) in the image with its rows turned over: row v becomes row height - 1 - v (about
+    the centre, where the camera's principal point lies: a ray's y changes sign)."""
+    out = np.array(uv, dtype=np.float64).reshape(-1, 2)
+    out[:, 1] = (height - 1) - out[:, 1]
+    return out
 
 
 class BlindIdentifier(CameraRefit):
@@ -189,7 +210,7 @@ class BlindIdentifier(CameraRefit):
     def identify(self, uv: np.ndarray, width: int, height: int, *, fov_deg: float | None = None,
                  fov_error: float = 0.1, max_checks: int | None = None,
                  slide: bool = True, model: str = PINHOLE,
-                 checks_before: int = 0) -> Identification:
+                 checks_before: int = 0, mirror: bool = True) -> Identification:
         """Identify centroids uv (N, 2), brightest first, of a width x height image; max_checks: the quick
         checks allowed (None: params.max_checks); slide: when no pattern of the brightest
         params.pattern_stars verifies, search the next ones after them too; every centroid verifies. model:
@@ -198,10 +219,13 @@ class BlindIdentifier(CameraRefit):
         pinhole's). checks_before: hypotheses already checked on this image by earlier searches (another
         database, another lens): the verification counts them with its own (Bonferroni). The template's
         `Identification`; when identified, with the fitted `camera`, the verification's `mag_limit` and
-        the measured `sigma_rad`."""
+        the measured `sigma_rad`. mirror: a pattern that fits the catalog's only as a mirror image (the sky
+        seen through an odd number of mirrors, a star diagonal's; an export flipped) is checked too, as one
+        of the image with its rows turned over (`rows_turned_over`), with as many checks again; identified
+        so, `stats["rows_reversed"]` is True and the matches, camera and attitude are that image's."""
         search = self.begin(PixelStars(np.asarray(uv, dtype=np.float64).reshape(-1, 2), int(width), int(height)))
         search.data.update(fov_deg=fov_deg, fov_error=fov_error, max_checks=max_checks, slide=slide, model=model,
-                           checks_before=int(checks_before))
+                           checks_before=int(checks_before), mirror=bool(mirror))
         try:
             return self.run(search)
         finally:
@@ -224,9 +248,10 @@ class BlindIdentifier(CameraRefit):
                 what = "the blind database covers" if model == PINHOLE else f"the {model} search covers"
                 return self._cannot(search, f"{what} FOVs of {span[0]:.1f}-{span[1]:.1f} deg, not {lo:.2f}-{hi:.2f} deg")
             lo, hi = max(lo, span[0]), min(hi, span[1])
-        state = _Progress(uv, min(len(uv), p.verify_stars), width, height, model=model)
-        state.checks = d["checks_before"]
         budget = p.max_checks if d["max_checks"] is None else int(d["max_checks"])
+        state = _Progress(uv, min(len(uv), p.verify_stars), width, height, model=model, mirror=d["mirror"],
+                          mirror_budget=budget)
+        state.checks = d["checks_before"]
         # the brightest pattern_stars first; when no pattern of them verifies, the window slides down the
         # brightness order (a lit roof, street lights or a planet can take the brightest places), each
         # window with its own budget of checks, every check counted in the verification (Bonferroni)
@@ -290,9 +315,9 @@ class BlindIdentifier(CameraRefit):
                 cands = self._lookup(uv[pat], quads, batch, width, height, s_lo, s_hi, state.model)
                 n_cands += len(cands["pattern"])
                 self._record_lookup(search.steps, cands, pat[:upto].tolist(), upto, len(batch), s_lo, s_hi)
-                before = state.checks
+                before = state.normal_checks
                 yield from self._check(search, quads_uv, cands, state, max_checks=budget - spent[k])
-                spent[k] += state.checks - before
+                spent[k] += state.normal_checks - before
                 if state.timed_out:
                     return n_cands
                 if state.out_of_budget:
@@ -428,15 +453,16 @@ class BlindIdentifier(CameraRefit):
 
     # ------------------------------------------------------------------ hypotheses
     def _check(self, search: Search, quads, cands, state: "_Progress", max_checks: int):
-        """Check candidates in order, at most max_checks of them; each that passes its quick check is fitted
-        and yielded (the search ends at an accepted one)."""
-        first = state.checks
+        """Check candidates in order, at most max_checks of them (and as many of the mirror image's, up to the
+        search's `mirror_budget`); each that passes its quick check is fitted and yielded (the search ends at an
+        accepted one)."""
+        first = state.normal_checks
         p = self.params
         uv, steps, t0 = search.obs.uv, search.steps, search.t0
         width, height, n_obs = state.width, state.height, state.n_obs
         for q, pr, fov in zip(cands["quad"], cands["pattern"], cands["fov"]):
             state.timed_out = time.perf_counter() - t0 > p.time_budget_s
-            if state.checks - first >= max_checks or state.timed_out:
+            if state.normal_checks - first >= max_checks or state.timed_out:
                 state.out_of_budget = True
                 state.gave_up = f"gave up after {state.checks} hypotheses ({time.perf_counter() - t0:.1f} s)"
                 return
@@ -452,14 +478,29 @@ class BlindIdentifier(CameraRefit):
             r = r[perm]
             R = proper_rotation(b.T @ r)
             fit_px = np.hypot(*(cam.project(r @ R.T)[0] - uv[obs4]).T)
-            if fit_px.max() > max(3.0 * p.quick_radius_px, 0.01 * width):
-                continue  # a mirror image, or a pattern that only shares its ratios
+            tolerance = max(3.0 * p.quick_radius_px, 0.01 * width)
+            here, tree, turned = uv, state.tree, False
+            if fit_px.max() > tolerance:
+                # the catalog's pattern as a mirror image of the quad: a fit with the image's rows turned over
+                # (a ray's y changes sign), or a pattern that only shares its ratios
+                if not state.mirror or state.mirror_checks >= state.mirror_budget:
+                    continue
+                here, tree = state.mirrored()
+                R = proper_rotation((b * _TURN_ROWS).T @ r)
+                if np.hypot(*(cam.project(r @ R.T)[0] - here[obs4]).T).max() > tolerance:
+                    continue
+                turned = True
             state.checks += 1
-            outcome = self._quick(uv, n_obs, state.tree, obs4, rows4, cam, R)
+            if turned:
+                state.mirror_checks += 1
+            else:
+                state.normal_checks += 1
+            outcome = self._quick(here, n_obs, tree, obs4, rows4, cam, R)
             if state.shown < CAP:
                 state.shown += 1
                 steps.append(Step("hypothesis", f"stars {list(map(int, obs4))} as HIP "
-                                                f"{[int(self.catalog.hip[k]) for k in rows4]} at FOV {fov:.2f} deg: "
+                                                f"{[int(self.catalog.hip[k]) for k in rows4]} at FOV {fov:.2f} deg"
+                                                f"{' (a mirror image: rows turned over)' if turned else ''}: "
                                                 f"{outcome['note']}",
                                   observed=[int(i) for i in obs4], catalog=[int(k) for k in rows4],
                                   groups=[tuple(int(k) for k in rows4)],
@@ -469,5 +510,6 @@ class BlindIdentifier(CameraRefit):
                 state.reason = f"the best hypothesis was not confirmed by the other stars ({outcome['note']})" \
                     if not state.reason else state.reason
                 continue
-            ver = yield from self._fitted(search, uv, n_obs, obs4, rows4, outcome, state.checks)
+            ver = yield from self._fitted(search, here, n_obs, obs4, rows4, outcome, state.checks,
+                                          rows_reversed=turned)
             state.reason = ver.reason

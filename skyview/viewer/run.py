@@ -26,7 +26,7 @@ from skyview.identify.base import is_sequence_method
 from skyview.present.drawables import StepView, match_groups, step_views
 from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scoring import centroid_outcomes
-from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, MIRROR_MIN_STARS, BlindSolver, MethodSolver, SolveResult
+from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, BlindSolver, MethodSolver, SolveResult
 
 ARCSEC = math.pi / 180.0 / 3600.0
 RESOLUTIONS = ("512x512", "1024x1024", "1280x1024", "2048x2048")
@@ -302,28 +302,19 @@ def fit_camera_blind(source: Source, solvers: Solvers) -> Source:
 
 
 def blind_solve(source: Source, solvers: Solvers) -> tuple[Source, SolveResult]:
-    """The blind search on the source's image, every detected star measured (to draw them all); a user's
-    image that does not solve and shows MIRROR_MIN_STARS stars or more is searched once more with its rows
-    turned over, as `solve_image` does (a mirror image of the sky: a star diagonal's, a flipped export). When
-    that solves, the source carries the image so turned, which the result's pixels describe: it is drawn on
-    the sky the right way round."""
+    """The blind search on the source's image, every detected star measured (to draw them all). A user's
+    image found to be a mirror image of the sky (a star diagonal's, a flipped export: the result's
+    `rows_reversed`) comes back with the image so turned, which the result's pixels describe: it is drawn on
+    the sky the right way round. A simulated scene is never searched as one."""
     blind, lock = blind_solver_for(solvers)
     with lock:
-        result = blind.solve_array(source.image, measure_all=True)
-    if result.solved or source.truth is not None or len(result.centroids) < MIRROR_MIN_STARS:
+        result = blind.solve_array(source.image, measure_all=True, mirror=source.truth is None)
+    if not result.rows_reversed:
         return source, result
-    turned = np.ascontiguousarray(source.image[::-1])
-    with lock:
-        other = blind.solve_array(turned, measure_all=True)
-    if not other.solved:
-        result.notes.append("also searched with its rows turned over (a mirror image of the sky): not solved")
-        return source, result
-    other.rows_reversed = True
-    other.notes.append("a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows "
-                       "turned over, and drawn so")
-    for stage, ms in result.time_ms.items():  # the first search's time counts
-        other.time_ms[stage] = other.time_ms.get(stage, 0.0) + ms
-    return dataclasses.replace(source, image=turned, name=f"{source.name} (mirrored: rows turned over)"), other
+    result.notes.append("a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows "
+                        "turned over, and drawn so")
+    return replace(source, image=np.ascontiguousarray(source.image[::-1]),
+                   name=f"{source.name} (a mirror image: rows turned over)"), result
 
 
 def with_fitted_camera(source: Source, result: SolveResult) -> Source:
