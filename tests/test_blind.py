@@ -335,14 +335,23 @@ def test_a_colour_jpeg_of_a_real_photograph_solves_blind(blind):
 
 
 @pytest.mark.slow
-def test_mirrored_photographs_are_never_solved(blind):
-    """A mirror image has the same edge ratios as the sky but the wrong handedness: no rotation fits it,
-    so it must fail, never verify a wrong attitude."""
+def test_mirrored_photographs_solve_turned_over_or_not_at_all(blind):
+    """A mirror image has the same edge ratios as the sky but the wrong handedness: no rotation fits it as it
+    is. Searched as a mirror image (the default) it solves with its rows turned over, at the photograph's own
+    attitude (turned half a turn after a left-right flip); not searched so (mirror=False) it fails, never
+    verifying a wrong attitude."""
+    half_turn = np.diag([-1.0, -1.0, 1.0])
     for name in sorted(REFERENCE)[:2]:  # 150 random star fields and all 16 flips were checked by hand: 0 solved
         image = load_image(REAL / name)
-        for flip in (np.fliplr, np.flipud):
-            res = blind.solve_array(np.ascontiguousarray(flip(image)))
-            assert not res.solved and res.reason
+        ref = np.array(REFERENCE[name]["R"])
+        for flip, expected in ((np.fliplr, half_turn @ ref), (np.flipud, ref)):
+            flipped = np.ascontiguousarray(flip(image))
+            res = blind.solve_array(flipped, mirror=False)
+            assert not res.solved and res.reason and not res.rows_reversed
+            res = blind.solve_array(flipped)
+            assert res.solved and res.rows_reversed
+            err = attitude_error_arcsec(res.R, expected)
+            assert err["boresight"] < 120.0 and err["roll"] < 600.0, (name, flip.__name__, err)
 
 
 def test_lookup_drops_only_patterns_of_sizes_it_cannot_use(blind, monkeypatch):
