@@ -1,5 +1,5 @@
 """Mirror images of the sky: an odd number of mirrors in the light path (a star diagonal's) or an export
-flipped. Such an image has the sky's edge ratios with the wrong handedness, so it never solves as read;
+flipped. Such an image has the sky's edge ratios with the wrong handedness, so no rotation fits it as read;
 the blind searches check each pattern that fits the catalog's only as a mirror image as one of the image with
 its rows turned over (a left-right mirror is that turned half a turn), and say so (`rows_reversed`)."""
 

@@ -5,8 +5,9 @@ the picture (OpenCV's and PNG's order). The FITS standard stores the bottom row 
 capture program that follows it shows the sky the right way round in DS9; many others write the
 sensor's rows top-down and say so with `ROWORDER = 'TOP-DOWN'`. So the rows are turned over unless
 the header says TOP-DOWN; when the header says nothing (`ROWORDER` absent), `row_order_declared`
-is False and the pipeline tries the other order too if the first does not solve (a mirror image
-never solves: it has the sky's edge ratios but the wrong handedness).
+is False. A file read the wrong way up is a mirror image of the sky (its edge ratios, the wrong
+handedness): the blind searches find it so and report it with its rows turned over (`rows_reversed`); a
+method at an FOV given does not, so the pipeline tries the other order too if the first does not solve.
 
 Read with astropy (BZERO/BSCALE applied, tile-compressed `.fz` included): the first HDU with a 2-D
 image, or a colour cube of 3 or 4 planes (averaged to grey). A raw colour sensor (`BAYERPAT`) is
