@@ -95,6 +95,13 @@ def test_the_api_and_the_cli_say_rows_reversed_and_the_wcs_fits_the_file_as_it_i
     cv2.imwrite(str(path), image)
     sol = skyview.solve(path)
     assert sol.solved and sol.rows_reversed and sol.to_dict()["rows_reversed"] is True
+    assert not skyview.solve(path, mirror=False).solved
+    # the WCS of the image as given maps a matched star's pixel there (its row turned back) onto the star
+    w_given = sol.wcs(rows_as_given=True)
+    m = sol.matches[0]
+    sky = w_given.pixel_to_world(m.u, image.shape[0] - 1 - m.v)
+    assert abs(sky.dec.deg - m.dec_deg) * 3600 < 60 and abs(((sky.ra.deg - m.ra_deg + 180) % 360 - 180)
+                                                           * np.cos(np.radians(m.dec_deg))) * 3600 < 60
     wcs_path = tmp_path / "diagonal.wcs"
     out = subprocess.run([sys.executable, "-m", "skyview", "solve", str(path), "--json", "--no-deep",
                           "--wcs", str(wcs_path)], capture_output=True, text=True, timeout=300)
@@ -120,3 +127,45 @@ def test_the_api_and_the_cli_say_rows_reversed_and_the_wcs_fits_the_file_as_it_i
     out = subprocess.run([sys.executable, "-m", "skyview", "solve", str(path), "--json", "--no-deep", "--no-mirror"],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 1 and json.loads(out.stdout)["rows_reversed"] is False
+
+
+def test_an_image_that_is_no_mirror_image_runs_the_same_searches_either_way():
+    """The mirror image's checks have a budget of their own: on images of nine random dots (no sky either way)
+    the searches that run are the same with the mirror searched or not (the guide catalog's short search is
+    not made to look cut short by them, which would run its whole search again), each counting its checks."""
+    rng = np.random.default_rng(3)
+    for _ in range(2):
+        dots = rng.normal(100, 5, (480, 640)).astype(np.float32)
+        for u, v in rng.uniform([10, 10], [630, 470], (9, 2)):
+            dots[int(v) - 1:int(v) + 2, int(u) - 1:int(u) + 2] += rng.uniform(200, 2000)
+        kinds = {}
+        for mirror in (False, True):
+            res = solve_image(dots, mirror=mirror)
+            assert not res.solved
+            kinds[mirror] = [s["kind"] for s in res.searches]
+            assert all(s["hypotheses"] >= 0 for s in res.searches)
+        assert kinds[True] == kinds[False]
+
+
+def test_a_method_on_the_camera_a_mirror_image_fitted_reads_it_turned_over(photo):
+    """`--method M` with no FOV: the blind front end finds the mirror image and fits the camera; the method then
+    reads the stars of the image turned over, and says so."""
+    res = solve_image(np.ascontiguousarray(photo[:, ::-1]), method="angle", variant="improved", deep=False)
+    assert res.solved and res.method == "angle" and res.rows_reversed and res.camera_fitted
+    err = attitude_error_arcsec(res.R, HALF_TURN @ np.array(REFERENCE[NAME]["R"]))
+    assert err["boresight"] < 120.0
+
+
+def test_the_viewer_run_of_a_method_on_a_mirror_image_says_rows_reversed():
+    """In the viewer a method other than blind runs on the camera the blind front end fitted: on a mirror image
+    that is the image turned over, and the method's result says so (JSON and notes)."""
+    from skyview.viewer.run import Solvers, Source, solve
+
+    name = sorted(REFERENCE)[2]
+    image = np.ascontiguousarray(load_image(REAL / name)[:, ::-1])
+    run = solve(Source(image=image, fov_deg=10.0, name="diagonal.png"), "angle", "improved", 6.0, Solvers())
+    assert run.source.rows_reversed and np.array_equal(run.source.image, image[::-1])
+    assert run.result.solved and run.result.rows_reversed and run.result.to_dict()["rows_reversed"] is True
+    assert any("mirror image" in n for n in run.result.notes)
+    err = attitude_error_arcsec(run.result.R, HALF_TURN @ np.array(REFERENCE[name]["R"]))
+    assert err["boresight"] < 120.0

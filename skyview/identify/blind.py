@@ -150,7 +150,7 @@ class _Progress:
     reason: str = ""
     model: str = PINHOLE  # the lens searched through
     mirror: bool = True  # also search the image as a mirror image of the sky (its rows turned over)
-    mirror_budget: int = 0  # the mirror image's checks at most (as many as the image's own)
+    mirror_budget: int = 0  # the mirror image's checks at most, in the whole search (its max_checks)
     normal_checks: int = 0  # the checks of the image as it is (its budget's) ...
     mirror_checks: int = 0  # ... and of its mirror image; `checks` counts both (Bonferroni)
 
@@ -221,7 +221,8 @@ class BlindIdentifier(CameraRefit):
         `Identification`; when identified, with the fitted `camera`, the verification's `mag_limit` and
         the measured `sigma_rad`. mirror: a pattern that fits the catalog's only as a mirror image (the sky
         seen through an odd number of mirrors, a star diagonal's; an export flipped) is checked too, as one
-        of the image with its rows turned over (`rows_turned_over`), with as many checks again; identified
+        of the image with its rows turned over (`rows_turned_over`), within a budget of its own (max_checks for
+        the whole search), every check counted in the verification; identified
         so, `stats["rows_reversed"]` is True and the matches, camera and attitude are that image's."""
         search = self.begin(PixelStars(np.asarray(uv, dtype=np.float64).reshape(-1, 2), int(width), int(height)))
         search.data.update(fov_deg=fov_deg, fov_error=fov_error, max_checks=max_checks, slide=slide, model=model,
@@ -267,7 +268,9 @@ class BlindIdentifier(CameraRefit):
             if state.timed_out:
                 break
         # none verified
-        search.stats.update(checks=state.checks, candidates=n_cands)
+        # (checks_normal: what `checks` would be without the mirror image's, the image's own budget spent)
+        search.stats.update(checks=state.checks, candidates=n_cands,
+                            checks_normal=d["checks_before"] + state.normal_checks)
         if state.checks > d["checks_before"]:
             search.reasons.append(": ".join(x for x in (state.gave_up, state.reason) if x))
         else:

@@ -123,7 +123,7 @@ class Solution:
         rows_reversed: True when the image solved with its rows turned over (a mirror image of the sky, as
             a star diagonal or a flipped export makes it; or a FITS file read the other way up): ``R``, the
             camera, the matches' ``u, v`` and ``wcs()`` are then those of the image so turned (its row ``v``
-            is row ``H - 1 - v`` of the image as given).
+            is row ``H - 1 - v`` of the image as given; ``wcs(rows_as_given=True)`` maps the image as given).
         mag_limit: the catalog depth (Hp) used.
         sigma_boresight_arcsec, sigma_roll_arcsec: 1-sigma of the attitude.
         p_false: probability that the verified match is a chance alignment.
@@ -248,13 +248,15 @@ class Solution:
 
         return SkyCoord(ra=self.ra_deg * u.deg, dec=self.dec_deg * u.deg, frame="icrs")
 
-    def wcs(self) -> WCS:
+    def wcs(self, *, rows_as_given: bool = False) -> WCS:
         """The solution as an astropy ``WCS`` (TAN, with SIP for k1/k2), pixel (0-based, as OpenCV's
-        ``(u, v)`` with astropy's ``origin=0``) <-> ICRS. Raises NotSolvedError when not solved."""
+        ``(u, v)`` with astropy's ``origin=0``) <-> ICRS: of the image the solution describes, or, with
+        rows_as_given, of the image as it was given when it solved with its rows turned over
+        (``rows_reversed``: a mirror image). Raises NotSolvedError when not solved."""
         R = self._require_solved("WCS")
         from skyview.io.wcs import solution_wcs
 
-        return solution_wcs(R, self.camera)
+        return solution_wcs(R, self.camera, rows_reversed=rows_as_given and self.rows_reversed)
 
     def rotation(self) -> Rotation:
         """``R`` as a scipy ``Rotation`` (ICRS -> camera frame). Raises NotSolvedError when not solved."""
@@ -279,7 +281,7 @@ def _pipeline_kwargs(*, fov_deg: float | None, fov_error: float, method: str | N
                      mag_limit: float | None, distortion: tuple[float, float], epoch: float, max_stars: int,
                      k_sigma: float, estimator: str, sigma_arcsec: float | None,
                      method_params: Mapping[str, Any] | None, memory_mb: float | None,
-                     progress: Callable[[str], None] | None) -> dict[str, Any]:
+                     progress: Callable[[str], None] | None, mirror: bool = True) -> dict[str, Any]:
     from skyview.solver.pipeline import check_fov_error
 
     _check_method(method, variant, estimator)
@@ -291,7 +293,7 @@ def _pipeline_kwargs(*, fov_deg: float | None, fov_error: float, method: str | N
     kw: dict[str, Any] = dict(fov_deg=fov_deg, method=method, fov_error=float(fov_error), mag_limit=mag_limit,
                               distortion=(float(distortion[0]), float(distortion[1])), variant=variant,
                               epoch=float(epoch), max_stars=int(max_stars), k_sigma=float(k_sigma),
-                              estimator=estimator, memory_mb=memory_mb, progress=progress)
+                              estimator=estimator, memory_mb=memory_mb, progress=progress, mirror=bool(mirror))
     if sigma_arcsec is not None:
         if not (math.isfinite(sigma_arcsec) and sigma_arcsec > 0):
             raise BadInput("sigma_arcsec must be a positive number")
@@ -306,7 +308,7 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
           distortion: tuple[float, float] = (0.0, 0.0), epoch: float = DEFAULT_EPOCH, max_stars: int = 40,
           k_sigma: float = 5.0, estimator: EstimatorName = "svd", sigma_arcsec: float | None = None,
           method_params: Mapping[str, Any] | None = None, memory_mb: float | None = None,
-          progress: Callable[[str], None] | None = None) -> Solution:
+          progress: Callable[[str], None] | None = None, mirror: bool = True) -> Solution:
     """Solve one star-field image: where was the camera pointing?
 
     Args:
@@ -333,6 +335,8 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
         method_params: the method's own parameters by their paper names (docs/methods.md).
         memory_mb: memory budget for building the blind pattern database, MB (default 1024).
         progress: called with a line of text while a database is built (the first run only).
+        mirror: the blind searches take the image for a mirror image of the sky too (a star diagonal's, a
+            flipped export), reported with its rows turned over (``Solution.rows_reversed``); False: never.
 
     Returns:
         A `Solution`; ``solution.solved`` is False (with ``solution.reason``) when no
@@ -347,7 +351,7 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
     kw = _pipeline_kwargs(fov_deg=fov_deg, fov_error=fov_error, method=method, variant=variant, mag_limit=mag_limit,
                           distortion=distortion, epoch=epoch, max_stars=max_stars, k_sigma=k_sigma,
                           estimator=estimator, sigma_arcsec=sigma_arcsec, method_params=method_params,
-                          memory_mb=memory_mb, progress=progress)
+                          memory_mb=memory_mb, progress=progress, mirror=mirror)
     fov, meth = kw.pop("fov_deg"), kw.pop("method")
     return Solution.from_result(solve_image(image, fov, meth, **kw))
 
@@ -369,7 +373,7 @@ class Solver:
                  distortion: tuple[float, float] = (0.0, 0.0), epoch: float = DEFAULT_EPOCH, max_stars: int = 40,
                  k_sigma: float = 5.0, estimator: EstimatorName = "svd", sigma_arcsec: float | None = None,
                  method_params: Mapping[str, Any] | None = None, memory_mb: float | None = None,
-                 progress: Callable[[str], None] | None = None) -> None:
+                 progress: Callable[[str], None] | None = None, mirror: bool = True) -> None:
         if fov_deg is not None:
             from skyview.core.camera import check_fov_deg
 
@@ -377,7 +381,8 @@ class Solver:
         self._kwargs = _pipeline_kwargs(
             fov_deg=fov_deg, fov_error=fov_error, method=method, variant=variant, mag_limit=mag_limit,
             distortion=distortion, epoch=epoch, max_stars=max_stars, k_sigma=k_sigma, estimator=estimator,
-            sigma_arcsec=sigma_arcsec, method_params=method_params, memory_mb=memory_mb, progress=progress)
+            sigma_arcsec=sigma_arcsec, method_params=method_params, memory_mb=memory_mb, progress=progress,
+            mirror=mirror)
 
     @property
     def settings(self) -> Mapping[str, Any]:

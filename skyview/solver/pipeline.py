@@ -262,7 +262,7 @@ class BlindSolver:
                 break
         if fres.solved and _fit_rms(fres) > FISHEYE_MAX_RMS_PX:
             rms = _fit_rms(fres)
-            fres.status, fres.R = NOT_SOLVED, None
+            fres.status, fres.R, fres.rows_reversed, fres.centroids = NOT_SOLVED, None, False, centroids
             fres.reason = (f"the stars were identified through a fisheye, but no lens model fits them better than "
                            f"{rms:.1f} px (the attitude would be off by that): not reported")
             fres.matches = []
@@ -305,10 +305,13 @@ class BlindSolver:
                               "(Hipparcos-2 + Gaia DR3 to G 10)")
             return _with_time_of(nres, first)
         result = first
-        if _checks(first) >= NARROW_AFTER_CHECKS or len(centroids) >= 16:
-            # the guide catalog's whole search: its full budget, and the pattern stars sliding past the brightest
+        if _checks(first, normal=True) >= NARROW_AFTER_CHECKS or len(centroids) >= 16:
+            # the guide catalog's whole search (its first cut short by its budget, not by the mirror image's
+            # checks): its full budget, and the pattern stars sliding past the brightest
             result = _with_time_of(self._solve_centroids(centroids, width, height, checks_before=_checks(nres), **kw),
                                    first)
+        elif result.identification is not None:  # (the searches after these count the deep catalog's checks too)
+            result.identification.stats["checks"] = max(_checks(first), _checks(nres))
         result = _with_time_of(result, nres)
         if not result.solved:
             result.reason = f"{result.reason}; as a narrow field in the deep catalog: {nres.reason}"
@@ -476,10 +479,15 @@ def _fit_rms(result: SolveResult) -> float:
     return float(rms) if rms is not None and np.isfinite(rms) else float("inf")
 
 
-def _checks(result: SolveResult) -> int:
-    """The hypotheses a blind search checked (its successors count them in their verification)."""
+def _checks(result: SolveResult, normal: bool = False) -> int:
+    """The hypotheses a blind search checked (its successors count them in their verification); normal: those
+    of the image as it is, without the mirror image's (what spends its budget)."""
     ident = result.identification
-    return int(ident.stats.get("checks", 0)) if ident is not None else 0
+    if ident is None:
+        return 0
+    if normal and "checks_normal" in ident.stats:
+        return int(ident.stats["checks_normal"])
+    return int(ident.stats.get("checks", 0))
 
 
 def _short(reason: str) -> str:
@@ -508,9 +516,10 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     "triangle", ... runs that method (`variant` "paper" or "improved"), on the camera the blind
     front end fitted when fov_error > 0. mag_limit=None takes the depth from the image. Other
     keyword arguments go to `MethodSolver` (sigma_rad, method_params). Solvers are cached (the 8 most
-    recently used configurations), so a second call reuses the loaded database. try_flipped_rows:
-    when the image does not solve, solve it with its rows turned over once more (`rows_reversed` in the
-    result); None does so for a FITS file that does not declare its row order (see `skyview.io.fits`).
+    recently used configurations), so a second call reuses the loaded database. try_flipped_rows: the
+    image is a FITS file that does not declare its row order (see `skyview.io.fits`; None: read from the
+    path): when a method (or mirror=False) does not solve it, it is solved with its rows turned over once more,
+    and a result turned over (`rows_reversed`) is noted as read the other way up, not as a mirror image.
     mirror: None or True: the blind searches take a mirror image of the sky too (a star diagonal's, a
     flipped export: `BlindSolver.solve_centroids`), reported with its rows turned over (`rows_reversed`);
     False: they do not. deep: search fields narrower
@@ -636,7 +645,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             # (a mirror image the blind search found: the method reads the stars of the image so turned)
             turned = fitted is not None and result.rows_reversed
             mres = calibrated(method, camera, variant, result.centroids if turned else centroids)
-            mres.camera_fitted, mres.rows_reversed = fitted is not None, turned
+            mres.camera_fitted, mres.rows_reversed = fitted is not None, turned and mres.solved
             result = mres
         return result
 
@@ -665,10 +674,10 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
     if try_flipped_rows is None and (not result.solved or result.rows_reversed):
         try_flipped_rows = isinstance(image, (str, Path)) and undeclared_row_order(image)
-    if not result.solved and try_flipped_rows:
+    if not result.solved and try_flipped_rows and (method is not None or mirror is False):
         # a FITS file that does not say which way up its rows are: read bottom-first (the standard), it did not
-        # solve; the searches take a mirror image of the sky too, but not a method at an FOV given, so the
-        # other way up is tried once
+        # solve; the default pipeline's searches took it for a mirror image of the sky too, a method does not,
+        # so the other way up is tried once
         other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error,
                             mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
                             max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,

@@ -123,7 +123,7 @@ class SolveResult:
             status=self.status, reason=self.reason, notes=self.notes, R=self.R if self.solved else None,
             sigma_arcsec=(self.sigma_boresight_arcsec, self.sigma_roll_arcsec) if self.solved else None,
             p_false=ver.get("p_false") if self.solved else None, method=self.method, variant=self.variant,
-            camera=self.camera, camera_fitted=self.camera_fitted, rows_reversed=self.rows_reversed,
+            camera=self.camera, camera_fitted=self.camera_fitted, rows_reversed=self.rows_reversed and self.solved,
             mag_limit=self.mag_limit, epoch=self.epoch, n_centroids=self.centroids.n_detected, matches=self.matches,
             time_ms=self.time_ms)
         out.update({

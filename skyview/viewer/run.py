@@ -144,6 +144,7 @@ class Source:
     fitted: bool = False  # fov_deg, k1, k2 were fitted to the stars by the blind front end
     depth_mag: float | None = None  # the catalog depth the image shows (from the blind front end)
     lens: str = "pinhole"  # the camera model (skyview.core.camera): a fisheye's when one was fitted
+    rows_reversed: bool = False  # `image` is the one given with its rows turned over (a mirror image of the sky)
 
     @property
     def camera(self) -> Camera:
@@ -279,6 +280,8 @@ def solve(source: Source, method: str, variant: str, mag_limit: float, solvers: 
     solver, lock = solvers.get(camera, method, variant, mag_limit, sigma_for(source))
     with lock:
         result = solver.solve_array(source.image, measure_all=True)  # every detected star drawn
+    if source.rows_reversed:  # (the blind front end found a mirror image: the method read it turned over)
+        result = mirrored(result)
     time_ms = {"simulate": source.simulate_ms, **result.time_ms} if source.truth else dict(result.time_ms)
     return make_run(source, result, solver.catalog, solver.max_stars, time_ms)
 
@@ -309,12 +312,22 @@ def blind_solve(source: Source, solvers: Solvers) -> tuple[Source, SolveResult]:
     blind, lock = blind_solver_for(solvers)
     with lock:
         result = blind.solve_array(source.image, measure_all=True, mirror=source.truth is None)
-    if not result.rows_reversed:
-        return source, result
-    result.notes.append("a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows "
-                        "turned over, and drawn so")
-    return replace(source, image=np.ascontiguousarray(source.image[::-1]),
-                   name=f"{source.name} (a mirror image: rows turned over)"), result
+    if result.rows_reversed:  # a mirror image: the image turned over is the one the result describes
+        source = replace(source, image=np.ascontiguousarray(source.image[::-1]), rows_reversed=not source.rows_reversed)
+        result.rows_reversed = False
+    return source, (mirrored(result) if source.rows_reversed else result)
+
+
+MIRROR_NOTE = "a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows turned over, " \
+              "and drawn so"
+
+
+def mirrored(result: SolveResult) -> SolveResult:
+    """A result of the image turned over (`Source.rows_reversed`), said so when it solved."""
+    result.rows_reversed = result.solved
+    if result.solved and MIRROR_NOTE not in result.notes:
+        result.notes.append(MIRROR_NOTE)
+    return result
 
 
 def with_fitted_camera(source: Source, result: SolveResult) -> Source:
