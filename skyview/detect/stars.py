@@ -31,6 +31,7 @@ import numpy as np
 
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, row_median, to_gray
+from skyview.detect.trailed import trail_stars, trailed_frame
 from skyview.detect.trails import trail_members
 
 TARGET_SIGMA_PX = 1.1  # the PSF sigma the centroider is made for: bin by floor(sigma / this)
@@ -140,6 +141,10 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
         raise BadInput(f"binning={binning} must be a positive integer")
     c = detect_centroids(image, k_sigma=k_sigma, **kwargs)
     H, W = np.shape(image)[:2]
+    trail = trailed_frame(image, c) if binning is None else None
+    if trail is not None:  # every star a trail (an untracked exposure): each measured whole, at mid-exposure
+        c = trail_stars(image, c, trail, **kwargs)
+        return _without_trails(dataclasses.replace(c, params={**c.params, "binning": 1}), reject_trails)
     b, cb, binned = (1 if binning is None else int(binning)), None, None
     moments = None  # the width check's (sigma, flux) of the brightest stars, when it ran
     if binning is None:
@@ -184,6 +189,12 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
             else:
                 c.params["faint_search"] = "deferred"
     c = _saturated_by_aperture(binned, c, b, moments[1] if moments is not None and b == 1 else None)
+    return _without_trails(c, reject_trails)
+
+
+def _without_trails(c: Centroids, reject_trails: bool) -> Centroids:
+    """c without the satellite, aircraft and meteor trails broken into rows of fragments (`trail_members`), when
+    reject_trails; how many were taken out in params["n_trail_rejected"]."""
     n_trail = 0
     if reject_trails and len(c):
         width = max(1.5, 0.75 * c.psf_sigma_px) if math.isfinite(c.psf_sigma_px) else 1.5

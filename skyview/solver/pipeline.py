@@ -231,7 +231,7 @@ class BlindSolver:
             None if measure_all else measured_stars(self.max_stars))
         result.time_ms = {"centroid": t_cent, **result.time_ms}
         result.time_ms["total"] = result.time_ms["centroid"] + result.time_ms["solve"]
-        return result
+        return _noted_trails(result)
 
     def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
                         fov_error: float = DEFAULT_FOV_ERROR, checks_before: int = 0, mirror: bool = True) -> SolveResult:
@@ -695,6 +695,16 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                             "rows turned over (row v read as row H - 1 - v); the attitude, the camera and the "
                             "matches' pixels are those of the image so turned (rows_reversed)")
     result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return _noted_trails(result)
+
+
+def _noted_trails(result: SolveResult) -> SolveResult:
+    """The result, with a note when its stars were trails measured whole (`skyview.detect.trailed`)."""
+    trail = result.centroids.params.get("trailed") if result.centroids is not None else None
+    if trail:
+        result.notes.append(f"every star is a trail of ~{trail['length_px']:.0f} px at {trail['direction_deg']:.0f} deg "
+                            "(the camera turned during the exposure): each measured whole, so the attitude is the "
+                            "one at mid-exposure")
     return result
 
 
