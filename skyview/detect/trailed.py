@@ -106,12 +106,15 @@ def trail_stars(image: np.ndarray, c: Centroids, trail: tuple[float, float], *, 
     intensity-weighted centre (mid-exposure), its summed brightness, its pixels and brightest value, its
     axis ratio; brightest first, the first max_stars kept (the others counted in n_unmeasured). Blobs of
     fewer than min_pixels pixels are hot pixels or noise; blobs larger than a trail can be (TRAIL_AREA_WIDTHS)
-    are extended (a roof, the Moon). The statistics (background, noise, threshold, hot pixels) are c's."""
+    are extended (a roof, the Moon). The statistics (background, noise, threshold, hot pixels) are c's. Memory:
+    the frame as float32 and its labels as int32, 8 bytes a pixel (800 MB at the 100-megapixel limit)."""
     img = to_gray(image)
     H, W = img.shape
-    f = img.astype(np.float32)
-    bkg = estimate_background(f, background_block)[0]
-    resid = f - np.float32(bkg) if np.isscalar(bkg) else f - bkg.astype(np.float32)
+    resid = img.astype(np.float32)  # (the frame less its background, in place: two full-frame maps at most)
+    if resid.dtype.kind == "f" and not np.isfinite(resid).all():  # as the centroider does: the others' median
+        resid[~np.isfinite(resid)] = np.float32(np.median(resid[np.isfinite(resid)]))
+    bkg = estimate_background(resid, background_block)[0]
+    resid -= np.float32(bkg) if np.isscalar(bkg) else bkg.astype(np.float32)
     mask = (resid > np.float32(c.threshold)).astype(np.uint8)
     n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
     fi = np.flatnonzero(mask)
@@ -122,7 +125,7 @@ def trail_stars(image: np.ndarray, c: Centroids, trail: tuple[float, float], *, 
     sx, sy = np.bincount(lab_px, weights=w * x, minlength=n), np.bincount(lab_px, weights=w * y, minlength=n)
     area = stats[:, cv2.CC_STAT_AREA].astype(np.int64)
     peak = np.full(n, -np.inf)
-    np.maximum.at(peak, lab_px, img.reshape(-1)[fi].astype(np.float64))
+    np.maximum.at(peak, lab_px, np.asarray(img).reshape(-1)[fi].astype(np.float64))
     length = trail[0]
     too_big = max(MIN_EXTENDED_PX, TRAIL_AREA_WIDTHS * (length + 6.0) * 6.0)
     comp = np.arange(1, n)
