@@ -230,7 +230,7 @@ def test_the_matched_filter_keeps_noise_out_of_an_empty_faint_frame(catalog):
 
 
 def test_patch_hot_pixels_takes_a_hot_pixel_and_leaves_a_star():
-    from skyview.detect.stars import patch_hot_pixels
+    from skyview.detect.hot_pixels import patch_hot_pixels
 
     img = np.full((40, 40), 2.0, np.float32)
     yy, xx = np.mgrid[:40, :40]

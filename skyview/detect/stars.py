@@ -31,6 +31,7 @@ import numpy as np
 
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, row_median, to_gray
+from skyview.detect.hot_pixels import patch_hot_pixels
 from skyview.detect.trailed import trail_stars, trailed_frame
 from skyview.detect.trails import trail_members
 
@@ -143,7 +144,7 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     H, W = np.shape(image)[:2]
     trail = trailed_frame(image, c) if binning is None else None
     if trail is not None:  # every star a trail (an untracked exposure): each measured whole, at mid-exposure
-        c = trail_stars(image, c, trail, **kwargs)
+        c = trail_stars(image, c, trail, k_sigma=k_sigma, **kwargs)
         return _without_trails(dataclasses.replace(c, params={**c.params, "binning": 1}), reject_trails)
     b, cb, binned = (1 if binning is None else int(binning)), None, None
     moments = None  # the width check's (sigma, flux) of the brightest stars, when it ran
@@ -217,23 +218,6 @@ def fainter_stars(image: np.ndarray, c: Centroids, *, k_sigma: float = 5.0, reje
     if full.params.get("binning", 1) == 1 and "matched_filter_sigma_px" not in full.params:
         return None
     return full
-
-
-def patch_hot_pixels(img: np.ndarray, level: float, sigma: float) -> tuple[np.ndarray, int]:
-    """A float32 copy of `img` with its hot pixels replaced by the median of their 3 x 3 neighbourhood, and
-    their count: the centroider's rule (`detect_centroids`) applied to the whole frame at once, a pixel
-    more than 5 sigma above the background whose brightest neighbour is below max(3 sigma, 15 % of it)
-    (a star's neighbours hold ~65 % of its peak even at a PSF sigma of 1.1 px)."""
-    f = img.astype(np.float32)
-    ring = np.ones((3, 3), np.uint8)
-    ring[1, 1] = 0
-    nb_max = cv2.dilate(f, ring) - np.float32(level)
-    centre = f - np.float32(level)
-    hot = (centre > 5.0 * sigma) & (nb_max < np.maximum(np.float32(3.0 * sigma), np.float32(0.15) * centre))
-    n = int(np.count_nonzero(hot))
-    if n:
-        f[hot] = cv2.medianBlur(f, 3)[hot]
-    return f, n
 
 
 def matched_filter_stars(image: np.ndarray, c: Centroids, *, k_sigma: float = 5.0, **kwargs) -> Centroids:

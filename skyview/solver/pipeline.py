@@ -34,6 +34,7 @@ from skyview.core.errors import BadInput
 from skyview.core.lru import LRU
 from skyview.detect.centroids import Centroids, detect_centroids, finite_image, load_image, to_gray
 from skyview.detect.stars import detect_stars, fainter_stars
+from skyview.detect.trailed import may_be_trailed
 from skyview.identify import make_identifier
 from skyview.io.fits import undeclared_row_order
 from skyview.solver.result import NOT_SOLVED, SOLVED, SolveResult, observation, result_from_identification
@@ -701,7 +702,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
 def _noted_trails(result: SolveResult) -> SolveResult:
     """The result, with a note when its stars were trails measured whole (`skyview.detect.trailed`)."""
     trail = result.centroids.params.get("trailed") if result.centroids is not None else None
-    if trail:
+    note = trail and ("every star is a trail of ~" in " ".join(result.notes))
+    if trail and not note:
         result.notes.append(f"every star is a trail of ~{trail['length_px']:.0f} px at {trail['direction_deg']:.0f} deg "
                             "(the camera turned during the exposure): each measured whole, so the attitude is the "
                             "one at mid-exposure")
@@ -724,10 +726,14 @@ def _brightest_first(img: np.ndarray, k_sigma: float, max_stars: int) -> Centroi
     `_plain_then_fainter` measures (`measured_stars`), field for field: the centroider ranks every detection
     before measuring (`detect_centroids`' max_stars), and `detect_stars` keeps that order unless a trail was
     taken out (its fainter fragments, and the stars after them, are then not the same) or a saturated star
-    left unmeasured could rank among them by its whole disk. None in those cases."""
+    left unmeasured could rank among them by its whole disk; nor when most of them are elongated but they were
+    not found to be trails (`skyview.detect.trailed`: its vote may read more stars than these). None in those
+    cases."""
     stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=max_stars)
     if stars.n_unmeasured and (stars.n_unmeasured_saturated or stars.params.get("n_trail_rejected")):
         return None
+    if "trailed" not in stars.params and may_be_trailed(stars):
+        return None  # (whether its stars are trails may read more of them than these)
     return stars
 
 
