@@ -273,6 +273,14 @@ class Camera:
         return idx, uv[idx]
 
 
+def rows_turned_over(uv: np.ndarray, height: int) -> np.ndarray:
+    """Pixel positions (N, 2) in the image with its rows turned over: row v becomes row height - 1 - v (about
+    the centre, where the camera's principal point lies: a ray's y changes sign)."""
+    out = np.array(uv, dtype=np.float64).reshape(-1, 2)
+    out[:, 1] = (height - 1) - out[:, 1]
+    return out
+
+
 def pinhole_rays(offsets: np.ndarray, focal) -> np.ndarray:
     """Unit vectors of undistorted pinhole pixels: offsets (..., N, 2) from the principal point over focal
     (broadcast: [fx, fy], or one focal length per camera shaped (K, 1, 1) for K cameras at once), z = 1,

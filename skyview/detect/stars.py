@@ -33,7 +33,8 @@ from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, row_median, to_gray
 from skyview.detect.hot_pixels import patch_hot_pixels
 from skyview.detect.trailed import trail_stars, trailed_frame
-from skyview.detect.trails import trail_members
+from skyview.detect.trails import fragment_width_px, trail_members
+from skyview.detect.windows import background_windows
 
 TARGET_SIGMA_PX = 1.1  # the PSF sigma the centroider is made for: bin by floor(sigma / this)
 MAX_BINNING = 16
@@ -59,25 +60,15 @@ def star_moments(image: np.ndarray, c: Centroids, idx: np.ndarray, radius: int =
     above the threshold.
     """
     img = to_gray(image)
-    H, W = img.shape
     idx = np.asarray(idx, dtype=np.int64)
     sigma, flux = np.full(len(idx), np.nan), np.full(len(idx), np.nan)
     if len(idx) == 0 or not c.threshold > 0:
         return sigma, flux
-    uv = c.uv[idx]
-    inside = ((uv[:, 0] >= radius) & (uv[:, 0] < W - radius - 1) & (uv[:, 1] >= radius)
-              & (uv[:, 1] < H - radius - 1))
-    uv = uv[inside]
+    win, inside = background_windows(img, c.uv[idx], radius)
+    uv = c.uv[idx][inside]
     if len(uv) == 0:
         return sigma, flux
     d = np.arange(-radius, radius + 1, dtype=np.float64)
-    # each window by flat indices (one index array instead of two broadcast ones: the same pixels)
-    di = d.astype(np.int64)
-    centre = np.rint(uv[:, 1]).astype(np.int64) * W + np.rint(uv[:, 0]).astype(np.int64)
-    win = img.reshape(-1).take(centre[:, None, None] + (di[:, None] * W + di[None, :])[None]).astype(np.float64)
-    border = np.concatenate([win[:, [0, -1], :].reshape(len(uv), -1), win[:, 1:-1, [0, -1]].reshape(len(uv), -1)],
-                            axis=1)
-    win -= row_median(border)[:, None, None]  # the local background (vignetting, glow)
     peak = win[:, radius - 1: radius + 2, radius - 1: radius + 2].max(axis=(1, 2))
     floor = np.maximum(c.threshold, PEAK_FRACTION * peak)[:, None, None]
     # the pixels above the floor, listed once (a star's few dozen of its window's 49 x 49): the aperture's
@@ -198,8 +189,7 @@ def _without_trails(c: Centroids, reject_trails: bool) -> Centroids:
     reject_trails; how many were taken out in params["n_trail_rejected"]."""
     n_trail = 0
     if reject_trails and len(c):
-        width = max(1.5, 0.75 * c.psf_sigma_px) if math.isfinite(c.psf_sigma_px) else 1.5
-        trail = trail_members(c.uv, max_width_px=width)
+        trail = trail_members(c.uv, max_width_px=fragment_width_px(c.psf_sigma_px))
         n_trail = int(trail.sum())
         if n_trail:
             c = take(c, ~trail)

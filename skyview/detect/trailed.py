@@ -29,7 +29,8 @@ import numpy as np
 
 from skyview.detect.centroids import Centroids, estimate_background, row_median, to_gray
 from skyview.detect.hot_pixels import patch_hot_pixels
-from skyview.detect.trails import trail_members
+from skyview.detect.trails import fragment_width_px, trail_members
+from skyview.detect.windows import background_windows
 
 TRAILED_FRACTION = 0.6  # at least this share of the brightest detections elongated ...
 TRAIL_CHECK_STARS = 15  # ... of this many (and at least TRAIL_MIN_STARS of them measured)
@@ -48,19 +49,12 @@ def _window_moments(img: np.ndarray, uv: np.ndarray, threshold: float, radius: i
     """(n, 3) second moments (cxx, cyy, cxy) of the pixels around each position uv that lie above the threshold
     and TRAIL_FLOOR of the window's brightest (the window's border median taken as its background); NaN for a
     position too near the border or with fewer than three such pixels."""
-    H, W = img.shape
     out = np.full((len(uv), 3), np.nan)
-    c = np.rint(uv).astype(np.int64)
-    inside = (c[:, 0] >= radius) & (c[:, 0] < W - radius) & (c[:, 1] >= radius) & (c[:, 1] < H - radius)
+    win, inside = background_windows(img, uv, radius)
     k = np.flatnonzero(inside)
     if len(k) == 0:
         return out
     d = np.arange(-radius, radius + 1)
-    win = img.reshape(-1).take((c[k, 1] * W + c[k, 0])[:, None, None] + (d[:, None] * W + d[None, :])[None])
-    win = win.astype(np.float64)
-    border = np.concatenate([win[:, [0, -1], :].reshape(len(k), -1), win[:, 1:-1, [0, -1]].reshape(len(k), -1)],
-                            axis=1)
-    win -= row_median(border)[:, None, None]
     floor = np.maximum(threshold, TRAIL_FLOOR * win.max(axis=(1, 2)))[:, None, None]
     w = np.where(win > floor, win, 0.0)
     s = w.sum(axis=(1, 2))
@@ -96,8 +90,8 @@ def trailed_frame(image: np.ndarray, c: Centroids) -> tuple[float, float] | None
     if not may_be_trailed(c):
         return None
     depth = min(TRAIL_VOTE_DEPTH, len(c))
-    width = max(1.5, 0.75 * c.psf_sigma_px) if math.isfinite(c.psf_sigma_px) else 1.5
-    vote = np.flatnonzero(~c.saturated[:depth] & ~trail_members(c.uv[:depth], max_width_px=width))
+    fragments = trail_members(c.uv[:depth], max_width_px=fragment_width_px(c.psf_sigma_px))
+    vote = np.flatnonzero(~c.saturated[:depth] & ~fragments)
     vote = vote[:TRAIL_CHECK_STARS]
     if len(vote) < TRAIL_MIN_STARS or np.count_nonzero(c.elongated[vote]) < TRAILED_FRACTION * len(vote):
         return None

@@ -20,6 +20,7 @@ A tight double, a close triple or a cluster is not a line, and Orion's belt is t
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -56,6 +57,12 @@ def trail_members(uv: np.ndarray, *, max_width_px: float = 1.5, max_gap_px: floa
         on = free & (across <= max_width_px) & (along >= t_lo - max_gap_px) & (along <= t_hi + max_gap_px)
         out |= on
         free &= ~on
+
+
+def fragment_width_px(psf_sigma_px: float) -> float:
+    """How far a trail's fragments may lie from its line (trail_members' max_width_px) for stars of this PSF sigma:
+    three quarters of it, at least 1.5 px (also when it is unknown)."""
+    return max(1.5, 0.75 * psf_sigma_px) if math.isfinite(psf_sigma_px) else 1.5
 
 
 @lru_cache(maxsize=64)

@@ -67,6 +67,25 @@ class WindowCentroids:
     window: np.ndarray  # (N,) the window each centroid came from
 
 
+def background_windows(img: np.ndarray, uv: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """(windows, inside): of the positions uv (N, 2) at least `radius` px inside the grey image (`inside`, (N,)
+    bool; the others are left out), the (n, 2 radius + 1, 2 radius + 1) float64 windows around the pixel nearest
+    each, each less the median of its border pixels (the local background: vignetting, glow). One index array
+    gathers them all."""
+    H, W = img.shape
+    inside = ((uv[:, 0] >= radius) & (uv[:, 0] < W - radius - 1) & (uv[:, 1] >= radius)
+              & (uv[:, 1] < H - radius - 1))
+    uv = uv[inside]
+    di = np.arange(-radius, radius + 1, dtype=np.int64)
+    centre = np.rint(uv[:, 1]).astype(np.int64) * W + np.rint(uv[:, 0]).astype(np.int64)
+    win = img.reshape(-1).take(centre[:, None, None] + (di[:, None] * W + di[None, :])[None]).astype(np.float64)
+    if len(uv):
+        border = np.concatenate([win[:, [0, -1], :].reshape(len(uv), -1), win[:, 1:-1, [0, -1]].reshape(len(uv), -1)],
+                                axis=1)
+        win -= row_median(border)[:, None, None]
+    return win, inside
+
+
 def window_centers(uv: np.ndarray, half_px: np.ndarray | float, width: int, height: int
                    ) -> tuple[np.ndarray, int]:
     """The windows' centre pixels (K, 2: column, row) and their common half-size h (the largest

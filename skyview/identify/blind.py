@@ -38,7 +38,7 @@ from functools import partial
 import numpy as np
 
 from skyview.core.attitude import proper_rotation
-from skyview.core.camera import FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera, pinhole_rays
+from skyview.core.camera import FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera, pinhole_rays, rows_turned_over
 from skyview.core.catalog import GuideCatalog
 from skyview.identify import database
 from skyview.identify import patterns as pdb
@@ -164,14 +164,6 @@ class _Progress:
             uv = rows_turned_over(self.uv, self.height)
             self._mirror = (uv, NearestPixels(uv[: self.n_obs]))
         return self._mirror
-
-
-def rows_turned_over(uv: np.ndarray, height: int) -> np.ndarray:
-    """Pixel positions (N, 2) in the image with its rows turned over: row v becomes row height - 1 - v (about
-    the centre, where the camera's principal point lies: a ray's y changes sign)."""
-    out = np.array(uv, dtype=np.float64).reshape(-1, 2)
-    out[:, 1] = (height - 1) - out[:, 1]
-    return out
 
 
 class BlindIdentifier(CameraRefit):

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from skyview.core.attitude import ESTIMATORS
-from skyview.core.camera import EQUIDISTANT, EQUISOLID, FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera
+from skyview.core.camera import EQUIDISTANT, EQUISOLID, FISHEYE_FOV_RANGE_DEG, PINHOLE, Camera, rows_turned_over
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.core.lru import LRU
@@ -333,8 +333,6 @@ class BlindSolver:
         identify_ms = (time.perf_counter() - t0) * 1e3
         turned = bool(ident.identified and ident.stats.get("rows_reversed"))
         if turned:  # identified as a mirror image of the sky: the centroids of the image with its rows turned over
-            from skyview.identify.blind import rows_turned_over
-
             centroids = dataclasses.replace(centroids, uv=rows_turned_over(centroids.uv, height),
                                             params=dict(centroids.params))
         span = self.fov_range_deg if model == PINHOLE else FISHEYE_FOV_RANGE_DEG
@@ -691,22 +689,24 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             result = other
     if result.solved and result.rows_reversed:
         result.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel rows as "
-                            "stored; v = 0 is the file's first row)" if try_flipped_rows else
-                            "a mirror image of the sky (a star diagonal's, or a flipped export): solved with its "
-                            "rows turned over (row v read as row H - 1 - v); the attitude, the camera and the "
-                            "matches' pixels are those of the image so turned (rows_reversed)")
+                            "stored; v = 0 is the file's first row)" if try_flipped_rows else MIRROR_NOTE)
     result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
     return _noted_trails(result)
 
 
+MIRROR_NOTE = ("a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows turned over "
+               "(row v read as row H - 1 - v); the attitude, the camera and the matches' pixels are those of the image "
+               "so turned (rows_reversed)")
+
+
 def _noted_trails(result: SolveResult) -> SolveResult:
-    """The result, with a note when its stars were trails measured whole (`skyview.detect.trailed`)."""
+    """The result, with a note (once) when its stars were trails measured whole (`skyview.detect.trailed`)."""
     trail = result.centroids.params.get("trailed") if result.centroids is not None else None
-    note = trail and ("every star is a trail of ~" in " ".join(result.notes))
-    if trail and not note:
-        result.notes.append(f"every star is a trail of ~{trail['length_px']:.0f} px at {trail['direction_deg']:.0f} deg "
-                            "(the camera turned during the exposure): each measured whole, so the attitude is the "
-                            "one at mid-exposure")
+    if trail:
+        note = (f"every star is a trail of ~{trail['length_px']:.0f} px at {trail['direction_deg']:.0f} deg (the "
+                "camera turned during the exposure): each measured whole, so the attitude is the one at mid-exposure")
+        if note not in result.notes:
+            result.notes.append(note)
     return result
 
 

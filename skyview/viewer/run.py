@@ -26,7 +26,7 @@ from skyview.identify.base import is_sequence_method
 from skyview.present.drawables import StepView, match_groups, step_views
 from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scoring import centroid_outcomes
-from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, BlindSolver, MethodSolver, SolveResult
+from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, MIRROR_NOTE, BlindSolver, MethodSolver, SolveResult
 
 ARCSEC = math.pi / 180.0 / 3600.0
 RESOLUTIONS = ("512x512", "1024x1024", "1280x1024", "2048x2048")
@@ -316,10 +316,6 @@ def blind_solve(source: Source, solvers: Solvers) -> tuple[Source, SolveResult]:
         source = replace(source, image=np.ascontiguousarray(source.image[::-1]), rows_reversed=not source.rows_reversed)
         result.rows_reversed = False
     return source, (mirrored(result) if source.rows_reversed else result)
-
-
-MIRROR_NOTE = "a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows turned over, " \
-              "and drawn so"
 
 
 def mirrored(result: SolveResult) -> SolveResult:
