@@ -199,6 +199,7 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     if out_lines is not None:
         out_lines.close()
     if recorder is not None:
+        recorder.catalog = tracker.catalog  # (the stars drawn near the path: the depth tracking went to)
         info = recorder.close()
         print(f"recorded {info.frames} frames into {info.path} ({info.bytes / 1e6:.1f} MB"
               + (f"; frames {', '.join(map(str, errors))} could not be read" if errors else "") + ")",

@@ -44,6 +44,7 @@ the same convention as a sequence's relative[k]["turn_rotvec_cam_rad"]), the mat
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
@@ -56,6 +57,7 @@ from skyview.core.camera import Camera
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids
+from skyview.detect.stars import detect_stars
 from skyview.detect.windows import DEFAULT_PSF_SIGMA_PX, MAX_HALF_PX, PSF_REACH_SIGMAS, centroid_windows, window_centers
 from skyview.identify.base import Identification, Observation
 from skyview.identify.tracking import Prediction, TrackedIdentifier, match_radii, rotation_matrix, rotvec
@@ -183,7 +185,8 @@ class Tracker:
     fits it on the first lost-in-space frame, and tracking uses the fitted camera). method: an
     identification method for lost-in-space (through `MethodSolver`), or None for the default pipeline.
     mag_limit: the catalog depth for tracking and for the method (default Hp 6, as `solve_image`'s
-    methods). Other keyword arguments go to `MethodSolver` (method_params, estimator, ...).
+    methods; with method None and no depth given, tracking then goes as deep as the first lost-in-space solve,
+    whose depth the blind pipeline takes from the image: `_follow_depth`). Other keyword arguments go to `MethodSolver` (method_params, estimator, ...).
     """
 
     def __init__(self, camera: Camera | None = None, method: str | None = None, *, mag_limit: float | None = None,
@@ -208,6 +211,7 @@ class Tracker:
         self.method = method
         self.variant = variant
         self._camera_fitted = False
+        self._depth_given = mag_limit is not None
         self.mag_limit = float(mag_limit) if mag_limit is not None else PAPER_MAG_LIMIT
         self.given_sigma = sigma_rad
         self.max_stars = int(max_stars)
@@ -235,6 +239,9 @@ class Tracker:
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
+        if not self._depth_given and self.mag_limit != PAPER_MAG_LIMIT:  # a new sequence: the depth found again
+            self.mag_limit, self._fallback = PAPER_MAG_LIMIT, None
+            self.catalog = self.base.brighter_than(self.mag_limit)
         self.frame = -1
         self.history: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, R, covariance) of solved frames
         self._turns_since: list[np.ndarray] = []  # turns given since the last solved frame
@@ -242,6 +249,7 @@ class Tracker:
         self.rate_covariance: np.ndarray | None = None
         self._psf_sigma_px: float | None = None  # measured on the last whole-image centroiding
         self._detection_density = 0.0  # detections per sr of the last whole-image centroiding
+        self._trailed = False  # the last whole frame's stars were trails
 
     @property
     def sigma_rad(self) -> float:
@@ -283,10 +291,10 @@ class Tracker:
         if self.camera is not None and img.shape != (self.camera.height, self.camera.width):
             raise BadInput(f"image is {img.shape[1]}x{img.shape[0]} but the camera is "
                            f"{self.camera.width}x{self.camera.height}")
-        if self.windows and self.history and self.camera is not None:
+        if self.windows and self.history and self.camera is not None and not self._trailed:
             return self._process_windowed(img, turn)
         t0 = time.perf_counter()
-        cents = detect_centroids(img, k_sigma=self.k_sigma)
+        cents = self._whole_frame(img)
         t_c = (time.perf_counter() - t0) * 1e3
         self._note_psf(cents)
         out = self._process_centroids(cents, img.shape[1], img.shape[0], turn)
@@ -294,7 +302,19 @@ class Tracker:
         out.time_ms["total"] = t_c + out.time_ms.get("track", 0.0) + out.time_ms.get("lost_in_space", 0.0)
         return out
 
+    def _whole_frame(self, img: np.ndarray) -> Centroids:
+        """Every star of a frame measured whole (lost-in-space, or a tracked frame that lost lock): as the default
+        pipeline measures them when it solves (`detect_stars`: wide stars binned, a sparse frame searched through
+        the matched filter, trails measured whole, a satellite's fragments left out), or the centroider's stars
+        for a method (the papers' conditions)."""
+        if self.method is None:
+            return detect_stars(img, k_sigma=self.k_sigma)
+        return detect_centroids(img, k_sigma=self.k_sigma)
+
     def _note_psf(self, cents: Centroids) -> None:
+        # a trailed frame (its stars measured whole, `skyview.detect.trailed`): the next one is measured whole too,
+        # the windows' round-star centroid would take a trail's part near the prediction for the star
+        self._trailed = "trailed" in cents.params
         if np.isfinite(cents.psf_sigma_px) and len(cents) >= 3:
             self._psf_sigma_px = float(cents.psf_sigma_px)
         if self.camera is not None:  # detections per steradian of the last whole frame
@@ -332,7 +352,7 @@ class Tracker:
                 self._solved(res)
                 return res
         t2 = time.perf_counter()
-        cents = detect_centroids(img, k_sigma=self.k_sigma)
+        cents = self._whole_frame(img)
         t3 = time.perf_counter()
         self._note_psf(cents)
         res.n_centroids = len(cents)
@@ -514,6 +534,16 @@ class Tracker:
         res.lost_lock = ""
         return True
 
+    def _follow_depth(self, lis: SolveResult) -> None:
+        """With no depth given, the tracking catalog as deep as a blind lost-in-space solve's, when that is deeper
+        (the blind pipeline takes its depth from the image: an 11 deg photograph shows a handful of stars of Hp 6
+        and dozens to Hp 8, and the attitude and the tracked matches are made of the catalog's stars)."""
+        depth = lis.mag_limit
+        if self._depth_given or depth is None or not math.isfinite(depth) or depth <= self.mag_limit:
+            return
+        self.mag_limit, self._fallback = float(depth), None
+        self.catalog = self.base.brighter_than(self.mag_limit)
+
     def _lost_in_space(self, centroids: Centroids, width: int, height: int, res: TrackFrame) -> None:
         res.mode = LOST_IN_SPACE
         if self.method is not None:
@@ -530,6 +560,7 @@ class Tracker:
             if lis.solved:
                 self.camera = lis.camera  # track with the camera the stars fitted
                 self._camera_fitted = lis.camera_fitted
+                self._follow_depth(lis)
             elif self.camera is not None:  # the default pipeline's second stage: improved angle at the FOV
                 if self._fallback is None:
                     self._fallback = MethodSolver(self.camera, "angle", mag_limit=self.mag_limit,
