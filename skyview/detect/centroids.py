@@ -22,8 +22,12 @@ Steps of `detect_centroids`:
    from the mask and repaired with its neighbours' median, so it neither becomes a star nor pulls
    the centroid of a faint star it touches (this assumes a PSF sigma of at least ~0.5 px, as star
    trackers defocus to get). Then 8-connected components of the pixels above it (cv2 on an image
-   compacted to the rows and columns that hold one); blobs smaller than min_pixels are dropped; a blob
-   with several separated peaks is split (deblend).
+   compacted to the rows and columns that hold one); blobs smaller than min_pixels are dropped; so are
+   hot pixels side by side and cosmic-ray hits, blobs of 2-4 pixels of 50 sigma or more whose surroundings
+   stay below 6 % of their peak (`_hot_clusters`: patched as a hot pixel is); a blob with several separated
+   peaks is split (deblend). Lines narrower than the optics draw (a cosmic ray's track, a bad column: 20
+   sigma or more, variance across under 0.2 px^2, `_sharp_streaks`) neither measure the PSF nor count as
+   stars (`n_streaks_rejected`).
 3. Position in a window around each blob's brightest pixel (side 2*ceil(2.5 sigma_eff) + 1, 7 px for
    the default PSF), background subtracted. Estimators (`estimator=`):
    "fit" (default): least-squares fit of a pixel-integrated Gaussian PSF (amplitude and position,
@@ -152,6 +156,7 @@ class Centroids:
     n_hot_pixels_rejected: int = 0
     n_small_rejected: int = 0  # other blobs smaller than min_pixels
     n_extended_rejected: int = 0  # blobs far larger than a star (roof, tree, Moon, glare)
+    n_streaks_rejected: int = 0  # lines narrower than the optics draw (cosmic rays, bad columns): `_sharp_streaks`
     n_unmeasured: int = 0  # fainter stars detected but not measured (detect_centroids' max_stars)
     # of them, the saturated ones: their window sums hold only a flat core, so their whole-disk brightness
     # (`skyview.detect.stars`) may rank them among the measured ones
@@ -190,6 +195,7 @@ class Centroids:
             "n": len(self), "background_level": self.background_level, "noise_sigma": self.noise_sigma,
             "threshold": self.threshold, "n_hot_pixels_rejected": self.n_hot_pixels_rejected,
             "n_small_rejected": self.n_small_rejected, "n_extended_rejected": self.n_extended_rejected,
+            "n_streaks_rejected": self.n_streaks_rejected,
             "n_unmeasured": self.n_unmeasured, "n_unmeasured_saturated": self.n_unmeasured_saturated,
             "psf_sigma_px": self.psf_sigma_px if math.isfinite(self.psf_sigma_px) else None,
             "estimator": self.estimator, "image_shape": list(self.image_shape), "params": self.params,
@@ -1071,7 +1077,16 @@ def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | 
     saturated_all = blob_max >= sat
 
     small = area < int(min_pixels)
-    keep = _flatnonzero(~small)
+    hot_blobs = _hot_clusters(px, H, W, bkg, resid, idx, lab, area, peak_val, sigma)
+    if hot_blobs is not None:  # (taken out as hot pixels are: counted with them, not as stars)
+        n_hot += int(area[hot_blobs].sum())
+        empty["n_hot_pixels_rejected"] = n_hot
+        small[hot_blobs] = False
+        out = np.zeros(len(area), dtype=bool)
+        out[hot_blobs] = True
+        keep = _flatnonzero(~small & ~out)
+    else:
+        keep = _flatnonzero(~small)
     n_small = int(np.count_nonzero(small))
     if keep.size == 0:
         return Centroids.empty(n_small_rejected=n_small, **empty)
@@ -1103,6 +1118,57 @@ def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | 
                     iterations=iterations, max_axis_ratio=max_axis_ratio, params=params, max_stars=max_stars)
 
 
+HOT_CLUSTER_MAX_PX = 4  # a blob this small, its peak this many sigma or more, ...
+HOT_CLUSTER_MIN_PEAK = 50.0
+HOT_CLUSTER_RING = 0.06  # ... every pixel around it below this fraction of its peak: hot pixels, a cosmic ray
+
+
+def _hot_clusters(px, H, W, bkg, resid, idx, lab, area, peak_val, sigma) -> np.ndarray | None:
+    """The blobs (0-based, ascending) of 2 .. HOT_CLUSTER_MAX_PX pixels that are hot pixels side by side or a
+    cosmic ray's hit, not a star: the peak (`peak_val`, background subtracted) HOT_CLUSTER_MIN_PEAK noise
+    sigma or more and every pixel touching the blob from outside below HOT_CLUSTER_RING of it. A star spreads its light over its PSF: the faintest ring a
+    star's blob can have is a 2 x 2 blob of a star centred on a pixel corner, at 4.8 % of its peak for a PSF of
+    sigma 0.5 px, 10.4 % at 0.6 px (the photographs of tests/data: 0.63 px), 40 % at 1 px; at 50 sigma a star
+    of 0.6 px clears the bound by more than 2 sigma in each of its four nearest ring pixels (and one wider than
+    that has them above the threshold: its blob is larger). Hot pixels two by two come by chance (~40 pairs
+    among 3,000 hot pixels on a megapixel frame, all brighter than its stars) and from cosmic rays. Their
+    pixels are patched (`_Pixels`: each with the median of its neighbours outside the blob) so that they pull
+    no star's centroid either. None when there is none."""
+    cand = _flatnonzero((area >= 2) & (area <= HOT_CLUSTER_MAX_PX) & (peak_val >= HOT_CLUSTER_MIN_PEAK * sigma))
+    if cand.size == 0:
+        return None
+    on = np.zeros(len(area) + 1, dtype=bool)
+    on[cand + 1] = True
+    sel = _flatnonzero(on[lab])  # the pixels of the candidate blobs
+    fi = idx[sel]
+    vals, valid, raw = _gather_px(px, H, W, bkg, resid, fi // W, fi % W, 1)
+    n = fi.size
+    vals, raw = vals.reshape(n, 9), raw.reshape(n, 9)
+    nb = fi[:, None] + _ring_offsets(W, True).T  # (n, 9) flat indices (off the image: masked by `valid`)
+    pos = np.minimum(idx.searchsorted(nb), idx.size - 1)
+    member = idx[pos] == nb  # a neighbour above the threshold: 8-connected, so a pixel of the same blob
+    if valid is not None:
+        member |= ~valid.reshape(n, 9)  # (off the image: neither the blob nor its ring)
+    ring_max = np.full(len(area) + 1, -np.inf)
+    np.maximum.at(ring_max, lab[sel], np.where(member, -np.inf, vals).max(axis=1))
+    hot = ring_max[cand + 1] < HOT_CLUSTER_RING * peak_val[cand]
+    if not hot.any():
+        return None
+    hot_blobs = cand[hot]
+    mine = np.zeros(len(area) + 1, dtype=bool)
+    mine[hot_blobs + 1] = True
+    k = _flatnonzero(mine[lab[sel]])
+    repaired = np.nanmedian(np.where(member[k], np.nan, raw[k]), axis=1).astype(np.float32)
+    hp, hv = fi[k], repaired
+    if px.hp is not None:
+        hp, hv = np.concatenate((px.hp, hp)), np.concatenate((px.hv, hv))
+    order = np.argsort(hp, kind="stable")
+    px.hp, px.hv = hp[order], hv[order]
+    if resid is not None:
+        resid.reshape(-1)[fi[k]] = repaired - bkg.reshape(-1)[fi[k]]
+    return hot_blobs
+
+
 def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw, sat, sigma, level, thr, n_hot,
              n_small, H, W, *, estimator, psf_sigma_px, window, iterations, max_axis_ratio, params,
              max_stars=None) -> Centroids:
@@ -1114,8 +1180,10 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     vals, valid, rawv = gather(h0)
     g_ok, g_uv, g_s2 = _gauss3_fast(vals, h0, pi, pj)
     g_unsat = g_ok & ~saturated  # a three-point fit of an unsaturated star
+    # (cosmic rays: they neither measure the PSF nor count as stars)
+    streak = _sharp_streaks(vals, h0, sigma) & (peak_val >= STREAK_MIN_PEAK * sigma)
     if psf_sigma_px is None:
-        good = g_unsat & (peak_val > 20.0 * sigma)
+        good = g_unsat & (peak_val > 20.0 * sigma) & ~streak
         if valid is not None:  # (None: every window inside the image)
             good &= valid[:, h0 - 1:h0 + 2, h0 - 1:h0 + 2].all(axis=(1, 2))
         g = np.sort(g_s2[good])  # _median_sorted of the sorted values = np.median
@@ -1137,6 +1205,11 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         vals, valid, rawv = gather(h)
     extended = area > max(MIN_EXTENDED_PX, EXTENDED_PSF_AREAS * math.pi * (3.0 * s_eff) ** 2)
     n_extended = int(np.count_nonzero(extended))
+    streak &= ~extended
+    n_streaks = int(np.count_nonzero(streak))
+    if n_streaks:  # (left out as the extended blobs are, counted apart)
+        extended = extended | streak
+        n_extended = int(np.count_nonzero(extended))
     brightness = vals.sum(axis=(1, 2))  # final for a star that is not blended (only the deblender changes vals)
     keep_s = ~extended if n_extended else None
     if max_stars is not None:
@@ -1232,9 +1305,51 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         elongated=elongated[order], edge=edge[order], blended=blended[order], axis_ratio=ratio[order],
         background_level=level, noise_sigma=sigma, threshold=thr, n_hot_pixels_rejected=n_hot,
         n_small_rejected=n_small, psf_sigma_px=psf_used, estimator=estimator, image_shape=(H, W),
-        params=params, n_extended_rejected=n_extended, n_unmeasured=n_eligible - len(order),
+        params=params, n_extended_rejected=n_extended - n_streaks, n_streaks_rejected=n_streaks,
+        n_unmeasured=n_eligible - len(order),
         n_unmeasured_saturated=n_sat_eligible - int(np.count_nonzero(saturated[order])),
     )
+
+
+STREAK_MIN_RATIO = 2.5  # a line: its second moments' axis ratio above this ...
+STREAK_MAX_MINOR_VAR = 0.2  # ... and its variance across (px^2, a pixel's 1/12 added) below this ...
+STREAK_MIN_PEAK = 20.0  # ... its peak this many sigma or more (a star's wings, 16 % of it or more, above 2 sigma)
+
+
+@functools.lru_cache(maxsize=16)
+def _moment_basis(h: int) -> np.ndarray:
+    """(n^2, 6) the window's pixel offsets from its centre (n = 2h + 1, row-major): 1, dx, dy, dx^2, dy^2, dx dy."""
+    d = np.arange(-h, h + 1, dtype=np.float64)
+    dy, dx = np.meshgrid(d, d, indexing="ij")
+    dx, dy = dx.ravel(), dy.ravel()
+    return np.stack([np.ones_like(dx), dx, dy, dx * dx, dy * dy, dx * dy], axis=1)
+
+
+def _sharp_streaks(vals: np.ndarray, h: int, sigma: float) -> np.ndarray:
+    """(N,) bool: which windows (N, 2h + 1, 2h + 1), background subtracted, centred on their blob's brightest
+    pixel, hold a line narrower than any optics draws: a cosmic ray's track, a bad column, not a star. The
+    pixels above 2 sigma weighted by their values: the variance across the blob's long axis, plus a pixel's
+    1/12, below STREAK_MAX_MINOR_VAR (0.2 px^2: sigma 0.45 px) with an axis ratio above STREAK_MIN_RATIO. A
+    star's light passes through the optics, so its variance across any axis is at least the PSF's sigma^2
+    plus 1/6 (0.26 for a PSF of 0.3 px, sharper than any star tracker or lens is focused); a 1-pixel line's
+    is 1/12 (0.083), 0.14 along an aliased diagonal. Satellite and star trails are drawn through the optics:
+    as wide across as the PSF, not streaks. The caller judges only peaks of STREAK_MIN_PEAK sigma or more: on
+    a fainter star of a sharp PSF (0.6 px) the pixels beside its core stay below 2 sigma, and two of them in a
+    row would look like a line."""
+    n_st = len(vals)
+    if n_st == 0:
+        return np.zeros(0, dtype=bool)
+    w = np.where(vals > 2.0 * sigma, vals, 0.0).reshape(n_st, -1)
+    m = w @ _moment_basis(h)
+    s = m[:, 0]
+    ok = s > 0
+    s = np.where(ok, s, 1.0)
+    mx, my = m[:, 1] / s, m[:, 2] / s
+    cxx, cyy, cxy = m[:, 3] / s - mx * mx, m[:, 4] / s - my * my, m[:, 5] / s - mx * my
+    half = 0.5 * (cxx + cyy) + 1.0 / 12.0
+    disc = np.hypot(0.5 * (cxx - cyy), cxy)
+    minor, major = half - disc, half + disc
+    return ok & (minor < STREAK_MAX_MINOR_VAR) & (major > STREAK_MIN_RATIO ** 2 * np.maximum(minor, 1e-12))
 
 
 def _pairs_within_groups(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -207,6 +207,9 @@ class Search:
     radius: float
     result: Identification
     t0: float
+    # the thread's CPU clock at the start: what a method's time budget counts (`BlindParams.time_budget_s`), so
+    # that a disk slow to page a database in, or another process on the cores, does not cut a search short
+    cpu0: float = field(default_factory=time.thread_time)
     stats: dict[str, Any] = field(default_factory=dict)
     reasons: list[str] = field(default_factory=list)
     verifications: int = 0

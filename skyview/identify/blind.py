@@ -453,10 +453,10 @@ class BlindIdentifier(CameraRefit):
         accepted one)."""
         first = state.normal_checks
         p = self.params
-        uv, steps, t0 = search.obs.uv, search.steps, search.t0
+        uv, steps, t0, cpu0 = search.obs.uv, search.steps, search.t0, search.cpu0
         width, height, n_obs = state.width, state.height, state.n_obs
         for q, pr, fov in zip(cands["quad"], cands["pattern"], cands["fov"]):
-            state.timed_out = time.perf_counter() - t0 > p.time_budget_s
+            state.timed_out = time.thread_time() - cpu0 > p.time_budget_s  # (the search's CPU time: `Search.cpu0`)
             if state.normal_checks - first >= max_checks or state.timed_out:
                 state.out_of_budget = True
                 state.gave_up = f"gave up after {state.checks} hypotheses ({time.perf_counter() - t0:.1f} s)"

@@ -44,7 +44,7 @@ class BlindParams:
     quick_radius_px: float = 4.0
     quick_threshold: float = 1e-3
     max_checks: int = 400  # quick checks at most
-    time_budget_s: float = 5.0
+    time_budget_s: float = 5.0  # seconds of the search's own CPU time (`Search.cpu0`: not a slow disk's or a busy core's)
 
 
 class NearestPixels:

@@ -1,0 +1,122 @@
+"""What never passed through the optics is not a star: hot pixels side by side and cosmic-ray tracks are left out
+by the centroider (`_hot_clusters`, `_sharp_streaks`), stars of any sharpness a lens gives are kept, and frames
+full of them solve."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from skyview.core.attitude import attitude_error_arcsec, random_attitudes
+from skyview.core.camera import Camera
+from skyview.detect.centroids import detect_centroids
+from skyview.simulate.render import SensorModel, simulate_image
+from skyview.solver.pipeline import solve_image
+
+RNG = np.random.default_rng(2026)
+H, W = 400, 600
+SKY, NOISE = 1000.0, 10.0
+
+
+def _star(img: np.ndarray, u: float, v: float, flux: float, sigma: float) -> None:
+    """A pixel-integrated Gaussian star added to img."""
+    s = math.sqrt(2.0) * sigma
+    x = np.arange(W)
+    y = np.arange(H)
+    from scipy.special import erf
+
+    fx = 0.5 * (erf((x + 0.5 - u) / s) - erf((x - 0.5 - u) / s))
+    fy = 0.5 * (erf((y + 0.5 - v) / s) - erf((y - 0.5 - v) / s))
+    img += flux * np.outer(fy, fx)
+
+
+def _field(sigma_psf: float, n_stars: int = 25):
+    img = SKY + RNG.normal(0.0, NOISE, (H, W))
+    # one star in each of n_stars cells of a grid 80 px apart (the artefacts go between them)
+    cells = np.array([(u, v) for u in range(40, W - 30, 80) for v in range(40, H - 30, 80)], dtype=np.float64)
+    uv = cells[RNG.permutation(len(cells))[:n_stars]] + RNG.uniform(-10, 10, (n_stars, 2))
+    # peaks from ~60 to ~5000 sigma, at every sub-pixel phase (pixel centres, edges and corners included)
+    uv[:8] = np.round(uv[:8]) + np.array([[0.0, 0.0], [0.5, 0.0], [0.0, 0.5], [0.5, 0.5]] * 2)
+    flux = np.geomspace(3e3, 3e5, n_stars) * (sigma_psf / 0.6) ** 2
+    for (u, v), f in zip(uv, flux):
+        _star(img, u, v, f, sigma_psf)
+    return img, uv
+
+
+def _far(points: np.ndarray, uv: np.ndarray, d: float = 8.0) -> np.ndarray:
+    """The points at least d px from every star."""
+    return points[np.hypot(*(points[:, None] - uv[None]).transpose(2, 0, 1)).min(axis=1) >= d]
+
+
+@pytest.mark.parametrize("sigma_psf", [0.6, 1.0, 2.0])
+def test_hot_pixel_pairs_and_cosmic_ray_tracks_are_left_out_and_stars_kept(sigma_psf):
+    """Bright pairs and 2 x 2 squares of hot pixels and 1 px wide tracks 3-12 px long at every angle (each on
+    its own), brighter than the stars, are none of them reported; every star is, whether its PSF is as sharp as the photographs'
+    (0.6 px) or wide, and wherever it is centred on its pixel (a star centred on a pixel corner is a 2 x 2
+    blob whose ring is its faintest: 10 % of its peak at 0.6 px)."""
+    img, uv = _field(sigma_psf)
+    # the artefacts 40 px apart (a grid of cells, each with one), none within 16 px of a star
+    cells = np.array([(u, v) for u in range(20, W - 30, 40) for v in range(20, H - 30, 40)])
+    spots = _far(cells + RNG.integers(-4, 5, cells.shape), uv, 16.0)
+    RNG.shuffle(spots)
+    pairs, tracks = spots[: len(spots) // 2], spots[len(spots) // 2:]
+    for k, (u, v) in enumerate(pairs):
+        du, dv = [(1, 0), (0, 1), (1, 1)][k % 3]
+        img[v, u] += 40000.0
+        img[v + dv, u + du] += 38000.0
+        if k % 4 == 0:  # a 2 x 2 square
+            img[v + 1, u] += 39000.0
+            img[v, u + 1] += 39000.0
+    layer = np.zeros((H, W), np.float32)
+    for k, (u, v) in enumerate(tracks):
+        length, angle = 3 + k % 10, math.radians(17.0 * k)
+        cv2.line(layer, (int(u), int(v)), (int(round(u + length * math.cos(angle))),
+                                           int(round(v + length * math.sin(angle)))), 1.0, 1)
+    img += 30000.0 * layer
+    frame = np.clip(img, 0, 65535).astype(np.uint16)
+    c = detect_centroids(frame)
+    found = np.hypot(*(c.uv[:, None] - uv[None]).transpose(2, 0, 1)).min(axis=0)
+    assert (found < 0.3).all(), found  # every star, at its place
+    d_star = np.hypot(*(c.uv[:, None] - uv[None]).transpose(2, 0, 1)).min(axis=1)
+    assert (d_star < 1.0).all(), c.uv[d_star >= 1.0]  # nothing else
+    assert c.n_hot_pixels_rejected >= 2 * len(pairs) and c.n_streaks_rejected >= 0.8 * len(tracks)
+    assert c.psf_sigma_px == pytest.approx(sigma_psf, rel=0.15)  # the tracks measure no PSF
+
+
+def test_a_satellite_trail_through_the_optics_is_not_a_cosmic_ray():
+    """A trail drawn through the optics (as wide across as the PSF) is no streak: the centroider reports its
+    pieces as before, and the trail filters (`skyview.detect.trails`) are the ones that judge it."""
+    img = SKY + RNG.normal(0.0, NOISE, (H, W))
+    layer = np.zeros((H, W), np.float32)
+    cv2.line(layer, (50, 80), (550, 300), 1.0, 1)
+    img += 5000.0 * cv2.GaussianBlur(layer, (0, 0), 1.0)
+    c = detect_centroids(np.clip(img, 0, 65535).astype(np.uint16))
+    assert c.n_streaks_rejected == 0 and len(c) >= 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["hot", "cosmic"])
+def test_frames_full_of_hot_pixels_or_cosmic_rays_solve(catalog, case):
+    """3,000 hot pixels of 20,000 e- (about 40 of them side by side, brighter than every star), or 150 cosmic-ray
+    tracks 1-12 px long: the 40 brightest detections were not stars and nothing solved; each frame now solves
+    blind, at its true attitude."""
+    cam = Camera.from_fov(12.0, 1280, 720)
+    sensor = SensorModel(n_hot_pixels=3000, hot_pixel_e=20000.0) if case == "hot" else SensorModel()
+    for seed, R in enumerate(random_attitudes(2, np.random.default_rng(41))):
+        frame = simulate_image(catalog, cam, R, sensor, seed=seed, mag_limit=6.5, faint_extra_mag=2.5)
+        img = frame.image.astype(np.float64)
+        if case == "cosmic":
+            rng = np.random.default_rng(seed + 7)
+            for _ in range(150):
+                u, v = rng.integers(0, cam.width), rng.integers(0, cam.height)
+                length, angle = rng.integers(1, 12), rng.uniform(0, np.pi)
+                layer = np.zeros(img.shape, np.float32)
+                cv2.line(layer, (int(u), int(v)), (int(u + length * np.cos(angle)), int(v + length * np.sin(angle))),
+                         1.0, 1)
+                img += rng.uniform(2000, 40000) * layer
+        res = solve_image(np.clip(img, 0, 65535).astype(np.uint16), deep=False)
+        assert res.solved, res.reason
+        assert attitude_error_arcsec(res.R, R)["boresight"] < 20.0
