@@ -123,3 +123,27 @@ def test_a_paper_method_at_a_fisheyes_fov_is_one_clear_error(capsys, tmp_path):
     assert main(["solve", str(png), "--fov-deg", "200", "--method", "angle"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pinhole" in err[0] and "leave out --method" in err[0]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fov, seed, given", [(88.0, 641, None), (100.0, 381, 105.0)])
+def test_a_wide_rectilinear_lens_is_told_from_a_fisheye(catalog, fov, seed, given):
+    """A 14 mm-class rectilinear lens (88 deg, 100 deg across 1280 x 960), wider than the pinhole search reaches,
+    is found by the fisheye search, whose lens fits the stars it first matches near the centre: it was reported
+    as an equidistant fisheye 106.8 deg and 112.7 deg across (the sky 3-5 deg off at the edges). The pinhole
+    fitted to those stars, grown outwards (`CameraRefit.refit(grow=True)`), holds more of them: the rectilinear
+    lens at its FOV, every pixel where the true camera puts it."""
+    from skyview.core.camera import PINHOLE
+    from skyview.simulate.render import SensorModel
+    from skyview.solver.pipeline import solve_image
+
+    cam = Camera.from_fov(fov, 1280, 960)
+    R = random_attitudes(1, np.random.default_rng(seed))[0]
+    fr = simulate_image(catalog, cam, R, SensorModel(), seed=seed, mag_limit=6.5, faint_extra_mag=2.5)
+    res = solve_image(fr.image, fov_deg=given, deep=False)
+    assert res.solved, res.reason
+    assert res.camera.model == PINHOLE and res.camera.fov_deg == pytest.approx(fov, rel=2e-3)
+    assert any("rectilinear" in n for n in res.notes)
+    corners = np.array([[0.0, 0.0], [1279.0, 0.0], [0.0, 959.0], [1279.0, 959.0], [639.5, 479.5]])
+    sky_true, sky = cam.unproject(corners) @ R, res.camera.unproject(corners) @ res.R
+    assert np.degrees(np.arccos(np.clip(np.sum(sky_true * sky, axis=1), -1, 1))).max() < 0.05

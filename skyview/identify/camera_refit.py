@@ -47,6 +47,9 @@ class BlindParams:
     time_budget_s: float = 5.0  # seconds of the search's own CPU time (`Search.cpu0`: not a slow disk's or a busy core's)
 
 
+GROW_RADII = (4.0, 2.0, 1.0)  # `CameraRefit.refit(grow=True)`: its matchings' radii, in quick radii
+
+
 class NearestPixels:
     """The nearest of a few points of the image (the brightest centroids, tens of them) to many others,
     within a radius: cKDTree.query(q, k=1, distance_upper_bound=r)'s answers (distance inf and index
@@ -110,18 +113,22 @@ class CameraRefit(Identifier):
         return depth
 
     def refit(self, uv: np.ndarray, matches: dict[int, int], camera: Camera, R: np.ndarray, *, checks: int = 1,
-              steps: list[Step] | None = None, method: str | None = None) -> Identification:
+              steps: list[Step] | None = None, method: str | None = None, grow: bool = False) -> Identification:
         """A verified hypothesis of another source (observed index -> row of this catalog, on `camera` at
         attitude `R`), its camera fitted and verified again as a blind one is; `checks` hypotheses were
         tried to find it (the Bonferroni factor). The observed stars beyond verify_stars are not used.
-        method: the method the result names (default: this refit's `name`)."""
+        method: the method the result names (default: this refit's `name`). grow: the camera is another lens
+        model fitted to stars near the centre, its scale only as good as they tell: the first matching reaches
+        GROW_RADII times the quick radius (the stars farther out, where a scale error moves them most), each
+        fit and matching after it closer."""
         search = self.begin(PixelStars(np.asarray(uv, dtype=np.float64).reshape(-1, 2), camera.width, camera.height))
         if method is not None:
             search.result.method = method
         search.steps.extend(steps or [])
-        return self.run(search, self._refitted(search, matches, camera, R, checks))
+        return self.run(search, self._refitted(search, matches, camera, R, checks, grow))
 
-    def _refitted(self, search: Search, matches: dict[int, int], camera: Camera, R: np.ndarray, checks: int):
+    def _refitted(self, search: Search, matches: dict[int, int], camera: Camera, R: np.ndarray, checks: int,
+                  grow: bool = False):
         uv = search.obs.uv
         n_obs = min(len(uv), self.params.verify_stars)
         seed = sorted(o for o in matches if o < n_obs)
@@ -131,7 +138,7 @@ class CameraRefit(Identifier):
         obs = np.array(seed, dtype=np.int64)
         rows = np.array([matches[o] for o in seed], dtype=np.int64)
         quick = {"agree": {}, "camera": camera, "R": np.asarray(R, dtype=np.float64)}
-        ver = yield from self._fitted(search, uv, n_obs, obs, rows, quick, max(1, int(checks)))
+        ver = yield from self._fitted(search, uv, n_obs, obs, rows, quick, max(1, int(checks)), grow=grow)
         if not ver.passed:
             search.reasons.append(ver.reason)
 
@@ -175,7 +182,8 @@ class CameraRefit(Identifier):
         return {"passed": passed, "n_agree": len(agree), "n_tested": n_tested, "p": prob, "note": note,
                 "agree": agree, "camera": cam, "R": R, "near": near}
 
-    def _fitted(self, search: Search, uv, n_obs, obs4, rows4, quick, checks, rows_reversed: bool = False) -> Generator:
+    def _fitted(self, search: Search, uv, n_obs, obs4, rows4, quick, checks, rows_reversed: bool = False,
+                grow: bool = False) -> Generator:
         """The camera fitted to a hypothesis' stars (with those the quick check found), re-matched, then the
         hypothesis yielded for the shared verification on the fitted camera, the catalog to the frame's
         depth and the measured noise; `checks`: the hypotheses checked so far on this image (Bonferroni);
@@ -191,13 +199,17 @@ class CameraRefit(Identifier):
         passes = ((p.quick_radius_px, False), (max(1.5, 0.5 * p.quick_radius_px), None))
         if cam.fisheye:  # a fisheye's distortion moves its stars by pixels from the first fit: fitted throughout
             passes = ((p.quick_radius_px, None), (p.quick_radius_px, None), (max(1.5, 0.5 * p.quick_radius_px), None))
+        if grow:  # (`refit`'s grow: wide first, then closer)
+            passes = tuple((k * p.quick_radius_px, None) for k in GROW_RADII) + passes[-1:]
         for radius, distortion in passes:
             idx = np.array(sorted(matches))
             fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R,
                              fit_k1=distortion, fit_k2=distortion)
             cam, R, fitted_on = fit.camera, fit.R, dict(matches)
             pairs, _ = self._match(uv, n_obs, obs_tree, cam, R, max(radius, 3.0 * fit.rms_px), near)
-            matches = {**{int(o): int(c) for o, c in zip(obs4, rows4)}, **pairs}
+            # (grow: the seed came through another lens and is not forced into the stars matched through this one)
+            matches = dict(pairs) if grow and len(pairs) >= 4 else {**{int(o): int(c) for o, c in zip(obs4, rows4)},
+                                                                     **pairs}
         idx = np.array(sorted(matches))
         if matches != fitted_on:  # the last matching changed the stars: fit once more
             fit = fit_camera(uv[idx], self.catalog.xyz[[matches[i] for i in idx]], cam, R)
@@ -214,6 +226,8 @@ class CameraRefit(Identifier):
         sigma_px = max(fit.rms_px if np.isfinite(fit.rms_px) else 0.5, 0.25)
         sigma_rad = sigma_px * cam.pixel_scale_rad
         deep = self.catalog.mag[rows4] <= cat.mag.max()  # the hypothesis' stars in the depth's catalog
+        if grow:  # the hypothesis: the seed's stars that this lens matched to the same catalog stars
+            deep &= np.array([matches.get(int(o)) == int(c) for o, c in zip(obs4, rows4)], dtype=bool)
         hyp = dict(zip(np.asarray(obs4)[deep].tolist(), np.searchsorted(parent_rows, rows4[deep]).tolist()))
         found = {"checks": checks, "fov_deg": cam.fov_deg, "k1": cam.k1, "k2": cam.k2, "mag_limit": mag_limit,
                  "fit_rms_px": fit.rms_px, **({"rows_reversed": True} if rows_reversed else {})}

@@ -268,8 +268,11 @@ class BlindSolver:
                            f"{rms:.1f} px (the attitude would be off by that): not reported")
             fres.matches = []
         if fres.solved:
-            fres.notes.append(f"a fisheye: {fres.camera.fov_deg:.1f} deg across, the {fres.camera.model} lens with k1 "
-                              f"{fres.camera.k1:+.4f} and k2 {fres.camera.k2:+.5f} fitted to its stars")
+            cam = fres.camera
+            what = ("a fisheye" if cam.fisheye else "a wide rectilinear lens (found by the fisheye search, its stars "
+                    "fitted best through a pinhole)")
+            fres.notes.append(f"{what}: {cam.fov_deg:.1f} deg across, the {cam.model} lens with k1 {cam.k1:+.4f} and "
+                              f"k2 {cam.k2:+.5f} fitted to its stars")
         if result is None:
             return fres
         if fres.solved:
@@ -338,11 +341,11 @@ class BlindSolver:
         span = self.fov_range_deg if model == PINHOLE else FISHEYE_FOV_RANGE_DEG
         guess = fov_deg if fov_deg is not None else float(np.sqrt(np.prod(span)))
         if ident.camera is not None and model != PINHOLE:
-            # the other fisheye lens, fitted to the matched stars, matched and verified again through it: kept
-            # when it holds more stars, or as many with less distortion
+            # the other lenses (the other fisheye, a rectilinear one), fitted to the matched stars, matched and
+            # verified again through each: kept when it holds more stars, or as many with less distortion
             for lens in _other_lenses(ident.camera, centroids.uv, self.catalog.xyz, ident.matches, ident.R):
                 a = self.identifier.refit(centroids.uv[:n], ident.matches, lens, ident.R,
-                                          checks=int(ident.stats.get("checks", 1)), steps=list(ident.steps))
+                                          checks=int(ident.stats.get("checks", 1)), steps=list(ident.steps), grow=True)
                 if a.identified and (len(a.matches) > len(ident.matches) or (
                         len(a.matches) == len(ident.matches)
                         and abs(a.camera.k1) + abs(a.camera.k2) < abs(ident.camera.k1) + abs(ident.camera.k2))):
@@ -769,20 +772,26 @@ def _with_time_of(result: SolveResult, other: SolveResult) -> SolveResult:
 
 def _other_lenses(camera: Camera, uv: np.ndarray, xyz: np.ndarray, matches: dict[int, int],
                   R: np.ndarray) -> list[Camera]:
-    """The other fisheye model (equidistant <-> equisolid) fitted to the matched stars, without distortion and
-    with what the stars support (none with too few): an equisolid lens searched as an equidistant one needs
-    k1 ~ -1/24, which the search's fit, on the stars near the centre it first matches, may stop short of."""
+    """The other lens models fitted to a fisheye answer's matched stars, each without distortion and with what
+    the stars support (none with too few): the other fisheye model (equidistant <-> equisolid: an equisolid
+    lens searched as an equidistant one needs k1 ~ -1/24, which the search's fit, on the stars near the centre
+    it first matches, may stop short of), and a rectilinear one (a pinhole): a 14 mm-class lens of 88-110 deg,
+    wider than the pinhole search's 81 deg, is found by the fisheye search, whose model fits the stars near
+    the centre it matches first with an FOV 13-41 % too wide and leaves the sky at the edges degrees off.
+    Each starts from the answer's focal length, which all three models share at the centre."""
     from skyview.core.camera_fit import fit_camera
 
     obs = sorted(matches)
     if len(obs) < 6 or R is None:
         return []
-    other = EQUISOLID if camera.model == EQUIDISTANT else EQUIDISTANT
-    start = Camera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, model=other)
     p_uv, p_xyz = uv[obs], xyz[[matches[o] for o in obs]]
-    plain = fit_camera(p_uv, p_xyz, start, R, fit_k1=False, fit_k2=False).camera
-    free = fit_camera(p_uv, p_xyz, start, R).camera
-    return [plain] if free == plain else [plain, free]
+    out = []
+    for other in (EQUISOLID if camera.model == EQUIDISTANT else EQUIDISTANT, PINHOLE):
+        start = Camera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, model=other)
+        plain = fit_camera(p_uv, p_xyz, start, R, fit_k1=False, fit_k2=False).camera
+        free = fit_camera(p_uv, p_xyz, start, R).camera
+        out += [plain] if free == plain else [plain, free]
+    return out
 
 
 def _narrow_field_may_solve(deep: bool | None, centroids: Centroids, fov_deg: float | None,
