@@ -87,6 +87,51 @@ def test_blank_image(capsys, tmp_path):
     assert code == 2 and one_line_error(err) and "blank" in err
 
 
+def test_a_float_image_of_values_under_one_is_not_blank_and_a_constant_one_says_its_value(capsys, tmp_path):
+    """Blank means every pixel equal: a float image of values in 0..1 (their integer parts all 0) is searched for
+    stars; a constant one says the value it holds."""
+    noise = tmp_path / "unit.tiff"
+    cv2.imwrite(str(noise), (np.random.default_rng(3).random((120, 160)) * 0.9).astype(np.float32))
+    code, out, err = run(capsys, "solve", str(noise))
+    assert code == 1 and "every pixel" not in err
+    flat = tmp_path / "flat.tiff"
+    cv2.imwrite(str(flat), np.full((64, 64), 0.5, np.float32))
+    code, out, err = run(capsys, "solve", str(flat))
+    assert code == 2 and one_line_error(err) and "every pixel is 0.5" in err
+
+
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    import struct
+    import zlib
+
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+
+def test_a_damaged_png_is_one_line_on_stderr(tmp_path):
+    """A PNG cut short, and one whose image data is shorter than its header says: one line on stderr and exit 2,
+    as a whole process (libpng wrote its own line to the process's stderr first, past OpenCV's logging)."""
+    import struct
+    import zlib
+
+    ok, buf = cv2.imencode(".png", np.random.default_rng(1).integers(0, 255, (64, 64), dtype=np.uint8))
+    cut = tmp_path / "cut.png"
+    cut.write_bytes(buf.tobytes()[: len(buf) // 3])
+    short = tmp_path / "short.png"
+    short.write_bytes(b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", struct.pack(">IIBBBBB", 900, 900, 8, 0, 0, 0, 0))
+                      + _chunk(b"IDAT", zlib.compress(b"\x00" * 100)) + _chunk(b"IEND", b""))
+    for path in (cut, short):
+        for extra in ([], ["--json"]):
+            p = subprocess.run([sys.executable, "-m", "skyview", "solve", str(path), *extra], capture_output=True,
+                               text=True, timeout=120)
+            assert p.returncode == 2, p.stderr
+            assert len(p.stderr.strip().splitlines()) == 1 and "libpng" not in p.stderr, (p.stdout, p.stderr)
+            if extra:
+                lines = p.stdout.strip().splitlines()
+                assert len(lines) == 1 and json.loads(lines[0])["status"] == "error"
+    assert "truncated" in subprocess.run([sys.executable, "-m", "skyview", "solve", str(cut)], capture_output=True,
+                                         text=True, timeout=120).stderr
+
+
 def test_empty_sky_is_not_solved(capsys, tmp_path):
     png = tmp_path / "empty.png"
     assert main(["simulate", "--ra", "10", "--dec", "10", "--mag-limit", "-3", "--out", str(png)]) == 0

@@ -94,8 +94,9 @@ def cmd_solve(a) -> int:
     path = Path(a.image)
     image = load_image(path)
     order = row_order(path)  # a FITS file's ROWORDER ("" if it has none), None for other files
-    if int(image.max()) == int(image.min()):
-        raise BadInput(f"{path} is blank (every pixel is {int(image.min())}): there is no sky to solve")
+    lo, hi = float(image.min()), float(image.max())
+    if hi == lo:  # (exactly: a float image of 0..1 is not blank because its values share an integer part)
+        raise BadInput(f"{path} is blank (every pixel is {lo:g}): there is no sky to solve")
     params = {}
     if a.sigma_arcsec is not None:
         if a.sigma_arcsec <= 0:

@@ -310,6 +310,32 @@ def finite_image(img: np.ndarray, name: str = "the image") -> np.ndarray:
     return out
 
 
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _c_stderr_silenced():
+    """The process's file descriptor 2 pointed at the null device for the block: libpng writes its own line
+    ("libpng error: Not enough image data") to stderr on a damaged PNG, past OpenCV's logging, and an error
+    is one line. (The block is a decode: a line another thread writes to stderr meanwhile is lost.)"""
+    with _STDERR_LOCK:
+        try:
+            saved = os.dup(2)
+        except OSError:  # no stderr to silence
+            yield
+            return
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            try:
+                os.dup2(null, 2)
+            finally:
+                os.close(null)
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
 def load_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image file (PNG, TIFF, JPEG, ... anything cv2 decodes, and FITS) unchanged in depth, as grey.
 
@@ -331,10 +357,14 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     if data[:9].tobytes() == b"SIMPLE  =":  # FITS (skyview.io.fits: rows turned to top-first)
         from skyview.io.fits import read_fits
         return finite_image(read_fits(p, max_image_pixels())[0], f"image {p}")
+    png = data[:8].tobytes() == b"\x89PNG\r\n\x1a\n"
+    if png and b"IEND" not in data[-4096:].tobytes():
+        raise BadInput(f"{p} is a truncated PNG: it ends before its last chunk (IEND), the file was cut short")
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
-        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        with _c_stderr_silenced() if png else contextlib.nullcontext():
+            img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except cv2.error:
         img = None
     finally:
