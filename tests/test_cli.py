@@ -377,3 +377,19 @@ def test_demo_ends_in_the_viewer_on_a_real_photograph(tmp_path, monkeypatch, cap
     out = capsys.readouterr().out
     assert asked["image"].endswith(".png") and "real-images" in asked["image"] and asked["method"] is None
     assert "5. the viewer on the photograph" in out
+
+
+def test_an_fov_given_far_off_is_solved_at_any_fov_with_a_note_unless_its_tolerance_is_given(capsys):
+    """--fov-deg given as the diagonal (14.25 deg for the photographs' 11.43 deg horizontal) or the vertical FOV
+    (8.6 deg), or just wrong (17 deg): nothing verifies within +-10 %, so the blind search takes any FOV and a
+    note says how far the one given was off, and what it looks like; with --fov-error given, it is kept to."""
+    photo = Path(__file__).parent / "data" / "real-images" / "2019-07-29T204726_Alt40_Azi-135_Try1.png"
+    for given, hint in ((14.25, "diagonal"), (8.6, "vertical"), (17.0, None)):
+        code, out, err = run(capsys, "solve", str(photo), "--fov-deg", str(given), "--json")
+        d = json.loads(out)
+        assert code == 0 and d["fov_deg"] == pytest.approx(11.433, abs=0.01)
+        note = [n for n in d["notes"] if "is off by more than" in n]
+        assert len(note) == 1 and (hint is None or f"the {hint} FOV" in note[0]), d["notes"]
+        assert (hint is not None) == ("FOV is" in note[0])
+    code, out, err = run(capsys, "solve", str(photo), "--fov-deg", "14.25", "--fov-error", "0.1", "--json")
+    assert code == 1 and json.loads(out)["status"] == "failed"

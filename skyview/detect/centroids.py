@@ -359,7 +359,7 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
         return finite_image(read_fits(p, max_image_pixels())[0], f"image {p}")
     png = data[:8].tobytes() == b"\x89PNG\r\n\x1a\n"
     if png and b"IEND" not in data[-4096:].tobytes():
-        raise BadInput(f"{p} is a truncated PNG: it ends before its last chunk (IEND), the file was cut short")
+        raise BadInput(f"{p} is not an image OpenCV can read: a truncated PNG (it ends before its last chunk, IEND)")
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:

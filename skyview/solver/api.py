@@ -277,7 +277,7 @@ def _check_method(method: str | None, variant: str, estimator: str) -> None:
         raise BadInput(f"unknown estimator {estimator!r}: choose from svd, q-method")
 
 
-def _pipeline_kwargs(*, fov_deg: float | None, fov_error: float, method: str | None, variant: str,
+def _pipeline_kwargs(*, fov_deg: float | None, fov_error: float | None, method: str | None, variant: str,
                      mag_limit: float | None, distortion: tuple[float, float], epoch: float, max_stars: int,
                      k_sigma: float, estimator: str, sigma_arcsec: float | None,
                      method_params: Mapping[str, Any] | None, memory_mb: float | None,
@@ -290,7 +290,8 @@ def _pipeline_kwargs(*, fov_deg: float | None, fov_error: float, method: str | N
         raise BadInput("distortion is (k1, k2)")
     if method is None and method_params:
         raise BadInput("method_params go with a method (the default pipeline has no method parameters)")
-    kw: dict[str, Any] = dict(fov_deg=fov_deg, method=method, fov_error=float(fov_error), mag_limit=mag_limit,
+    kw: dict[str, Any] = dict(fov_deg=fov_deg, method=method,
+                              fov_error=None if fov_error is None else float(fov_error), mag_limit=mag_limit,
                               distortion=(float(distortion[0]), float(distortion[1])), variant=variant,
                               epoch=float(epoch), max_stars=int(max_stars), k_sigma=float(k_sigma),
                               estimator=estimator, memory_mb=memory_mb, progress=progress, mirror=bool(mirror))
@@ -303,7 +304,7 @@ def _pipeline_kwargs(*, fov_deg: float | None, fov_error: float, method: str | N
     return kw
 
 
-def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: float = 0.1,
+def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: float | None = None,
           method: MethodName | None = None, variant: VariantName = "paper", mag_limit: float | None = None,
           distortion: tuple[float, float] = (0.0, 0.0), epoch: float = DEFAULT_EPOCH, max_stars: int = 40,
           k_sigma: float = 5.0, estimator: EstimatorName = "svd", sigma_arcsec: float | None = None,
@@ -317,7 +318,8 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
         fov_deg: the camera's *horizontal* full field of view in degrees, if known. None: searched
             blind (about 2.5-81 deg).
         fov_error: how far ``fov_deg`` may be off, a fraction in [0, 1) (0.1 = +-10 %). 0 means exact:
-            the papers' calibrated mode (no camera fitting).
+            the papers' calibrated mode (no camera fitting). None: +-10 %, then, when nothing solves
+            within it, any FOV (a note says how far the one given was off).
         method: None runs the default pipeline (blind four-star patterns, the camera's FOV and
             distortion fitted to the stars; then, given an FOV, the improved angle method at it).
             ``"angle"``, ``"triangle"``, ``"svd"``, ``"ellipticity"``, ``"stochastic"``, ``"genetic"``
@@ -368,7 +370,7 @@ class Solver:
         ...     sol = solver.solve(path)
     """
 
-    def __init__(self, *, fov_deg: float | None = None, fov_error: float = 0.1, method: MethodName | None = None,
+    def __init__(self, *, fov_deg: float | None = None, fov_error: float | None = None, method: MethodName | None = None,
                  variant: VariantName = "paper", mag_limit: float | None = None,
                  distortion: tuple[float, float] = (0.0, 0.0), epoch: float = DEFAULT_EPOCH, max_stars: int = 40,
                  k_sigma: float = 5.0, estimator: EstimatorName = "svd", sigma_arcsec: float | None = None,

@@ -403,7 +403,11 @@ MAG_LIMIT_RANGE = (-1.5, 12.0)
 EPOCH_RANGE = (1000.0, 3000.0)
 
 
-def check_fov_error(fov_error: float) -> None:
+def check_fov_error(fov_error: float | None) -> None:
+    """A one-line error unless fov_error is a fraction in [0, 1) or None (`solve_image`: +-DEFAULT_FOV_ERROR,
+    then any FOV)."""
+    if fov_error is None:
+        return
     try:
         e = float(fov_error)
     except (TypeError, ValueError):
@@ -505,7 +509,7 @@ NARROW_AFTER_CHECKS = 100
 
 
 def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, method: str | None = None, *,
-                fov_error: float = DEFAULT_FOV_ERROR, mag_limit: float | None = None,
+                fov_error: float | None = None, mag_limit: float | None = None,
                 distortion: tuple[float, float] = (0.0, 0.0), variant: str = "paper", epoch: float = DEFAULT_EPOCH,
                 max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd", memory_mb: float | None = None,
                 progress=None, try_flipped_rows: bool | None = None, deep: bool | None = None,
@@ -513,7 +517,10 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     """Solve one image: a path, or a 2-D (grey) or 3-D (BGR/BGRA) numpy array of any layout.
 
     fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
-    0 means exact: the papers' calibrated mode). method=None runs the default pipeline (blind
+    0 means exact: the papers' calibrated mode). fov_error None: +-DEFAULT_FOV_ERROR (10 %), and when nothing
+    solves within it, any FOV the blind search reaches, with a note of how far the one given was off (a
+    diagonal or vertical FOV given for the horizontal one, a crop factor forgotten: `fov_off_note`); a number
+    given is kept to. method=None runs the default pipeline (blind
     patterns, camera fitted; then, given an FOV, the improved angle method at it); method="angle",
     "triangle", ... runs that method (`variant` "paper" or "improved"), on the camera the blind
     front end fitted when fov_error > 0. mag_limit=None takes the depth from the image. Other
@@ -535,6 +542,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     check_fov_error(fov_error)
     check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
                         memory_mb=memory_mb)
+    anywhere = fov_error is None  # (the tolerance not given: +-10 %, then any FOV)
+    fov_error = DEFAULT_FOV_ERROR if fov_error is None else float(fov_error)
     img = as_image(image)
     H, W = img.shape
     k1, k2 = distortion
@@ -593,6 +602,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         result = None
         fitted = None
         fast = None
+        off_note = ""  # solved outside the FOV given (+-fov_error): how far it was off (`fov_off_note`)
         unpinned = False  # the first try's stars say its camera is off, and the camera refitted to them did not verify
         if method is None and fov_deg is not None and not wide:
             # the fastest path that can answer runs first: the improved angle method at the FOV given, on
@@ -616,15 +626,28 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             blind = blind_solver(epoch, memory_mb=memory_mb, progress=progress, deep=deep, **common)
             result = blind.solve_centroids(centroids, W, H, fov_deg=fov_deg, fov_error=fov_error,
                                             checks_before=checks_before, mirror=mirror is not False)
+            if not result.solved and anywhere and fov_deg is not None and not wide:
+                # the FOV given may be off by more than +-10 % (a diagonal or vertical FOV, a crop factor): any FOV
+                # the blind search reaches, its hypotheses counted after the first search's (Bonferroni)
+                wider = blind.solve_centroids(centroids, W, H, fov_deg=None, fov_error=fov_error,
+                                              checks_before=_checks(result), mirror=mirror is not False)
+                if wider.solved:
+                    wider = _with_time_of(wider, result)
+                    off_note = fov_off_note(fov_deg, fov_error, wider.camera)
+                    result = wider
+                else:
+                    result = _with_time_of(result, wider)
+                    result.reason = f"{result.reason}; at any FOV: {wider.reason}"
             if result.solved:
                 fitted = result.camera
                 blind_depth = result.mag_limit
+            searched = "at any FOV" if off_note else f"over +-{100 * fov_error:g} %"
             if unpinned:
                 if result.solved:
                     _with_time_of(result, fast)
                     result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) identified "
                                         "stars that did not fit it (the camera refitted to them did not verify): "
-                                        f"solved by the blind search over +-{100 * fov_error:g} %")
+                                        f"solved by the blind search {searched}")
                 else:  # the first try's answer, its camera as given
                     result = _with_time_of(fast, result)
                     result.notes.append(f"the stars identified at the FOV given ({fov_deg:g} deg) say the camera is "
@@ -634,8 +657,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                 _with_time_of(result, fast)
                 if result.solved:
                     result.notes.append(f"the improved angle method at the FOV given ({fov_deg:g} deg) did not "
-                                        f"verify ({fast.reason}): solved by the blind search over "
-                                        f"+-{100 * fov_error:g} %")
+                                        f"verify ({fast.reason}): solved by the blind search {searched}")
                 else:
                     result.reason = f"the improved angle method at {fov_deg:g} deg: {fast.reason}; then {result.reason}"
         if method is not None:
@@ -649,6 +671,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             mres = calibrated(method, camera, variant, result.centroids if turned else centroids)
             mres.camera_fitted, mres.rows_reversed = fitted is not None, turned and mres.solved
             result = mres
+        if off_note and result.solved:
+            result.notes.append(off_note)
         return result
 
     t0 = time.perf_counter()
@@ -695,6 +719,21 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                             "stored; v = 0 is the file's first row)" if try_flipped_rows else MIRROR_NOTE)
     result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
     return _noted_trails(result)
+
+
+def fov_off_note(fov_deg: float, fov_error: float, camera: Camera) -> str:
+    """Why an image solved outside the FOV given (+-fov_error): the FOV the stars say, and, when the one given is
+    the camera's diagonal or vertical FOV (within 3 %), that it is."""
+    cam = camera
+    hint = ""
+    if not cam.fisheye:
+        half_w = math.atan((cam.width / 2.0) / cam.fx)
+        for name, size in (("diagonal", math.hypot(cam.width, cam.height)), ("vertical", cam.height)):
+            other = 2.0 * math.degrees(math.atan(math.tan(half_w) * size / cam.width))
+            if abs(fov_deg / other - 1.0) <= 0.03:
+                hint = f" (the {name} FOV is {other:.2f} deg: --fov-deg is the horizontal one)"
+    return (f"the FOV given ({fov_deg:g} deg) is off by more than +-{100 * fov_error:g} %: solved at any FOV, the stars "
+            f"say {cam.fov_deg:.3f} deg across ({cam.fov_deg / fov_deg:.2f} x the one given){hint}")
 
 
 MIRROR_NOTE = ("a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows turned over "
