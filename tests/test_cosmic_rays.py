@@ -9,6 +9,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+from oracles.centroid_reference import _detect_centroids_reference
 
 from skyview.core.attitude import attitude_error_arcsec, random_attitudes
 from skyview.core.camera import Camera
@@ -78,6 +79,10 @@ def test_hot_pixel_pairs_and_cosmic_ray_tracks_are_left_out_and_stars_kept(sigma
     img += 30000.0 * layer
     frame = np.clip(img, 0, 65535).astype(np.uint16)
     c = detect_centroids(frame)
+    ref = _detect_centroids_reference(frame)  # the plain form of the same rules finds the same stars
+    assert (len(ref), ref.n_hot_pixels_rejected, ref.n_streaks_rejected) == (
+        len(c), c.n_hot_pixels_rejected, c.n_streaks_rejected)
+    assert np.abs(ref.uv - c.uv).max() < 2e-3
     found = np.hypot(*(c.uv[:, None] - uv[None]).transpose(2, 0, 1)).min(axis=0)
     assert (found < 0.3).all(), found  # every star, at its place
     d_star = np.hypot(*(c.uv[:, None] - uv[None]).transpose(2, 0, 1)).min(axis=1)
@@ -120,3 +125,25 @@ def test_frames_full_of_hot_pixels_or_cosmic_rays_solve(catalog, case):
         res = solve_image(np.clip(img, 0, 65535).astype(np.uint16), deep=False)
         assert res.solved, res.reason
         assert attitude_error_arcsec(res.R, R)["boresight"] < 20.0
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.uint16])
+@pytest.mark.parametrize("flat", [True, False])
+def test_hot_pixels_in_a_corner_are_patched_with_the_background_there(dtype, flat):
+    """A 2 x 2 hot cluster in the image's corner has no neighbour off the blob and on the image: its pixels take
+    the background there (they took NaN, which spread into the star whose window holds the corner, and out of
+    its JSON). The star at (6, 6), sigma 2 px: its window (+-6 px) holds the corner, its blob (~4.7 px) does not
+    touch the cluster."""
+    rng = np.random.default_rng(7)
+    img = SKY + rng.normal(0.0, NOISE, (H, W))
+    if not flat:
+        img += np.linspace(0.0, 400.0, W)[None, :]
+    _star(img, 6.0, 6.0, 2.0e4, 2.0)
+    for u, v in ((200.0, 150.0), (400.0, 300.0), (500.0, 100.0)):  # (stars enough to measure the PSF)
+        _star(img, u, v, 6e4, 2.0)
+    img[0:2, 0:2] += 3000.0
+    c = detect_centroids(img.astype(dtype))
+    assert np.isfinite(c.brightness).all() and np.isfinite(c.uv).all()
+    assert np.hypot(c.uv[:, 0] - 6.0, c.uv[:, 1] - 6.0).min() < 0.3 and c.n_hot_pixels_rejected >= 4
+    ref = _detect_centroids_reference(img.astype(dtype))
+    assert np.isfinite(ref.brightness).all() and len(ref) == len(c)

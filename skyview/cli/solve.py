@@ -204,8 +204,8 @@ def add_parsers(sub) -> None:
                    help="horizontal full field of view, deg, as far as it is known (default: searched blind)")
     v.add_argument("--fov-error", type=float_arg, default=None,
                    help="how far --fov-deg may be off, as a fraction (0.1 = +-10 %%; 0 = exact: the papers' "
-                        "calibrated mode); default: +-10 %%, then any FOV when nothing solves within it (a note "
-                        "says how far --fov-deg was off)")
+                        "calibrated mode); default: +-10 %%, then from a 2.5th to 2.5 times --fov-deg when nothing "
+                        "solves within it (a note says how far --fov-deg was off)")
     add_method(v, None, "an identification method: {methods}; default: the default pipeline (blind, camera fitted)")
     add_variant(v, "with --method: ")
     v.add_argument("--wcs", default=None, metavar="FILE.wcs",

@@ -358,7 +358,7 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
         from skyview.io.fits import read_fits
         return finite_image(read_fits(p, max_image_pixels())[0], f"image {p}")
     png = data[:8].tobytes() == b"\x89PNG\r\n\x1a\n"
-    if png and b"IEND" not in data[-4096:].tobytes():
+    if png and b"IEND" not in data[-65536:].tobytes():
         raise BadInput(f"{p} is not an image OpenCV can read: a truncated PNG (it ends before its last chunk, IEND)")
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
@@ -1160,7 +1160,9 @@ def _hot_clusters(px, H, W, bkg, resid, idx, lab, area, peak_val, sigma) -> np.n
     star's blob can have is a 2 x 2 blob of a star centred on a pixel corner, at 4.8 % of its peak for a PSF of
     sigma 0.5 px, 10.4 % at 0.6 px (the photographs of tests/data: 0.63 px), 40 % at 1 px; at 50 sigma a star
     of 0.6 px clears the bound by more than 2 sigma in each of its four nearest ring pixels (and one wider than
-    that has them above the threshold: its blob is larger). Hot pixels two by two come by chance (~40 pairs
+    that has them above the threshold: its blob is larger). A star sharper than ~0.52 px centred near a pixel
+    corner, at 50-100 sigma, is taken for hot pixels (no lens or star tracker focuses that sharp: the
+    photographs' 0.63 px are the sharpest seen). Hot pixels two by two come by chance (~40 pairs
     among 3,000 hot pixels on a megapixel frame, all brighter than its stars) and from cosmic rays. Their
     pixels are patched (`_Pixels`: each with the median of its neighbours outside the blob) so that they pull
     no star's centroid either. None when there is none."""
@@ -1188,7 +1190,13 @@ def _hot_clusters(px, H, W, bkg, resid, idx, lab, area, peak_val, sigma) -> np.n
     mine = np.zeros(len(area) + 1, dtype=bool)
     mine[hot_blobs + 1] = True
     k = _flatnonzero(mine[lab[sel]])
-    repaired = np.nanmedian(np.where(member[k], np.nan, raw[k]), axis=1).astype(np.float32)
+    outside = ~member[k]
+    has = outside.any(axis=1)
+    # (a pixel whose neighbours are all the blob's or off the image, in a corner: the background there)
+    repaired = np.full(k.size, float(bkg)) if resid is None else raw[k, 4] - vals[k, 4]
+    if has.any():
+        repaired[has] = np.nanmedian(np.where(outside[has], raw[k][has], np.nan), axis=1)
+    repaired = repaired.astype(np.float32)
     hp, hv = fi[k], repaired
     if px.hp is not None:
         hp, hv = np.concatenate((px.hp, hp)), np.concatenate((px.hv, hv))

@@ -319,7 +319,7 @@ def solve(image: ImageInput, /, *, fov_deg: float | None = None, fov_error: floa
             blind (about 2.5-81 deg).
         fov_error: how far ``fov_deg`` may be off, a fraction in [0, 1) (0.1 = +-10 %). 0 means exact:
             the papers' calibrated mode (no camera fitting). None: +-10 %, then, when nothing solves
-            within it, any FOV (a note says how far the one given was off).
+            within it, the FOVs from a 2.5th to 2.5 times ``fov_deg`` (a note says how far it was off).
         method: None runs the default pipeline (blind four-star patterns, the camera's FOV and
             distortion fitted to the stars; then, given an FOV, the improved angle method at it).
             ``"angle"``, ``"triangle"``, ``"svd"``, ``"ellipticity"``, ``"stochastic"``, ``"genetic"``

@@ -235,12 +235,14 @@ class BlindSolver:
         return _noted_trails(result)
 
     def solve_centroids(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None = None,
-                        fov_error: float = DEFAULT_FOV_ERROR, checks_before: int = 0, mirror: bool = True) -> SolveResult:
+                        fov_error: float | None = DEFAULT_FOV_ERROR, checks_before: int = 0,
+                        mirror: bool = True) -> SolveResult:
         """checks_before: the hypotheses earlier searches of the same image checked (counted in the verification).
         mirror: a mirror image of the sky (a star diagonal's, a flipped export) is searched too, in the same
         searches (`BlindIdentifier.identify`); found so, the result's `rows_reversed` is True and its centroids,
         camera, attitude and matches are those of the image with its rows turned over (row v read as row
         height - 1 - v)."""
+        fov_error = DEFAULT_FOV_ERROR if fov_error is None else fov_error  # (None: the default tolerance)
         kw = dict(fov_deg=fov_deg, fov_error=fov_error, mirror=mirror)
         if fov_deg is not None and fov_deg * (1 - fov_error) > self.fov_range_deg[1]:
             result = None  # wider than the pinhole search reaches: a fisheye only
@@ -518,9 +520,9 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
 
     fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
     0 means exact: the papers' calibrated mode). fov_error None: +-DEFAULT_FOV_ERROR (10 %), and when nothing
-    solves within it, any FOV the blind search reaches, with a note of how far the one given was off (a
-    diagonal or vertical FOV given for the horizontal one, a crop factor forgotten: `fov_off_note`); a number
-    given is kept to. method=None runs the default pipeline (blind
+    solves within it, the FOVs from a 2.5th to 2.5 times the one given (`WIDER_FOV_FACTOR`), with a note of how
+    far it was off (a diagonal or vertical FOV given for the horizontal one, a crop factor forgotten:
+    `fov_off_note`); a number given is kept to. method=None runs the default pipeline (blind
     patterns, camera fitted; then, given an FOV, the improved angle method at it); method="angle",
     "triangle", ... runs that method (`variant` "paper" or "improved"), on the camera the blind
     front end fitted when fov_error > 0. mag_limit=None takes the depth from the image. Other
@@ -542,7 +544,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     check_fov_error(fov_error)
     check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
                         memory_mb=memory_mb)
-    anywhere = fov_error is None  # (the tolerance not given: +-10 %, then any FOV)
+    fov_error_given = fov_error
+    anywhere = fov_error is None  # (the tolerance not given: +-10 %, then FOVs from a 2.5th to 2.5 times it)
     fov_error = DEFAULT_FOV_ERROR if fov_error is None else float(fov_error)
     img = as_image(image)
     H, W = img.shape
@@ -627,21 +630,29 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             result = blind.solve_centroids(centroids, W, H, fov_deg=fov_deg, fov_error=fov_error,
                                             checks_before=checks_before, mirror=mirror is not False)
             if not result.solved and anywhere and fov_deg is not None and not wide:
-                # the FOV given may be off by more than +-10 % (a diagonal or vertical FOV, a crop factor): any FOV
-                # the blind search reaches, its hypotheses counted after the first search's (Bonferroni)
-                wider = blind.solve_centroids(centroids, W, H, fov_deg=None, fov_error=fov_error,
+                # the FOV given may be off by more than +-10 % (a diagonal or vertical FOV, a crop factor): FOVs from a
+                # 2.5th to 2.5 times it (`WIDER_FOV_FACTOR`), its hypotheses counted after the first search's
+                # (Bonferroni)
+                centre, spread = _wider_fov(fov_deg)
+                wider = blind.solve_centroids(centroids, W, H, fov_deg=centre, fov_error=spread,
                                               checks_before=_checks(result), mirror=mirror is not False)
                 if wider.solved:
                     wider = _with_time_of(wider, result)
                     off_note = fov_off_note(fov_deg, fov_error, wider.camera)
                     result = wider
                 else:
+                    checks = max(_checks(result), _checks(wider))
                     result = _with_time_of(result, wider)
-                    result.reason = f"{result.reason}; at any FOV: {wider.reason}"
+                    if result.identification is not None:  # (the searches after these count both's)
+                        result.identification.stats["checks"] = checks
+                    result.reason = (f"{_without_advice(result.reason)}; then at {centre * (1 - spread):.2f}-"
+                                     f"{centre * (1 + spread):.2f} deg: {_without_advice(wider.reason)}; if the "
+                                     "field is outside that range or the brightest detections are not stars, leave "
+                                     "out --fov-deg (fov_deg) to search blind")
             if result.solved:
                 fitted = result.camera
                 blind_depth = result.mag_limit
-            searched = "at any FOV" if off_note else f"over +-{100 * fov_error:g} %"
+            searched = ("over a wider range of FOVs" if off_note else f"over +-{100 * fov_error:g} %")
             if unpinned:
                 if result.solved:
                     _with_time_of(result, fast)
@@ -704,7 +715,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         # a FITS file that does not say which way up its rows are: read bottom-first (the standard), it did not
         # solve; the default pipeline's searches took it for a mirror image of the sky too, a method does not,
         # so the other way up is tried once
-        other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error,
+        other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error_given,
                             mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
                             max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
                             progress=progress, try_flipped_rows=False, mirror=False, deep=deep,
@@ -721,19 +732,40 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     return _noted_trails(result)
 
 
+WIDER_FOV_FACTOR = 2.5  # an FOV given that does not solve within its tolerance: FOVs from F / this to F * this
+
+
+def _wider_fov(fov_deg: float) -> tuple[float, float]:
+    """(centre, fraction) of the FOVs from fov_deg / WIDER_FOV_FACTOR to fov_deg * WIDER_FOV_FACTOR: a diagonal
+    (x1.25 of a 4:3 sensor's width) or vertical FOV (x0.75) given for the horizontal one, a crop factor
+    (x1.5-1.6) forgotten or applied twice."""
+    lo, hi = fov_deg / WIDER_FOV_FACTOR, fov_deg * WIDER_FOV_FACTOR
+    return 0.5 * (lo + hi), (hi - lo) / (hi + lo)
+
+
+def _without_advice(reason: str) -> str:
+    """A failed blind search's reason without the FOVs searched and the advice `explain_failure` adds to it."""
+    return reason.split("; searched FOV")[0]
+
+
 def fov_off_note(fov_deg: float, fov_error: float, camera: Camera) -> str:
-    """Why an image solved outside the FOV given (+-fov_error): the FOV the stars say, and, when the one given is
-    the camera's diagonal or vertical FOV (within 3 %), that it is."""
+    """Why an image solved outside the FOV given +-fov_error: the FOV the stars say, and, when the one given is
+    the camera's diagonal or vertical FOV (within 3 %), that it is. (Within the tolerance: the search over it ran
+    out of budget, and the wider one found the pattern.)"""
     cam = camera
+    ratio = cam.fov_deg / fov_deg
+    if abs(ratio - 1.0) <= fov_error:
+        return (f"the blind search over the FOV given ({fov_deg:g} deg) +-{100 * fov_error:g} % ran out of budget; "
+                f"the wider search that followed solved it at {cam.fov_deg:.3f} deg")
     hint = ""
     if not cam.fisheye:
         half_w = math.atan((cam.width / 2.0) / cam.fx)
         for name, size in (("diagonal", math.hypot(cam.width, cam.height)), ("vertical", cam.height)):
             other = 2.0 * math.degrees(math.atan(math.tan(half_w) * size / cam.width))
             if abs(fov_deg / other - 1.0) <= 0.03:
-                hint = f" (the {name} FOV is {other:.2f} deg: --fov-deg is the horizontal one)"
-    return (f"the FOV given ({fov_deg:g} deg) is off by more than +-{100 * fov_error:g} %: solved at any FOV, the stars "
-            f"say {cam.fov_deg:.3f} deg across ({cam.fov_deg / fov_deg:.2f} x the one given){hint}")
+                hint = f" (the {name} FOV is {other:.2f} deg: the FOV to give is the horizontal one)"
+    return (f"the FOV given ({fov_deg:g} deg) is off by more than +-{100 * fov_error:g} %: solved over a wider range, the "
+            f"stars say {cam.fov_deg:.3f} deg across ({ratio:.2f} x the one given){hint}")
 
 
 MIRROR_NOTE = ("a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows turned over "

@@ -216,7 +216,7 @@ class Tracker:
         self.given_sigma = sigma_rad
         self.max_stars = int(max_stars)
         self.k_sigma = float(k_sigma)
-        self.fov_error = float(fov_error)
+        self.fov_error = DEFAULT_FOV_ERROR if fov_error is None else float(fov_error)
         self.turn_sigma = float(turn_sigma_rad)
         self.still_sigma = float(still_sigma_rad)
         self.min_matches = int(min_matches)
@@ -563,7 +563,8 @@ class Tracker:
                 self._follow_depth(lis)
             elif self.camera is not None:  # the default pipeline's second stage: improved angle at the FOV
                 if self._fallback is None:
-                    self._fallback = MethodSolver(self.camera, "angle", mag_limit=self.mag_limit,
+                    # (at most Hp 7.5, as `solve_image` builds this one: a deeper angle database is gigabytes)
+                    self._fallback = MethodSolver(self.camera, "angle", mag_limit=min(self.mag_limit, 7.5),
                                                   sigma_rad=self.given_sigma, catalog=self.base,
                                                   max_stars=self.max_stars, k_sigma=self.k_sigma, variant="improved")
                 first = lis.reason

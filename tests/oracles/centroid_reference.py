@@ -214,7 +214,8 @@ def _detect_centroids_reference(image: np.ndarray, *, k_sigma: float = 5.0, wind
             i, j = divmod(int(fi), W)
             nb = [(a, c) for a in range(i - 1, i + 2) for c in range(j - 1, j + 2)
                   if 0 <= a < H and 0 <= c < W and not mask[a, c]]
-            fixed.append(float(np.median([f[a, c] for a, c in nb])))
+            fixed.append(float(np.median([f[a, c] for a, c in nb])) if nb else
+                         float(bkg if resid is None else bkg[i, j]))  # (a corner's: the background)
         f.reshape(-1)[members] = np.float32(fixed)
         if resid is not None:
             resid.reshape(-1)[members] = np.float32(fixed) - bkg.reshape(-1)[members]
