@@ -1219,7 +1219,10 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
     g_ok, g_uv, g_s2 = _gauss3_fast(vals, h0, pi, pj)
     g_unsat = g_ok & ~saturated  # a three-point fit of an unsaturated star
     # (cosmic rays: they neither measure the PSF nor count as stars)
-    streak = _sharp_streaks(vals, h0, sigma) & (peak_val >= STREAK_MIN_PEAK * sigma)
+    streak = peak_val >= STREAK_MIN_PEAK * sigma
+    bright = _flatnonzero(streak)
+    if bright.size:
+        streak[bright] = _sharp_streaks(vals[bright], h0, sigma)
     if psf_sigma_px is None:
         good = g_unsat & (peak_val > 20.0 * sigma) & ~streak
         if valid is not None:  # (None: every window inside the image)
