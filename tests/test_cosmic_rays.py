@@ -147,3 +147,48 @@ def test_hot_pixels_in_a_corner_are_patched_with_the_background_there(dtype, fla
     assert np.hypot(c.uv[:, 0] - 6.0, c.uv[:, 1] - 6.0).min() < 0.3 and c.n_hot_pixels_rejected >= 4
     ref = _detect_centroids_reference(img.astype(dtype))
     assert np.isfinite(ref.brightness).all() and len(ref) == len(c)
+
+
+def _jpeg8(img: np.ndarray, quality: int = 85) -> np.ndarray:
+    """A 16-bit frame stretched to 8 bits (1st to 99.95th percentile) and JPEG-compressed, as an export would."""
+    a = img.astype(np.float64)
+    lo, hi = np.percentile(a, 1), np.percentile(a, 99.95)
+    ok, buf = cv2.imencode(".jpg", np.clip((a - lo) / (hi - lo) * 255, 0, 255).astype(np.uint8),
+                           [int(cv2.IMWRITE_JPEG_QUALITY), quality])
+    return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+
+
+def test_tracks_blurred_by_a_jpeg_go_after_the_round_stars_and_trails_do_not():
+    """100 cosmic-ray tracks on a photograph exported as an 8-bit JPEG: the JPEG blurs them past the streak test
+    and 38 of the 40 brightest detections are tracks, elongated every way; the round detections now come first
+    (`elongated_last`) and the photograph solves at its reference (it did not). Stars trailed 8 px, elongated
+    one way, keep their order."""
+    import json
+    from pathlib import Path
+
+    from skyview.core.attitude import attitude_error_arcsec
+    from skyview.detect.centroids import load_image
+    from skyview.detect.stars import detect_stars
+
+    real = Path(__file__).parent / "data" / "real-images"
+    ref = json.loads((real / "reference.json").read_text())
+    name = sorted(ref)[1]
+    img = load_image(real / name).astype(np.float64)
+    rng = np.random.default_rng(1)
+    H_, W_ = img.shape
+    for _ in range(100):
+        u, v = rng.integers(0, W_), rng.integers(0, H_)
+        length, angle = rng.integers(1, 12), rng.uniform(0, np.pi)
+        layer = np.zeros(img.shape, np.float32)
+        cv2.line(layer, (int(u), int(v)), (int(u + length * np.cos(angle)), int(v + length * np.sin(angle))), 1.0, 1)
+        img += rng.uniform(3000, 40000) * layer
+    frame = _jpeg8(np.clip(img, 0, 65535))
+    stars = detect_stars(frame, max_stars=100)
+    assert stars.params.get("elongated_last", 0) > 40 and not stars.elongated[:16].any()
+    res = solve_image(frame, deep=False)
+    assert res.solved, res.reason
+    assert attitude_error_arcsec(res.R, np.array(ref[name]["R"]))["boresight"] < 120.0
+    k = np.zeros((9, 9), np.float32)
+    k[4, :] = 1.0 / 9.0  # an 8 px trail along u
+    trailed = cv2.filter2D(load_image(real / name).astype(np.float32), -1, k, borderType=cv2.BORDER_REFLECT)
+    assert "elongated_last" not in detect_stars(np.clip(trailed, 0, 65535).astype(np.uint16)).params

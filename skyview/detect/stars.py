@@ -32,7 +32,7 @@ import numpy as np
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, row_median, to_gray
 from skyview.detect.hot_pixels import patch_hot_pixels
-from skyview.detect.trailed import trail_stars, trailed_frame
+from skyview.detect.trailed import elongated_every_way, trail_stars, trailed_frame
 from skyview.detect.trails import fragment_width_px, trail_members
 from skyview.detect.windows import background_windows
 
@@ -139,6 +139,7 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
         return _without_trails(dataclasses.replace(c, params={**c.params, "binning": 1}), reject_trails)
     b, cb, binned = (1 if binning is None else int(binning)), None, None
     moments = None  # the width check's (sigma, flux) of the brightest stars, when it ran
+    first_flux = True  # the width check's fluxes are those of the first stars of c (None: of others)
     if binning is None:
         # the centroider measured its stars' width from the unsaturated bright ones: when they are
         # compact, none of the brightest is saturated and there are enough, there is nothing to bin
@@ -148,7 +149,14 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
         # binning would gather?) waits with the matched filter for `fainter_stars`
         deferred = not faint_search and compact and len(c) < FEW_STARS
         if (not compact or len(c) < FEW_STARS) and not deferred:
-            moments = star_moments(image, c, np.arange(min(WIDTH_CHECK_STARS, len(c))))
+            # the width of the brightest that are not elongated (tracks, a storm of cosmic rays blurred by a JPEG,
+            # are as wide as they are long: they made such a frame look defocused, and binned it)
+            pick = np.flatnonzero(~c.elongated)[:WIDTH_CHECK_STARS]
+            if len(pick) < min(3, len(c)):
+                pick = np.arange(min(WIDTH_CHECK_STARS, len(c)))
+            moments = star_moments(image, c, pick)
+            if not np.array_equal(pick, np.arange(len(pick))):
+                first_flux = None  # (not the first stars': their fluxes are measured again below)
             sigma = _median_width(moments[0])  # = psf_sigma_from_moments(image, c)
             b = binning_for(sigma)
             if b == 1 and len(c) < FEW_STARS and not sigma < 1.5:
@@ -180,8 +188,22 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
                     c, moments = cm, None  # (other stars: the width check's moments are not theirs)
             else:
                 c.params["faint_search"] = "deferred"
-    c = _saturated_by_aperture(binned, c, b, moments[1] if moments is not None and b == 1 else None)
+    c = _saturated_by_aperture(binned, c, b, moments[1] if moments is not None and b == 1 and first_flux else None)
+    if binning is None and b == 1 and elongated_every_way(image, c):
+        c = _round_first(c)
     return _without_trails(c, reject_trails)
+
+
+def _round_first(c: Centroids) -> Centroids:
+    """A frame whose brightest detections are mostly elongated in no direction they share (`elongated_every_way`:
+    not trails, which share one however short): cosmic-ray tracks that a JPEG blurred wider than the centroider's
+    streak test, a storm of them, or stars smeared by a lens's coma at the edges: the detections not elongated first (brightest first among
+    them), the elongated after them in their order, so that the pattern searches start from round stars. How
+    many were put last: params["elongated_last"]."""
+    order = np.argsort(c.elongated, kind="stable")
+    out = take(c, order)
+    out.params["elongated_last"] = int(np.count_nonzero(c.elongated))
+    return out
 
 
 def _without_trails(c: Centroids, reject_trails: bool) -> Centroids:

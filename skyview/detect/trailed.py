@@ -84,14 +84,16 @@ def may_be_trailed(c: Centroids) -> bool:
     return k >= TRAIL_MIN_STARS and np.count_nonzero(c.elongated[:k]) >= TRAILED_FRACTION * k and c.threshold > 0
 
 
-def trailed_frame(image: np.ndarray, c: Centroids) -> tuple[float, float] | None:
-    """(length px, direction deg in [0, 180)) of the trail every star of the frame draws, or None for a frame
-    of round stars (the module docstring)."""
+def _direction_vote(image: np.ndarray, c: Centroids, saturated_too: bool = False):
+    """The vote of `trailed_frame`: among the brightest detections that are neither saturated (unless saturated_too)
+    nor a satellite's fragments, when most are elongated, their (length px, doubled angle rad) and which of them
+    point the way most do (within TRAIL_ANGLE_TOLERANCE_DEG); None when there are not TRAIL_MIN_STARS such
+    detections measured or most of them are not elongated."""
     if not may_be_trailed(c):
         return None
     depth = min(TRAIL_VOTE_DEPTH, len(c))
     fragments = trail_members(c.uv[:depth], max_width_px=fragment_width_px(c.psf_sigma_px))
-    vote = np.flatnonzero(~c.saturated[:depth] & ~fragments)
+    vote = np.flatnonzero(~fragments if saturated_too else ~c.saturated[:depth] & ~fragments)
     vote = vote[:TRAIL_CHECK_STARS]
     if len(vote) < TRAIL_MIN_STARS or np.count_nonzero(c.elongated[vote]) < TRAILED_FRACTION * len(vote):
         return None
@@ -103,8 +105,29 @@ def trailed_frame(image: np.ndarray, c: Centroids) -> tuple[float, float] | None
     # the direction most of them share (a window that holds a neighbour's trail too measures another)
     mean2 = math.atan2(float(np.mean(np.sin(angle2))), float(np.mean(np.cos(angle2))))
     along = np.abs(np.angle(np.exp(1j * (angle2 - mean2)))) <= math.radians(2.0 * TRAIL_ANGLE_TOLERANCE_DEG)
-    if np.count_nonzero(along) < max(TRAIL_MIN_STARS, TRAIL_AGREE_FRACTION * np.count_nonzero(ok)):
+    return length, angle2, along
+
+
+def shared_direction(along: np.ndarray) -> bool:
+    """Whether a vote's detections point one way: TRAIL_MIN_STARS and TRAIL_AGREE_FRACTION of them or more."""
+    return bool(np.count_nonzero(along) >= max(TRAIL_MIN_STARS, TRAIL_AGREE_FRACTION * len(along)))
+
+
+def elongated_every_way(image: np.ndarray, c: Centroids) -> bool:
+    """Whether most of the brightest detections, saturated or not, are elongated (`may_be_trailed`) in no direction
+    they share: not stars trailed, however short (their trails share one), nor bleeding columns (one too), but
+    tracks (cosmic rays that a JPEG blurred past the centroider's streak test, a storm of them) or a lens's coma."""
+    vote = _direction_vote(image, c, saturated_too=True)
+    return vote is not None and not shared_direction(vote[2])
+
+
+def trailed_frame(image: np.ndarray, c: Centroids) -> tuple[float, float] | None:
+    """(length px, direction deg in [0, 180)) of the trail every star of the frame draws, or None for a frame
+    of round stars (the module docstring)."""
+    vote = _direction_vote(image, c)
+    if vote is None or not shared_direction(vote[2]):
         return None
+    length, angle2, along = vote
     median_length = float(row_median(length[along][None])[0])
     if median_length < TRAIL_MIN_LENGTH_PX:
         return None
