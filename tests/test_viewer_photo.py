@@ -113,6 +113,22 @@ def test_a_mirror_image_is_drawn_turned_over_with_the_catalog_stars_on_its_stars
     assert "mirror image" in s.panel.status.content and "mirror image" in s.panel.result.content
 
 
+@pytest.mark.slow
+def test_a_negative_is_solved_and_drawn_inverted(session):
+    """A photograph exported as a negative (dark stars on a bright sky): the upload solves with its values inverted
+    and the viewer draws it so, its stars bright under their rings, the note in the status."""
+    server, s = session
+    photo = load_image(REAL / PHOTO)
+    run = _upload(s, 65535 - photo, "negative.png", typed_fov=11.4)
+    r = run.result
+    assert r.solved and any("negative" in n for n in r.notes)
+    assert float(np.median(run.source.image)) < 0.5 * float(np.max(run.source.image))  # the stars bright again
+    want = REFERENCE[PHOTO]
+    ra, dec, _ = np.degrees(radec_roll_from_R(r.R))
+    assert abs(((ra - want["ra_deg"] + 180) % 360 - 180) * np.cos(np.radians(dec))) < 0.02 and abs(dec - want["dec_deg"]) < 0.02
+    assert "negative" in s.panel.status.content or "negative" in s.panel.result.content
+
+
 def test_a_distorted_camera_moves_the_rings_and_the_texture_together():
     """image_plane_xy and undistorted agree: a star's pixel, undistorted, lands where the remapped texture
     shows it (a synthetic dot through a strongly distorted camera)."""

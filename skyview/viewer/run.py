@@ -26,7 +26,16 @@ from skyview.identify.base import is_sequence_method
 from skyview.present.drawables import StepView, match_groups, step_views
 from skyview.simulate.render import SensorModel, simulate_image
 from skyview.simulate.scoring import centroid_outcomes
-from skyview.solver.pipeline import DEFAULT_CENTROID_SIGMA_PX, MIRROR_NOTE, BlindSolver, MethodSolver, SolveResult
+from skyview.solver.pipeline import (
+    DEFAULT_CENTROID_SIGMA_PX,
+    MIRROR_NOTE,
+    NEGATIVE_NOTE,
+    BlindSolver,
+    MethodSolver,
+    SolveResult,
+    inverted,
+    looks_negative,
+)
 
 ARCSEC = math.pi / 180.0 / 3600.0
 RESOLUTIONS = ("512x512", "1024x1024", "1280x1024", "2048x2048")
@@ -308,10 +317,18 @@ def blind_solve(source: Source, solvers: Solvers) -> tuple[Source, SolveResult]:
     """The blind search on the source's image, every detected star measured (to draw them all). A user's
     image found to be a mirror image of the sky (a star diagonal's, a flipped export: the result's
     `rows_reversed`) comes back with the image so turned, which the result's pixels describe: it is drawn on
-    the sky the right way round. A simulated scene is never searched as one."""
+    the sky the right way round. A simulated scene is never searched as one. A user's image that does not solve
+    and is a negative of the sky (`pipeline.looks_negative`) comes back inverted, its stars bright."""
     blind, lock = blind_solver_for(solvers)
     with lock:
         result = blind.solve_array(source.image, measure_all=True, mirror=source.truth is None)
+        if not result.solved and source.truth is None and looks_negative(source.image):
+            # a negative of the sky: solved, and drawn, with its values inverted (its stars bright)
+            neg = inverted(source.image)
+            other = blind.solve_array(neg, measure_all=True, mirror=True)
+            if other.solved:
+                other.notes.append(NEGATIVE_NOTE)
+                source, result = replace(source, image=neg), other
     if result.rows_reversed:  # a mirror image: the image turned over is the one the result describes
         source = replace(source, image=np.ascontiguousarray(source.image[::-1]), rows_reversed=not source.rows_reversed)
         result.rows_reversed = False
