@@ -51,6 +51,7 @@ PAPER_MAG_LIMIT = 6.0
 # a limit is given (the triangle database grows with the cube of
 # the stars in a field and has no memory budget yet)
 AUTO_DEPTH_METHODS = ("angle",)
+ANGLE_MAX_DEPTH = 7.5  # the improved angle method after a blind solve: at most this deep (gigabytes of pairs past it)
 
 
 class MethodSolver:
@@ -547,16 +548,19 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
     check_fov_error(fov_error)
     check_solve_options(max_stars=max_stars, mag_limit=mag_limit, distortion=distortion, epoch=epoch,
                         memory_mb=memory_mb)
+    options = dict(fov_error=fov_error, mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
+                   max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb, progress=progress,
+                   try_flipped_rows=try_flipped_rows, deep=deep, measure_all=measure_all, mirror=mirror, **kwargs)
+
+    def again(picture: np.ndarray, **changes) -> SolveResult:
+        """This solve of another reading of the image (turned over, inverted), with these options changed."""
+        return solve_image(picture, fov_deg, method, **{**options, **changes})
+
     if negative:  # (a negative of the sky, said so: its stars made bright)
-        result = solve_image(inverted(as_image(image)), fov_deg, method, fov_error=fov_error, mag_limit=mag_limit,
-                             distortion=distortion, variant=variant, epoch=epoch, max_stars=max_stars,
-                             k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb, progress=progress,
-                             try_flipped_rows=try_flipped_rows, deep=deep, measure_all=measure_all, mirror=mirror,
-                             negative=False, **kwargs)
+        result = again(inverted(as_image(image)), negative=False)
         if result.solved:
             result.notes.append(NEGATIVE_NOTE)
         return result
-    fov_error_given = fov_error
     anywhere = fov_error is None  # (the tolerance not given: +-10 %, then FOVs from a 2.5th to 2.5 times it)
     fov_error = DEFAULT_FOV_ERROR if fov_error is None else float(fov_error)
     img = as_image(image)
@@ -584,7 +588,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
             depth = PAPER_MAG_LIMIT
         if depth is None:
             n_depth = min(len(centroids), FAST_TRY_DEPTH_STARS if first_try else max_stars)
-            depth = (min(float(np.ceil(blind_depth * 4) / 4), 7.5) if blind_depth is not None else
+            depth = (min(float(np.ceil(blind_depth * 4) / 4), ANGLE_MAX_DEPTH) if blind_depth is not None else
                      auto_mag_limit(_base_catalog(epoch), camera, n_depth))
         key = (method_name, var, camera, depth, epoch, first_try, repr(sorted(kw.items())),
                repr(sorted(common.items())))
@@ -727,11 +731,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         # a FITS file that does not say which way up its rows are: read bottom-first (the standard), it did not
         # solve; the default pipeline's searches took it for a mirror image of the sky too, a method does not,
         # so the other way up is tried once
-        other = solve_image(np.ascontiguousarray(img[::-1]), fov_deg, method, fov_error=fov_error_given,
-                            mag_limit=mag_limit, distortion=distortion, variant=variant, epoch=epoch,
-                            max_stars=max_stars, k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb,
-                            progress=progress, try_flipped_rows=False, mirror=False, deep=deep,
-                            measure_all=measure_all, **kwargs)
+        other = again(np.ascontiguousarray(img[::-1]), try_flipped_rows=False, mirror=False, negative=False)
         if other.solved:
             other.rows_reversed = True
             for stage, ms in result.time_ms.items():  # the first reading's time counts
@@ -741,12 +741,9 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
         result.notes.append("the FITS header has no ROWORDER: solved with its rows read top-first (pixel rows as "
                             "stored; v = 0 is the file's first row)" if try_flipped_rows else MIRROR_NOTE)
     if not result.solved and negative is None and looks_negative(img):
-        other = solve_image(img, fov_deg, method, fov_error=fov_error_given, mag_limit=mag_limit,
-                            distortion=distortion, variant=variant, epoch=epoch, max_stars=max_stars,
-                            k_sigma=k_sigma, estimator=estimator, memory_mb=memory_mb, progress=progress,
-                            try_flipped_rows=try_flipped_rows, deep=deep, measure_all=measure_all, mirror=mirror,
-                            negative=True, **kwargs)
+        other = again(inverted(img), negative=False)
         if other.solved:
+            other.notes.append(NEGATIVE_NOTE)
             for stage, ms in result.time_ms.items():  # the first reading's time counts
                 other.time_ms[stage] = other.time_ms.get(stage, 0.0) + ms
             result = other
@@ -809,13 +806,12 @@ def fov_off_note(fov_deg: float, fov_error: float, camera: Camera) -> str:
                 f"the wider search that followed solved it at {cam.fov_deg:.3f} deg")
     hint = ""
     if not cam.fisheye:
-        half_w = math.atan((cam.width / 2.0) / cam.fx)
-        for name, size in (("diagonal", math.hypot(cam.width, cam.height)), ("vertical", cam.height)):
-            other = 2.0 * math.degrees(math.atan(math.tan(half_w) * size / cam.width))
+        diagonal = 2.0 * math.degrees(math.atan(math.hypot(cam.width / (2.0 * cam.fx), cam.height / (2.0 * cam.fy))))
+        for name, other in (("diagonal", diagonal), ("vertical", cam.fov_v_deg)):
             if abs(fov_deg / other - 1.0) <= 0.03:
                 hint = f" (the {name} FOV is {other:.2f} deg: the FOV to give is the horizontal one)"
-    return (f"the FOV given ({fov_deg:g} deg) is off by more than +-{100 * fov_error:g} %: solved over a wider range, the "
-            f"stars say {cam.fov_deg:.3f} deg across ({ratio:.2f} x the one given){hint}")
+    return (f"the FOV given ({fov_deg:g} deg) is off by more than +-{100 * fov_error:g} %: solved over a wider range, "
+            f"the stars say {cam.fov_deg:.3f} deg across ({ratio:.2f} x the one given){hint}")
 
 
 MIRROR_NOTE = ("a mirror image of the sky (a star diagonal's, or a flipped export): solved with its rows turned over "

@@ -63,6 +63,7 @@ from skyview.identify.base import Identification, Observation
 from skyview.identify.tracking import Prediction, TrackedIdentifier, match_radii, rotation_matrix, rotvec
 from skyview.identify.verify import RADIUS_SIGMAS
 from skyview.solver.pipeline import (
+    ANGLE_MAX_DEPTH,
     BLIND,
     DEFAULT_CENTROID_SIGMA_PX,
     DEFAULT_FOV_ERROR,
@@ -186,7 +187,8 @@ class Tracker:
     identification method for lost-in-space (through `MethodSolver`), or None for the default pipeline.
     mag_limit: the catalog depth for tracking and for the method (default Hp 6, as `solve_image`'s
     methods; with method None and no depth given, tracking then goes as deep as the first lost-in-space solve,
-    whose depth the blind pipeline takes from the image: `_follow_depth`). Other keyword arguments go to `MethodSolver` (method_params, estimator, ...).
+    whose depth the blind pipeline takes from the image: `_follow_depth`). Other keyword arguments go to
+    `MethodSolver` (method_params, estimator, ...).
     """
 
     def __init__(self, camera: Camera | None = None, method: str | None = None, *, mag_limit: float | None = None,
@@ -563,8 +565,9 @@ class Tracker:
                 self._follow_depth(lis)
             elif self.camera is not None:  # the default pipeline's second stage: improved angle at the FOV
                 if self._fallback is None:
-                    # (at most Hp 7.5, as `solve_image` builds this one: a deeper angle database is gigabytes)
-                    self._fallback = MethodSolver(self.camera, "angle", mag_limit=min(self.mag_limit, 7.5),
+                    # (no deeper than `solve_image` builds this one: a deeper angle database is gigabytes)
+                    depth = min(self.mag_limit, ANGLE_MAX_DEPTH)
+                    self._fallback = MethodSolver(self.camera, "angle", mag_limit=depth,
                                                   sigma_rad=self.given_sigma, catalog=self.base,
                                                   max_stars=self.max_stars, k_sigma=self.k_sigma, variant="improved")
                 first = lis.reason
