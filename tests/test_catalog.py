@@ -58,10 +58,13 @@ def test_shipped_file_is_reproduced_by_a_rebuild(tmp_path, cat):
     rebuilt = build_guide_catalog()
     save_guide_catalog(rebuilt, tmp_path / "g.npz")
     again = load_guide_catalog(tmp_path / "g.npz")
-    for name in ("hip", "xyz", "mag", "pm", "flags"):
+    for name in ("hip", "mag", "pm", "flags"):
         np.testing.assert_array_equal(getattr(again, name), getattr(cat, name), err_msg=name)
+    # the unit vectors to the last bit where this machine's numpy computes sin and cos as the one that built
+    # the file did; its SIMD trigonometry differs by an ulp between instruction sets (AVX2 / AVX-512)
+    np.testing.assert_allclose(again.xyz, cat.xyz, rtol=0, atol=4e-16)
     np.testing.assert_array_equal(np.isnan(again.bv), np.isnan(cat.bv))
-    assert again.fingerprint == cat.fingerprint
+    assert again.fingerprint == cat.fingerprint or not np.array_equal(again.xyz, cat.xyz)
     assert ASSET_PATH.exists()
 
 

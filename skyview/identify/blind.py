@@ -459,7 +459,8 @@ class BlindIdentifier(CameraRefit):
             state.timed_out = time.thread_time() - cpu0 > p.time_budget_s  # (the search's CPU time: `Search.cpu0`)
             if state.normal_checks - first >= max_checks or state.timed_out:
                 state.out_of_budget = True
-                state.gave_up = f"gave up after {state.checks} hypotheses ({time.perf_counter() - t0:.1f} s)"
+                state.gave_up = (f"gave up after {state.checks} hypotheses ({time.thread_time() - cpu0:.1f} s of CPU time, "
+                                 f"{time.perf_counter() - t0:.1f} s wall)")
                 return
             obs4 = quads[q]
             rows4 = self.rows[pr].astype(np.int64)
