@@ -32,7 +32,7 @@ import numpy as np
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, row_median, to_gray
 from skyview.detect.hot_pixels import patch_hot_pixels
-from skyview.detect.trailed import elongated_every_way, trail_stars, trailed_frame
+from skyview.detect.trailed import elongated_every_way, long_trail, trail_stars, trailed_frame
 from skyview.detect.trails import fragment_width_px, trail_members
 from skyview.detect.windows import background_windows
 
@@ -169,6 +169,13 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
                     if len(ct) >= max(FEW_STARS, 2 * len(c)):
                         b, cb, binned = trial, ct, bt
                         break
+    if b > 1 and binning is None:
+        # stars that look wide may be trails too long for the vote's windows (each a row of fragments): those are
+        # measured whole along the trail, not binned
+        trail = long_trail(image, c, k_sigma=k_sigma)
+        if trail is not None:
+            c = trail_stars(image, c, trail, k_sigma=k_sigma, **kwargs)
+            return _without_trails(dataclasses.replace(c, params={**c.params, "binning": 1}), reject_trails)
     if b > 1 and min(H, W) // b >= MIN_BINNED_SIDE:
         if cb is None:
             binned = bin_image(image, b)
