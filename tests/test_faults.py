@@ -214,6 +214,27 @@ def test_a_truncated_cached_database_heals_itself(capsys, tmp_path, monkeypatch,
     assert messages.count("damaged") == 1 and dbs[0].stat().st_size > 1000
 
 
+def test_a_cache_that_cannot_be_written_still_solves_and_says_so_once(capsys, tmp_path, monkeypatch, sky):
+    """SKYVIEW_CACHE naming a file (or any folder that cannot be made): the databases are built in memory, the
+    solve answers, and stderr holds one line saying why (not a Python warning per database)."""
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the cache should be")
+    monkeypatch.setenv("SKYVIEW_CACHE", str(blocker))
+    import skyview.identify.database
+    import skyview.solver.pipeline
+
+    skyview.solver.pipeline._SOLVERS.clear()
+    monkeypatch.setattr(skyview.identify.database, "_UNWRITABLE", set())
+    args = ["solve", sky, "--method", "angle", "--variant", "improved", "--fov-deg", "12", "--fov-error", "0", "--json"]
+    code, out, err = run(capsys, *args)
+    skyview.solver.pipeline._SOLVERS.clear()
+    assert code == 0 and json.loads(out)["status"] == "solved"
+    said = [ln for ln in err.splitlines() if "could not write the cache" in ln]
+    assert len(said) == 1 and said[0].startswith("skyview:") and "SKYVIEW_CACHE" in said[0]
+    assert "Warning" not in err and "Traceback" not in err
+    assert blocker.read_text() == "a file where the cache should be"
+
+
 # ------------------------------------------------------------------------------------------ benches
 
 def _mark(path: str) -> str:

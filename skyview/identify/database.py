@@ -17,7 +17,6 @@ import os
 import sys
 import tempfile
 import time
-import warnings
 import zipfile
 from pathlib import Path
 from typing import Callable
@@ -33,6 +32,8 @@ FORMAT_VERSION = 1
 _KEY_FIELD = "__key__"
 _NAMES_FIELD = "__names__"
 DEFAULT_CACHE_MB = 4096  # SKYVIEW_CACHE_MB overrides; the least recently used databases go first
+
+_UNWRITABLE: set[str] = set()  # cache folders this process could not write (said once each)
 
 
 def make_key(method: str, params: dict, catalog: GuideCatalog, camera: Camera | None) -> dict:
@@ -149,7 +150,12 @@ def load_or_build(key: dict, build: Callable[[], dict[str, np.ndarray]], *, mmap
         info["file_bytes"] = path.stat().st_size
         evict_to_budget(keep=path)
     except OSError as exc:  # a read-only cache still works, it just rebuilds next time
-        warnings.warn(f"could not cache the database at {path}: {exc}", RuntimeWarning, stacklevel=2)
+        # (one line on stderr for the user, as the build's own lines; once per cache folder and process)
+        if str(path.parent) not in _UNWRITABLE:
+            _UNWRITABLE.add(str(path.parent))
+            reason = exc.strerror or str(exc)
+            print(f"skyview: could not write the cache in {path.parent} ({reason}): the databases are built again in "
+                  "each process; set SKYVIEW_CACHE to a writable folder", file=sys.stderr, flush=True)
         info["file_bytes"] = None
     return arrays, info
 
