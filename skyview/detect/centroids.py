@@ -962,6 +962,7 @@ def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | 
     band_max = _band_max(f)  # first: the one full pass brings the frame into the cache for what follows
     grid, gby, gbx, level, sigma, flat = _background_stats(f, background_block)
     thr = float(k_sigma) * sigma
+    params["background_flat"] = bool(flat)  # (one level for the whole frame, or a map: `detect_stars` reads it)
     if flat:
         bkg, resid = level, None
         idx = _above_idx(f, np.float32(bkg + thr), band_max)

@@ -42,6 +42,8 @@ FEW_STARS = 12  # fewer detections than this: try the image binned (stars too wi
 MATCHED_FILTER_GAIN = 3  # the matched filter's stars are kept when they are at least this many more
 MIN_BINNED_SIDE = 64  # never bin an image below this many pixels a side
 WIDTH_CHECK_STARS = 15  # the brightest detections whose widths say whether a frame's stars are wide
+LOCAL_PEAK_FRACTION = 0.6  # a detection on a background map stands this share of k_sigma above its own border ...
+LOCAL_MISFIT_SIGMAS = 1.0  # ... and is ranked by its own border where that lies this many sigma above the map
 # A star is measured on its pixels above this fraction of its peak (so that the background's structure
 # and its neighbours stay out); the RMS radius of a Gaussian cut there is this fraction of sigma:
 PEAK_FRACTION = 0.1
@@ -196,9 +198,73 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
             else:
                 c.params["faint_search"] = "deferred"
     c = _saturated_by_aperture(binned, c, b, moments[1] if moments is not None and b == 1 and first_flux else None)
+    if b == 1:
+        kept = _on_their_own_background(image, c, k_sigma)
+        m = kwargs.get("max_stars")
+        if (kept.params.get("n_background_rejected") or kept.params.get("n_background_rebrightened")) \
+                and c.n_unmeasured and m is not None:
+            # measured places lost to the map's error, or ranks it gave: every detection measured, the first m kept
+            full = detect_centroids(image, k_sigma=k_sigma, **{**kwargs, "max_stars": None})
+            full = dataclasses.replace(full, params={**c.params, **full.params, "binning": 1})
+            kept = _first(_on_their_own_background(image, _saturated_by_aperture(image, full, 1), k_sigma), int(m))
+        c = kept
     if binning is None and b == 1 and elongated_every_way(image, c):
         c = _round_first(c)
     return _without_trails(c, reject_trails)
+
+
+def _on_their_own_background(image: np.ndarray, c: Centroids, k_sigma: float) -> Centroids:
+    """c read against each detection's own surroundings where the background map misses the sky: around the Moon's
+    glow or a lamp's halo the sky changes faster than the map's 64 px blocks follow, the map lies below it by many
+    sigma over whole regions, the noise's peaks there cross the threshold by the map's error and their window sums
+    add it up, so that they outrank the stars. Each detection's surroundings: the border of a window of half-size
+    max(3 PSF sigmas, the measuring window's half-size + 1, 4 px), its median the local background, its noise the
+    MAD of the border less the plane through it (a glow's slope taken out), never below the frame's sigma.
+
+    - A detection whose peak (the brightest pixel of its 3 x 3 centre) stands less than LOCAL_PEAK_FRACTION x
+      k_sigma local sigmas above its border's median is taken out (`params["n_background_rejected"]`): a star found
+      on a true background stands k_sigma sigma or more above it, and its border's median lies within a quarter
+      of a sigma of the map.
+    - A detection whose border lies LOCAL_MISFIT_SIGMAS frame sigmas or more above the map (the brightness it was
+      ranked by, less its window's sum against the border's median, over the window's area) is ranked by that
+      local sum instead (`params["n_background_rebrightened"]`); the others keep their brightness and order.
+
+    Only frames whose background is a map (`params["background_flat"]` False) are read."""
+    n = len(c)
+    if n == 0 or c.params.get("background_flat", True) or not c.noise_sigma > 0:
+        return c
+    img = to_gray(image)
+    h = int(c.params.get("window_used", 7)) // 2
+    radius = max(4, h + 1, int(math.ceil(3.0 * c.psf_sigma_px)) if math.isfinite(c.psf_sigma_px) else 4)
+    win, inside = background_windows(img, c.uv, radius)  # (each less its border's median)
+    if len(win) == 0:
+        return c
+    d = np.arange(-radius, radius + 1, dtype=np.float64)
+    ring = np.zeros((2 * radius + 1, 2 * radius + 1), dtype=bool)
+    ring[[0, -1], :] = ring[:, [0, -1]] = True
+    x, y = np.broadcast_to(d[None, :], ring.shape)[ring], np.broadcast_to(d[:, None], ring.shape)[ring]
+    r = win[:, ring]
+    r = r - r.mean(axis=1, keepdims=True)
+    r -= np.outer(r @ x / (x @ x), x) + np.outer(r @ y / (y @ y), y)  # (the ring is symmetric: x and y orthogonal)
+    noise = np.maximum(c.noise_sigma, 1.4826 * row_median(np.abs(r - row_median(r)[:, None])))
+    centre = win[:, radius - 1: radius + 2, radius - 1: radius + 2].max(axis=(1, 2))
+    local = win[:, radius - h: radius + h + 1, radius - h: radius + h + 1].sum(axis=(1, 2))
+    misfit = (c.brightness[inside] - local) / (2 * h + 1) ** 2  # the border's median above the map, per pixel
+    keep = np.ones(n, dtype=bool)
+    # (a saturated star keeps its place and brightness: its core is flat at the top, its border may hold its wings)
+    unsat = ~c.saturated[inside]
+    keep[inside] = (centre >= LOCAL_PEAK_FRACTION * k_sigma * noise) | ~unsat
+    redo = np.zeros(n, dtype=bool)
+    redo[inside] = (misfit >= LOCAL_MISFIT_SIGMAS * c.noise_sigma) & unsat
+    dropped, rebright = n - int(np.count_nonzero(keep)), int(np.count_nonzero(redo & keep))
+    c.params["n_background_rejected"], c.params["n_background_rebrightened"] = dropped, rebright
+    if dropped == 0 and rebright == 0:
+        return c
+    brightness = c.brightness.copy()
+    brightness[np.flatnonzero(inside)[redo[inside]]] = local[redo[inside]]
+    c = dataclasses.replace(c, brightness=brightness, params=dict(c.params))
+    kept = np.flatnonzero(keep)
+    return take(c, kept[np.argsort(-brightness[kept], kind="stable")] if rebright else kept)
 
 
 def _round_first(c: Centroids) -> Centroids:
@@ -263,6 +329,16 @@ def _binned_kwargs(kwargs: dict, b: int) -> dict:
     """The centroider's options for an image binned b times: the background keeps its size on the sky."""
     block = int(kwargs.get("background_block", 64))
     return {**kwargs, "background_block": max(8, block // b)}
+
+
+def _first(c: Centroids, m: int) -> Centroids:
+    """The first m centroids of c, the others counted as detected but not measured (`Centroids.n_unmeasured`)."""
+    if len(c) <= m:
+        return c
+    rest = c.saturated[m:]
+    out = take(c, np.arange(m))
+    return dataclasses.replace(out, n_unmeasured=c.n_unmeasured + len(c) - m,
+                               n_unmeasured_saturated=c.n_unmeasured_saturated + int(np.count_nonzero(rest)))
 
 
 def take(c: Centroids, keep: np.ndarray) -> Centroids:

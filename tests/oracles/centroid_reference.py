@@ -119,9 +119,10 @@ def _detect_centroids_reference(image: np.ndarray, *, k_sigma: float = 5.0, wind
     fmin, fmax = float(f.min()), float(f.max())
     if fmax == fmin:
         return Centroids.empty(background_level=fmin, noise_sigma=0.0, estimator=estimator,
-                               image_shape=(H, W), params=params)
+                               image_shape=(H, W), params={**params, "background_flat": True})
 
     bkg, level, sigma = _estimate_background_reference(f, background_block)
+    params["background_flat"] = isinstance(bkg, float)  # one level for the whole frame, or a map
     thr = float(k_sigma) * sigma
     if isinstance(bkg, float):
         resid = None
