@@ -278,7 +278,7 @@ def long_trail(image: np.ndarray, c: Centroids, k_sigma: float = 5.0, background
     # (saturated blobs do not vote: a bright star bleeds along its column)
     keep = np.flatnonzero(~blobs["edge"] & ~blobs["saturated"] & (blobs["area"] >= 3) & (blobs["s"] > 0))
     keep = keep[np.argsort(-blobs["s"][keep], kind="stable")][:LONG_TRAIL_BLOBS]
-    if len(keep) < LONG_TRAIL_MIN_VOTERS:
+    if len(keep) < min_voters:
         return None
     m = np.stack([blobs["sxx"][keep], blobs["syy"][keep], blobs["sxy"][keep]], axis=1)
     length, angle2 = _trail_shape(m)
