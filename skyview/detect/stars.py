@@ -24,6 +24,7 @@ rows of fragments. Star trackers' own images (compact PSF, no trails) pass throu
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import cv2
@@ -239,17 +240,19 @@ def _on_their_own_background(image: np.ndarray, c: Centroids, k_sigma: float) ->
     win, inside = background_windows(img, c.uv, radius)  # (each less its border's median)
     if len(win) == 0:
         return c
-    d = np.arange(-radius, radius + 1, dtype=np.float64)
-    ring = np.zeros((2 * radius + 1, 2 * radius + 1), dtype=bool)
-    ring[[0, -1], :] = ring[:, [0, -1]] = True
-    x, y = np.broadcast_to(d[None, :], ring.shape)[ring], np.broadcast_to(d[:, None], ring.shape)[ring]
-    r = win[:, ring]
-    r = r - r.mean(axis=1, keepdims=True)
-    r -= np.outer(r @ x / (x @ x), x) + np.outer(r @ y / (y @ y), y)  # (the ring is symmetric: x and y orthogonal)
-    noise = np.maximum(c.noise_sigma, 1.4826 * row_median(np.abs(r - row_median(r)[:, None])))
     centre = win[:, radius - 1: radius + 2, radius - 1: radius + 2].max(axis=(1, 2))
     local = win[:, radius - h: radius + h + 1, radius - h: radius + h + 1].sum(axis=(1, 2))
     misfit = (c.brightness[inside] - local) / (2 * h + 1) ** 2  # the border's median above the map, per pixel
+    # the local noise where the map misses (elsewhere a detection stands k_sigma sigma above the map and its
+    # border's median within half a sigma of it: it passes with the frame's sigma)
+    noise = np.full(len(win), c.noise_sigma)
+    suspect = np.flatnonzero(misfit >= 0.5 * c.noise_sigma)
+    if len(suspect):
+        ring, x, y = _ring(radius)
+        r = win[suspect][:, ring]
+        r = r - r.mean(axis=1, keepdims=True)
+        r -= np.outer(r @ x / (x @ x), x) + np.outer(r @ y / (y @ y), y)  # (a symmetric ring: x and y orthogonal)
+        noise[suspect] = np.maximum(c.noise_sigma, 1.4826 * row_median(np.abs(r - row_median(r)[:, None])))
     keep = np.ones(n, dtype=bool)
     # (a saturated star keeps its place and brightness: its core is flat at the top, its border may hold its wings)
     unsat = ~c.saturated[inside]
@@ -265,6 +268,18 @@ def _on_their_own_background(image: np.ndarray, c: Centroids, k_sigma: float) ->
     c = dataclasses.replace(c, brightness=brightness, params=dict(c.params))
     kept = np.flatnonzero(keep)
     return take(c, kept[np.argsort(-brightness[kept], kind="stable")] if rebright else kept)
+
+
+@functools.lru_cache(maxsize=16)
+def _ring(radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The border of a (2 radius + 1)^2 window (a mask) and its pixels' column and row offsets from the centre."""
+    d = np.arange(-radius, radius + 1, dtype=np.float64)
+    ring = np.zeros((2 * radius + 1, 2 * radius + 1), dtype=bool)
+    ring[[0, -1], :] = ring[:, [0, -1]] = True
+    x, y = np.broadcast_to(d[None, :], ring.shape)[ring], np.broadcast_to(d[:, None], ring.shape)[ring]
+    for a in (ring, x, y):
+        a.flags.writeable = False
+    return ring, x, y
 
 
 def _round_first(c: Centroids) -> Centroids:
