@@ -82,6 +82,17 @@ def test_damaged_images_are_one_line_errors_with_json(capsys, tmp_path, sky):
         assert f.read_bytes() == data  # never touched
 
 
+def test_a_camera_raw_file_says_what_to_do(capsys, tmp_path):
+    """A camera's raw file (OpenCV reads none): one line naming the format and what to export instead."""
+    f = tmp_path / "IMG_0001.CR2"
+    data = b"II*\x00\x10\x00\x00\x00CR\x02\x00" + bytes(range(256)) * 40
+    f.write_bytes(data)
+    code, out, err = run(capsys, "solve", f, "--json")
+    assert code == 2 and one_line(err)
+    msg = json.loads(out)["error"]
+    assert "camera raw file (.CR2)" in msg and "TIFF" in msg and f.read_bytes() == data
+
+
 def test_float_tiff_with_nan_and_inf(capsys, tmp_path):
     a = np.random.default_rng(1).normal(100, 5, (64, 64)).astype(np.float32)
     a[5, 5], a[10, 10] = np.nan, np.inf

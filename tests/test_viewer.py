@@ -487,6 +487,40 @@ def test_upload_solves_the_users_image(session):
     assert s.wait_idle(60)
 
 
+def test_fits_and_tiff_uploads_solve_and_a_raw_file_says_what_to_do(session):
+    """A telescope's FITS (rows bottom-first, as the standard stores them) and a 16-bit TIFF, uploaded: each
+    solves, the FITS at the attitude of its rows read top-first; a camera's raw file gets one line saying what to
+    export instead. The upload's file dialog offers them."""
+    import io
+
+    from astropy.io import fits
+
+    from skyview.viewer.panel import UPLOAD_TYPES
+
+    server, s = session
+    frame = simulate(SceneConfig(ra_deg=120.0, dec_deg=-20.0, roll_deg=15.0, fov_deg=12.0, resolution="1024x768"),
+                     s.solvers.base_catalog)
+    truth_z = np.asarray(frame.truth["R"])[2]
+    buf = io.BytesIO()
+    fits.PrimaryHDU(frame.image[::-1].astype(np.uint16)).writeto(buf)  # FITS rows: bottom first
+    ok, tif = cv2.imencode(".tiff", frame.image.astype(np.uint16))
+    s.panel.variant.value = "improved"  # (the paper's angle method leaves a 12 deg field ambiguous)
+    assert s.wait_idle(60)
+    for name, data in (("m42.fits", buf.getvalue()), ("m42.tiff", tif.tobytes())):
+        s.receive_upload(name, data)
+        assert s.wait_idle(60) and s.error == "", (name, s.error)
+        r = s.run.result
+        assert r.solved and s.run.source.name == name
+        assert np.degrees(np.arccos(np.clip(r.R[2] @ truth_z, -1, 1))) * 3600 < 60, name
+    s.receive_upload("IMG_0001.CR2", b"II*\x00" + bytes(4000))
+    assert "camera raw file (.CR2)" in s.error and "TIFF" in s.error
+    assert all(t in UPLOAD_TYPES.split(",") for t in ("image/tiff", ".fits", ".fit", ".tif"))
+    s.use_simulation()
+    assert s.wait_idle(30) and s.error == ""
+    s.panel.variant.value = "paper"
+    assert s.wait_idle(60)
+
+
 def test_clicking_a_star_names_it(session):
     server, s = session
     row = s.run.catalog.index_of(26311)  # Alnilam, in the default field

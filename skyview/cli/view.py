@@ -141,8 +141,8 @@ def add_parsers(sub) -> None:
 
     w = sub.add_parser("view", help="the browser viewer: sky, field of view, image, identification steps")
     w.add_argument("photo", nargs="?", default=None, metavar="PHOTO",
-                   help="open on this photograph (PNG / JPEG), solved blind (the same as --image)")
-    w.add_argument("--image", default=None, help="start on this image (PNG / JPEG) instead of a simulated sky")
+                   help="open on this photograph (PNG / JPEG / TIFF / FITS), solved blind (the same as --image)")
+    w.add_argument("--image", default=None, help="start on this image (PNG / JPEG / TIFF / FITS) instead of a simulated sky")
     w.add_argument("--fov-deg", type=float_arg, default=None,
                    help="horizontal full field of view of --image, deg (without --image: of the simulated camera)")
     w.add_argument("--host", default="127.0.0.1",

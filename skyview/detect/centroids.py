@@ -336,6 +336,19 @@ def _c_stderr_silenced():
             os.close(saved)
 
 
+_CAMERA_RAW = frozenset((".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".orf", ".rw2", ".raf",
+                         ".pef", ".srw", ".3fr", ".iiq", ".erf", ".kdc", ".mrw", ".x3f", ".dng"))  # cameras' raw formats
+
+
+def camera_raw_message(name: str | os.PathLike) -> str:
+    """What to do with a camera's raw file that nothing here decodes (by its name's extension), or ''."""
+    suffix = Path(name).suffix
+    if suffix.lower() not in _CAMERA_RAW:
+        return ""
+    return (f"{name} is a camera raw file ({suffix}), which OpenCV does not read: export it as a 16-bit TIFF or PNG "
+            "(or FITS, or a JPEG) first")
+
+
 def load_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image file (PNG, TIFF, JPEG, ... anything cv2 decodes, and FITS) unchanged in depth, as grey.
 
@@ -370,7 +383,7 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     finally:
         cv2.utils.logging.setLogLevel(level)
     if img is None:
-        raise BadInput(f"{p} is not an image OpenCV can read")
+        raise BadInput(camera_raw_message(p) or f"{p} is not an image OpenCV can read")
     img = to_gray(img)
     if img.size == 0 or img.ndim != 2:
         raise BadInput(f"image {p} is empty (size {img.shape})")

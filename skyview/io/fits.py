@@ -46,18 +46,22 @@ def is_fits(head: bytes) -> bool:
     return bytes(head[: len(FITS_MAGIC)]) == FITS_MAGIC
 
 
-def read_fits(path: str | os.PathLike, max_pixels: int) -> tuple[np.ndarray, bool]:
-    """(image with row 0 at the top, whether the file declared its row order) of a FITS file.
+def read_fits(path: str | os.PathLike, max_pixels: int, content: bytes | None = None) -> tuple[np.ndarray, bool]:
+    """(image with row 0 at the top, whether the file declared its row order) of a FITS file, or of its bytes
+    `content` (an upload: `path` is then its name, for the messages).
 
     BadInput with one line for a file astropy cannot read, one with no image, a data cube that is
     not a colour image, and an image over `max_pixels` pixels (checked before reading the data).
     """
+    import io
+
     from astropy.io import fits  # astropy is a dependency; imported here to keep the solve path's start short
 
     p = Path(path)
     try:
         # the data is read only when asked for, after the size check (memmap cannot apply BZERO)
-        with _quiet(), fits.open(p, memmap=False, lazy_load_hdus=True) as hdul:
+        with _quiet(), fits.open(p if content is None else io.BytesIO(content), memmap=False,
+                                 lazy_load_hdus=True) as hdul:
             for hdu in hdul:
                 if not getattr(hdu, "is_image", False):
                     continue

@@ -38,6 +38,10 @@ PAPER_CAMERA = {"fov_deg": 30.0, "resolution": "1024x1024", "mag_limit": 4.5}  #
 
 NO_PHOTO = "-"  # the gallery's first entry: no bundled photograph chosen
 DETECTIONS_DRAWN = 150  # rings drawn by default: a photograph of 800+ detections stays readable
+# what the upload's file dialog offers (MIME types and extensions, as an HTML input's `accept`): what
+# `picture.decode_image_bytes` reads
+UPLOAD_TYPES = ("image/png,image/jpeg,image/tiff,image/webp,image/bmp,.png,.jpg,.jpeg,.tif,.tiff,.webp,.bmp,"
+                ".fits,.fit,.fts,.fz")
 
 @dataclass
 class Panel:
@@ -192,9 +196,9 @@ def build_panel(gui, methods: list[str], variants: list[str], cfg: SceneConfig, 
     # a user's own photograph first: the upload is the first thing on the page
     # disabled until the session behind it is ready (`Session.__init__` enables it): an upload sent before its
     # callback is wired would be dropped
-    upload = gui.add_upload_button("Upload and solve", icon="upload", mime_type="image/png,image/jpeg",
-                                   hint="your own star photograph (PNG / JPEG): solved blind, no FOV needed",
-                                   disabled=True)
+    upload = gui.add_upload_button("Upload and solve", icon="upload", mime_type=UPLOAD_TYPES,
+                                   hint="your own star photograph (PNG / JPEG / TIFF / FITS): solved blind, no FOV "
+                                        "needed", disabled=True)
     upload_fov = gui.add_number("FOV hint (deg)", initial_value=cfg.fov_deg, min=FOV_RANGE_DEG[0],
                                 max=FOV_RANGE_DEG[1], step=0.1,
                                 hint="a hint only (horizontal field of view): the FOV is fitted to the stars")

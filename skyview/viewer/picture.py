@@ -11,7 +11,8 @@ import cv2
 import numpy as np
 
 from skyview.core.errors import BadInput
-from skyview.detect.centroids import check_pixel_count, to_gray
+from skyview.detect.centroids import camera_raw_message, check_pixel_count, finite_image, max_image_pixels, to_gray
+from skyview.io.fits import is_fits, read_fits
 from skyview.present.drawables import OUTCOME_RGB, PALETTE, TEXTURE_FLOOR_SIGMAS, place_labels, stretch  # noqa: F401  (one palette, one stretch)
 
 HIGHLIGHT_RGB = PALETTE["observed"]
@@ -19,12 +20,16 @@ MAX_UPLOAD_BYTES = 64 * 1024 * 1024
 
 
 def decode_image_bytes(data: bytes, name: str = "upload") -> np.ndarray:
-    """A grey image from the bytes of an uploaded PNG / JPEG (or any format OpenCV decodes)."""
+    """A grey image from the bytes of an uploaded PNG / JPEG / TIFF (any format OpenCV decodes) or FITS (row 0
+    at the top unless its header says TOP-DOWN, as `skyview solve` reads it; one the other way up solves as a
+    mirror image, its rows turned over)."""
     if not data:
         raise BadInput(f"{name} is empty (0 bytes)")
     if len(data) > MAX_UPLOAD_BYTES:
         raise BadInput(f"{name} is {len(data) / 1e6:.0f} MB: the viewer takes images up to "
                        f"{MAX_UPLOAD_BYTES // (1024 * 1024)} MB")
+    if is_fits(data[:16]):
+        return finite_image(read_fits(name, max_image_pixels(), content=bytes(data))[0], name)
     check_pixel_count(data, name)
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
@@ -35,7 +40,7 @@ def decode_image_bytes(data: bytes, name: str = "upload") -> np.ndarray:
     finally:
         cv2.utils.logging.setLogLevel(level)
     if img is None:
-        raise BadInput(f"{name} is not an image (PNG or JPEG expected)")
+        raise BadInput(camera_raw_message(name) or f"{name} is not an image (PNG, JPEG, TIFF or FITS expected)")
     img = to_gray(img)
     if img.ndim != 2 or img.size == 0:
         raise BadInput(f"{name} is not a usable image (shape {img.shape})")
