@@ -356,22 +356,27 @@ def _texture_pixels(drawn: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def test_in_the_browser_the_identified_stars_sit_on_the_photographs_stars(tmp_path):
     """What a user checks by eye, read from the three.js scene of headless Chromium after uploading a bundled
     photograph, a crop of it (11.4 and 5.7 deg) and its mirror image (a star diagonal's) through the page's
-    upload control: every identified star's ray from the drawn camera crosses the drawn texture on a bright
-    blob of it."""
+    upload control (the crop as a FITS file): every identified star's ray from the drawn camera crosses the drawn
+    texture on a bright blob of it."""
     pytest.importorskip("playwright.sync_api")
     from test_viewer import CHROMIUM, viewer_page
 
     if not Path(CHROMIUM).exists():
         pytest.skip(f"no chromium at {CHROMIUM} (apt-get install chromium)")
+    from astropy.io import fits
+
     full = load_image(REAL / PHOTO)
     files = {}
-    # (the mirror image last: drawn turned over, its texture the width of the crop's predecessor)
-    for name, image in (("full.png", full), ("crop.png", _crop(full)), ("mirror.png", full[:, ::-1])):
-        files[name] = tmp_path / name
-        cv2.imwrite(str(files[name]), image)
+    # (the mirror image last: drawn turned over, its texture the width of the crop's predecessor; the crop as
+    # a telescope's FITS, its rows stored bottom-first)
+    for name, image in (("full.png", full), ("crop.fits", _crop(full)), ("mirror.png", full[:, ::-1])):
+        files[name] = (tmp_path / name, image.shape)
+        if name.endswith(".fits"):
+            fits.PrimaryHDU(image[::-1]).writeto(files[name][0])
+        else:
+            cv2.imwrite(str(files[name][0]), image)
     with viewer_page(tmp_path) as pg:
-        for name, path in files.items():
-            shape = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape
+        for name, (path, shape) in files.items():
             pg.locator("input[type=file]").first.set_input_files(str(path))
             pg.wait_for_function(
                 "([c, s, w]) => { const o = window.__viserMutable?.nodeRefFromName?.[c]; let ok = false;"
