@@ -220,7 +220,9 @@ def _on_their_own_background(image: np.ndarray, c: Centroids, k_sigma: float) ->
     sigma over whole regions, the noise's peaks there cross the threshold by the map's error and their window sums
     add it up, so that they outrank the stars. Each detection's surroundings: the border of a window of half-size
     max(3 PSF sigmas, the measuring window's half-size + 1, 4 px), its median the local background, its noise the
-    MAD of the border less the plane through it (a glow's slope taken out), never below the frame's sigma.
+    MAD of the border less the plane through it (a glow's slope taken out), never below the frame's sigma (and the
+    frame's sigma where the border lies less than half a sigma above the map: such a detection stands more than
+    LOCAL_PEAK_FRACTION x k_sigma of them above its border anyway).
 
     - A detection whose peak (the brightest pixel of its 3 x 3 centre) stands less than LOCAL_PEAK_FRACTION x
       k_sigma local sigmas above its border's median is taken out (`params["n_background_rejected"]`): a star found
