@@ -879,3 +879,17 @@ def test_work_maps_kept_between_frames_leave_no_trace_in_the_answers():
     for c, uv, d in zip(first, kept, again):
         assert len(c) >= 10 and np.array_equal(c.uv, uv) and np.array_equal(d.uv, uv)
         assert np.array_equal(c.brightness, d.brightness)
+
+
+def test_row_median_is_numpys_median_row_by_row():
+    """`row_median` (one selection at the middle, and for an even count the left part's largest): np.median's
+    values, in the array's dtype, for odd and even counts, ties, sorted and reversed rows, one row and one column."""
+    from skyview.detect.centroids import row_median
+
+    rng = np.random.default_rng(21)
+    shapes = [(100, 40), (7, 9), (3, 2), (50, 1000), (1, 1), (4, 6), (1, 4001), (300, 8)]
+    for shape in shapes:
+        for a in (rng.normal(size=shape), np.round(3 * rng.normal(size=shape)), rng.normal(size=shape).astype(np.float32),
+                  np.sort(rng.normal(size=shape), axis=1)[:, ::-1]):
+            got, want = row_median(a), np.median(a, axis=1)
+            assert np.array_equal(got, want) and got.dtype == want.dtype, (shape, a.dtype)
