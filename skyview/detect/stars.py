@@ -33,7 +33,7 @@ import numpy as np
 from skyview.core.errors import BadInput
 from skyview.detect.centroids import Centroids, detect_centroids, row_median, to_gray
 from skyview.detect.hot_pixels import patch_hot_pixels
-from skyview.detect.trailed import elongated_every_way, long_trail, trail_stars, trailed_frame
+from skyview.detect.trailed import elongated_every_way, long_trail, trail_stars, trailed_frame_read
 from skyview.detect.trails import fragment_width_px, trail_members
 from skyview.detect.windows import background_windows
 
@@ -136,7 +136,7 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
         raise BadInput(f"binning={binning} must be a positive integer")
     c = detect_centroids(image, k_sigma=k_sigma, **kwargs)
     H, W = np.shape(image)[:2]
-    trail = trailed_frame(image, c) if binning is None else None
+    trail, long_asked = trailed_frame_read(image, c) if binning is None else (None, False)
     if trail is not None:  # every star a trail (an untracked exposure): each measured whole, at mid-exposure
         c = trail_stars(image, c, trail, k_sigma=k_sigma, **kwargs)
         return _without_trails(dataclasses.replace(c, params={**c.params, "binning": 1}), reject_trails)
@@ -172,9 +172,9 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
                     if len(ct) >= max(FEW_STARS, 2 * len(c)):
                         b, cb, binned = trial, ct, bt
                         break
-    if b > 1 and binning is None:
+    if b > 1 and binning is None and not long_asked:
         # stars that look wide may be trails too long for the vote's windows (each a row of fragments): those are
-        # measured whole along the trail, not binned
+        # measured whole along the trail, not binned (unless the frame was read so already and had none)
         trail = long_trail(image, c, k_sigma=k_sigma)
         if trail is not None:
             c = trail_stars(image, c, trail, k_sigma=k_sigma, **kwargs)
@@ -262,12 +262,12 @@ def _on_their_own_background(image: np.ndarray, c: Centroids, k_sigma: float) ->
     redo = np.zeros(n, dtype=bool)
     redo[inside] = (misfit >= LOCAL_MISFIT_SIGMAS * c.noise_sigma) & unsat
     dropped, rebright = n - int(np.count_nonzero(keep)), int(np.count_nonzero(redo & keep))
-    c.params["n_background_rejected"], c.params["n_background_rebrightened"] = dropped, rebright
+    params = {**c.params, "n_background_rejected": dropped, "n_background_rebrightened": rebright}
     if dropped == 0 and rebright == 0:
-        return c
+        return dataclasses.replace(c, params=params)
     brightness = c.brightness.copy()
     brightness[np.flatnonzero(inside)[redo[inside]]] = local[redo[inside]]
-    c = dataclasses.replace(c, brightness=brightness, params=dict(c.params))
+    c = dataclasses.replace(c, brightness=brightness, params=params)
     kept = np.flatnonzero(keep)
     return take(c, kept[np.argsort(-brightness[kept], kind="stable")] if rebright else kept)
 

@@ -131,15 +131,22 @@ def trailed_frame(image: np.ndarray, c: Centroids) -> tuple[float, float] | None
     """(length px, direction deg in [0, 180)) of the trail every star of the frame draws, or None for a frame
     of round stars (the module docstring); where most detections are elongated but too few are left to vote
     (trails longer than the vote's windows, broken into rows of fragments), `long_trail`'s."""
+    return trailed_frame_read(image, c)[0]
+
+
+def trailed_frame_read(image: np.ndarray, c: Centroids) -> tuple[tuple[float, float] | None, bool]:
+    """(`trailed_frame`'s answer, whether it is `long_trail`'s no with two voters: then no stricter
+    `long_trail` of the same frame can say yes, and `detect_stars` does not smooth the frame again)."""
     vote = _direction_vote(image, c)
     if vote is None and may_be_trailed(c):  # (elongated, but fragments of trails longer than the vote's windows?)
-        return long_trail(image, c, min_voters=2)
+        trail = long_trail(image, c, min_voters=2)
+        return trail, trail is None
     if vote is None or not shared_direction(vote[2]):
-        return None
+        return None, False
     length, angle2, along = vote
     median_length = float(row_median(length[along][None])[0])
     if median_length < TRAIL_MIN_LENGTH_PX:
-        return None
+        return None, False
     a2 = angle2[along]
     direction = math.degrees(0.5 * math.atan2(float(np.mean(np.sin(a2))), float(np.mean(np.cos(a2))))) % 180.0
     if median_length >= TRAIL_WINDOW:
@@ -148,8 +155,8 @@ def trailed_frame(image: np.ndarray, c: Centroids) -> tuple[float, float] | None
         whole = long_trail(image, c, min_voters=2)
         if whole is not None and whole[0] > median_length and _angle_apart(whole[1], direction) <= \
                 TRAIL_ANGLE_TOLERANCE_DEG:
-            return whole
-    return median_length, direction
+            return whole, False
+    return (median_length, direction), False
 
 
 def _angle_apart(a_deg: float, b_deg: float) -> float:
@@ -219,20 +226,31 @@ def _filtered_blobs(image: np.ndarray, c: Centroids, smooth, k_sigma: float, bac
     x1, y1 = x0 + stats[1:, cv2.CC_STAT_WIDTH], y0 + stats[1:, cv2.CC_STAT_HEIGHT]
     peak = np.full(n, -np.inf)
     np.maximum.at(peak, lab_px, np.asarray(raw, dtype=np.float64).reshape(-1)[fi])
-    if saturation_level is not None:
-        top = float(saturation_level)
-    else:
-        top = float(np.iinfo(img.dtype).max) if img.dtype.kind in "ui" else math.inf
-        frame_max = float(np.max(raw))
-        if frame_max < top and np.count_nonzero(raw == frame_max) >= 5:
-            top = frame_max
     if saturated_px is None:
-        saturated = peak[1:] >= top
+        saturated = peak[1:] >= _saturation_top(raw, saturation_level)
     else:
         saturated = np.bincount(lab_px, weights=saturated_px.reshape(-1)[fi], minlength=n)[1:] > 0
-    return {"n": n, "s": s, "mx": mx, "my": my, "sxx": sxx, "syy": syy, "sxy": sxy,
+    return {"s": s, "mx": mx, "my": my, "sxx": sxx, "syy": syy, "sxy": sxy,
             "area": stats[1:, cv2.CC_STAT_AREA].astype(np.int64), "peak": peak[1:], "saturated": saturated,
             "edge": (x0 == 0) | (y0 == 0) | (x1 >= W) | (y1 >= H), "n_hot": n_hot}
+
+
+def _saturation_top(raw: np.ndarray, saturation_level: float | None = None) -> float:
+    """The raw value at which a pixel is saturated: saturation_level, else the dtype's largest, or the frame's
+    largest when five pixels or more share it (as the centroider decides)."""
+    if saturation_level is not None:
+        return float(saturation_level)
+    top = float(np.iinfo(raw.dtype).max) if raw.dtype.kind in "ui" else math.inf
+    frame_max = float(np.max(raw))
+    if frame_max < top and np.count_nonzero(raw == frame_max) >= 5:
+        top = frame_max
+    return top
+
+
+def _axes(sxx: np.ndarray, syy: np.ndarray, sxy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The second moments' largest and smallest eigenvalues (the blob's variance along and across its axis)."""
+    root = np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy * sxy, 0.0))
+    return 0.5 * (sxx + syy) + root, 0.5 * (sxx + syy) - root
 
 
 def long_trail(image: np.ndarray, c: Centroids, k_sigma: float = 5.0, background_block: int = 64,
@@ -264,13 +282,10 @@ def long_trail(image: np.ndarray, c: Centroids, k_sigma: float = 5.0, background
     saturated_px = None
     if scale > 1:
         crop = img[: H // scale * scale, : W // scale * scale]
-        top = float(np.iinfo(img.dtype).max) if img.dtype.kind in "ui" else math.inf
-        frame_max = float(np.max(crop))
-        if frame_max < top and np.count_nonzero(crop == frame_max) >= 5:
-            top = frame_max
         size = (W // scale, H // scale)
         # (a binned pixel holding a saturated one is saturated: the block average hides it)
-        saturated_px = cv2.resize((crop >= top).astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0
+        saturated_px = cv2.resize((crop >= _saturation_top(crop)).astype(np.float32), size,
+                                  interpolation=cv2.INTER_AREA) > 0
         img = cv2.resize(crop.astype(np.float32), size, interpolation=cv2.INTER_AREA)
     blobs = _filtered_blobs(img, c, lambda f: cv2.GaussianBlur(f, (0, 0), LONG_TRAIL_SMOOTH_PX,
                                                                 borderType=cv2.BORDER_REPLICATE),
@@ -282,8 +297,7 @@ def long_trail(image: np.ndarray, c: Centroids, k_sigma: float = 5.0, background
         return None
     m = np.stack([blobs["sxx"][keep], blobs["syy"][keep], blobs["sxy"][keep]], axis=1)
     length, angle2 = _trail_shape(m)
-    root = 0.5 * np.sqrt(np.maximum((m[:, 0] - m[:, 1]) ** 2 + 4.0 * m[:, 2] ** 2, 0.0))
-    lam1, lam2 = 0.5 * (m[:, 0] + m[:, 1]) + root, 0.5 * (m[:, 0] + m[:, 1]) - root
+    lam1, lam2 = _axes(m[:, 0], m[:, 1], m[:, 2])
     length *= scale
     voter = (length >= TRAIL_MIN_LENGTH_PX) & (lam1 >= LONG_TRAIL_RATIO ** 2 * np.maximum(lam2, 1e-12))
     if np.count_nonzero(voter) < min_voters:
@@ -331,12 +345,11 @@ def trail_stars(image: np.ndarray, c: Centroids, trail: tuple[float, float], *, 
     kernel = line_kernel(length, direction)
     b = _filtered_blobs(image, c, lambda f: cv2.filter2D(f, -1, kernel, borderType=cv2.BORDER_REPLICATE), k_sigma,
                         background_block, saturation_level)
-    n, s, mx, my, sxx, syy, sxy, area, edge = (b[k] for k in ("n", "s", "mx", "my", "sxx", "syy", "sxy", "area",
-                                                                "edge"))
+    s, mx, my, sxx, syy, sxy, area, edge = (b[k] for k in ("s", "mx", "my", "sxx", "syy", "sxy", "area", "edge"))
     peak, saturated, n_hot = b["peak"], b["saturated"], b["n_hot"]
-    root = np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy * sxy, 0.0))
-    lam1, lam2 = 0.5 * (sxx + syy) + root, np.maximum(0.5 * (sxx + syy) - root, 1e-12)
-    long_axis = np.sqrt(12.0 * 2.0 * root)  # a filtered trail: about 1.4 trails (a line filtered by a line)
+    lam1, lam2 = _axes(sxx, syy, sxy)
+    long_axis = np.sqrt(12.0 * (lam1 - lam2))  # a filtered trail: about 1.4 trails (a line filtered by a line)
+    lam2 = np.maximum(lam2, 1e-12)
     doubled = np.arctan2(2.0 * sxy, sxx - syy) - math.radians(2.0 * direction)
     off = np.degrees(np.abs(np.angle(np.exp(1j * doubled)))) / 2.0  # from the trail's direction
     one_trail = ((long_axis <= TRAIL_LONGEST * length + 4.0)

@@ -18,6 +18,7 @@ data is read.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import warnings
 from pathlib import Path
@@ -53,8 +54,6 @@ def read_fits(path: str | os.PathLike, max_pixels: int, content: bytes | None = 
     BadInput with one line for a file astropy cannot read, one with no image, a data cube that is
     not a colour image, and an image over `max_pixels` pixels (checked before reading the data).
     """
-    import io
-
     from astropy.io import fits  # astropy is a dependency; imported here to keep the solve path's start short
 
     p = Path(path)

@@ -32,7 +32,14 @@ from skyview.core.camera import EQUIDISTANT, EQUISOLID, FISHEYE_FOV_RANGE_DEG, P
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
 from skyview.core.errors import BadInput
 from skyview.core.lru import LRU
-from skyview.detect.centroids import Centroids, detect_centroids, finite_image, load_image, to_gray
+from skyview.detect.centroids import (
+    Centroids,
+    detect_centroids,
+    estimate_background,
+    finite_image,
+    load_image,
+    to_gray,
+)
 from skyview.detect.stars import detect_stars, fainter_stars
 from skyview.detect.trailed import may_be_trailed
 from skyview.identify import make_identifier
@@ -763,8 +770,6 @@ def looks_negative(img: np.ndarray) -> bool:
     A sky's stars reach hundreds of sigmas above its level and its darkest pixels ~5-16 below (noise, vignetting,
     a black border); a negative's are the other way round (the eight photographs inverted: 204-558 sigma below,
     8-16 above)."""
-    from skyview.detect.centroids import estimate_background
-
     g = img if img.dtype in (np.uint8, np.uint16, np.int16, np.float32) else img.astype(np.float32)
     _, level, sigma = estimate_background(g)
     if not sigma > 0:
