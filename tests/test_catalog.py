@@ -8,6 +8,7 @@ from skyview.core.catalog import (
     FLAG_DOUBLE,
     build_guide_catalog,
     chord,
+    close_pairs,
     load_guide_catalog,
     radec_to_vec,
     save_guide_catalog,
@@ -104,6 +105,38 @@ def test_close_pair_filter_removes_every_close_pair(cat):
     bright = sub.without_close_pairs(sep, keep="brighter")
     assert len(both) < len(bright) < len(sub)
     assert len(sub.without_flags(FLAG_DOUBLE)) < len(sub)
+
+
+@pytest.mark.parametrize("mag, deg", [(6.0, 0.01), (6.0, 0.2), (6.0, 3.0), (7.5, 0.2), (9.0, 1.0)])
+def test_close_pairs_are_the_kd_trees_pairs(cat, mag, deg, monkeypatch):
+    """close_pairs (a sweep along z, no scipy.spatial) gives cKDTree.query_pairs's pairs, in its sorted
+    order: measured a bounded number at a time, and through the tree itself beyond SWEEP_PAIRS_MAX."""
+    from scipy.spatial import cKDTree
+
+    import skyview.core.catalog as catalog_module
+
+    sub = cat.brighter_than(mag)
+    ch = float(chord(np.radians(deg)))
+    want = cKDTree(sub.xyz).query_pairs(ch, output_type="ndarray").astype(np.int64)
+    want.sort(axis=1)
+    want = want[np.lexsort((want[:, 1], want[:, 0]))]
+    got = close_pairs(sub.xyz, ch)
+    np.testing.assert_array_equal(got, want)
+    assert got.dtype == np.int64 and len(got) > 0
+    monkeypatch.setattr(catalog_module, "PAIRS_AT_ONCE", 997)  # many small pieces, one star's run at least
+    np.testing.assert_array_equal(close_pairs(sub.xyz, ch), want)
+    assert close_pairs(sub.xyz[:1], ch).shape == (0, 2) and close_pairs(sub.xyz, 0.0).shape == (0, 2)
+
+
+def test_close_pairs_at_the_limit_are_the_trees_answer():
+    """Two stars exactly one chord apart (to rounding) are decided by the tree, as query_pairs decides."""
+    from scipy.spatial import cKDTree
+
+    a = np.radians(0.2)
+    xyz = np.array([[0.0, 0.0, 1.0], [np.sin(a), 0.0, np.cos(a)], [0.0, np.sin(2 * a), np.cos(2 * a)]])
+    for ch in (float(np.linalg.norm(xyz[0] - xyz[1])), float(np.linalg.norm(xyz[0] - xyz[2]))):
+        want = sorted(cKDTree(xyz).query_pairs(ch))
+        assert [tuple(p) for p in close_pairs(xyz, ch).tolist()] == want
 
 
 def test_chord_matches_angle():

@@ -89,6 +89,43 @@ def test_eps_hand_computed():
                                atol=1e-10)
 
 
+@pytest.mark.parametrize("deg", [20.0, 4.0, 1.0])
+def test_the_batched_look_ups_svd_is_numpys(deg):
+    """The look-up's SVD of (m, 3, 4) pattern matrices from the eigen-decomposition of A A^T: numpy's singular
+    values, eps and eps thresholds (relative 1e-8 even for 1 deg patterns), singular vectors up to sign."""
+    from skyview.identify.ellipticity_batch import _svd_3x4, eps_sigma_stacked
+
+    rng = np.random.default_rng(int(deg))
+    W = np.array([0.0, 0.0, 1.0]) + np.radians(deg) / 2 * rng.normal(size=(300, 4, 3))
+    W /= np.linalg.norm(W, axis=2, keepdims=True)
+    A = np.swapaxes(W, 1, 2)
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    U2, s2, Vt2 = _svd_3x4(A)
+    np.testing.assert_allclose(s2, s, rtol=1e-8, atol=0)
+    np.testing.assert_allclose(s2[:, 2] / s2[:, 1], s[:, 2] / s[:, 1], rtol=1e-8, atol=0)
+    sign = np.sign(np.sum(U * U2, axis=1))  # (m, 3): each singular pair's sign
+    np.testing.assert_allclose(U2 * sign[:, None, :], U, atol=1e-7)
+    np.testing.assert_allclose(Vt2 * sign[:, :, None], Vt, atol=1e-6)
+    np.testing.assert_allclose(eps_sigma_stacked(A, U2, s2, Vt2, 1e-5), eps_sigma_stacked(A, U, s, Vt, 1e-5),
+                               rtol=1e-8, atol=0)
+
+
+def test_an_ellipticity_identifier_from_the_cache_imports_no_scipy_spatial():
+    """A coverage worker's or a solve's ellipticity identifier, its database in the cache, loads without
+    scipy.spatial (~0.35 s of a worker's start): the guide catalog's close pairs come from a sweep along z."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from skyview.core.catalog import load_guide_catalog; from skyview.core.camera import Camera; "
+            "from skyview.identify import make_identifier; "
+            "make_identifier('ellipticity', load_guide_catalog().brighter_than(6.0), Camera.from_fov(20.0, 1024), "
+            "1e-5, variant='improved'); print(sorted(m for m in sys.modules if m.startswith('scipy.spatial')))")
+    for run in ("builds the database (a k-d tree may build it)", "loads it"):
+        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0, p.stderr[-500:]
+    assert p.stdout.strip() == "[]"
+
+
 def test_eps_sigma_matches_monte_carlo(cat):
     rng = np.random.default_rng(5)
     rows = guide_rows(cat)

@@ -35,8 +35,13 @@ def run_tasks(fn: Callable, args: Iterable[tuple], *, scheduler: str | None = No
         if scheduler is None:
             where = {"host": "127.0.0.1"} if processes else {}  # thread workers talk in-process
             # no statistical profiler in the workers: it samples every task's stack 100 times a second,
-            # a third of the time of the benches' Python-heavy trials
+            # a third of the time of the benches' Python-heavy trials; and the event loop's health tick
+            # (every 20 ms) and the dashboard's system monitor (every 0.5 s), which no one reads here,
+            # seldom: each wakes a worker's loop thread, which takes the GIL from its task (the coverage
+            # sweep: ~1.5 % of each core; the memory monitor, which enforces the memory limit, is kept)
             with dask.config.set({"distributed.worker.profile.enabled": False,
+                                  "distributed.admin.tick.interval": "1s",
+                                  "distributed.admin.system-monitor.interval": "5s",
                                   "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1,
                                                                           "OPENBLAS_NUM_THREADS": 1}}):
                 cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,

@@ -91,11 +91,10 @@ from functools import partial
 from itertools import combinations, permutations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from skyview.core.attitude import attitude_error_arcsec, svd_attitude
 from skyview.core.camera import Camera
-from skyview.core.catalog import FLAG_MULTIPLE, GuideCatalog, chord
+from skyview.core.catalog import FLAG_MULTIPLE, GuideCatalog, chord, close_pairs
 from skyview.core.errors import BadInput
 from skyview.identify import database
 from skyview.identify.base import INCONCLUSIVE, Hypothesis, Identifier, Search, Step
@@ -136,8 +135,7 @@ def guide_rows(catalog: GuideCatalog, mag_limit: float = MAG_LIMIT, close_pair_d
     keep = (catalog.mag <= mag_limit) & ((catalog.flags & int(drop_flags)) == 0)
     rows = np.flatnonzero(keep)
     if len(rows) > 1 and close_pair_deg > 0:
-        pairs = cKDTree(catalog.xyz[rows]).query_pairs(float(chord(np.radians(close_pair_deg))),
-                                                      output_type="ndarray")
+        pairs = close_pairs(catalog.xyz[rows], float(chord(np.radians(close_pair_deg))))  # (no scipy import)
         drop = np.zeros(len(rows), dtype=bool)
         drop[pairs.ravel()] = True
         rows = rows[~drop]
@@ -205,6 +203,8 @@ def nearest_adjacent(xyz: np.ndarray, theta_min_rad: float, k: int = 3) -> tuple
     ang = np.full((n, k), np.inf)
     if n == 0:
         return nb, ang
+    from scipy.spatial import cKDTree  # (the database's build only: a solve or a sweep loads it from the cache)
+
     tree = cKDTree(xyz)
     todo = np.arange(n)
     kq = min(n, k + 16)
