@@ -334,6 +334,31 @@ def test_a_colour_jpeg_of_a_real_photograph_solves_blind(blind):
     assert res.camera.fov_deg == pytest.approx(REFERENCE[name]["fov_deg"], rel=0.005)
 
 
+@pytest.mark.parametrize("k", [1, 5])
+def test_a_photograph_with_a_caption_and_a_watermark_solves_blind(k):
+    """A camera's date stamp and a photographer's watermark: each letter a blob brighter than the stars, rows of
+    them taken out as trails, where they held most of the brightest 80 measured places; the stars after them fill
+    those places (`detect_stars`), and the photograph solves."""
+    import cv2
+
+    import skyview
+
+    name = sorted(REFERENCE)[k]
+    img16 = load_image(REAL / name).astype(np.float64)
+    med = float(np.median(img16))
+    sigma = 1.4826 * float(np.median(np.abs(img16 - med)))
+    img8 = np.clip((img16 - (med - 2 * sigma)) * (25.0 / (2 * sigma)), 0, 255).astype(np.uint8)  # the sky at 25
+    colour = cv2.cvtColor(img8, cv2.COLOR_GRAY2BGR)
+    cv2.putText(colour, "2019-07-29 20:47:26  ISO 3200  f/2.8  10s", (10, 753), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
+                (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(colour, "(c) A. Photographer", (794, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (200, 200, 255), 1,
+                cv2.LINE_AA)
+    res = skyview.solve(colour)
+    assert res.solved, res.reason
+    assert attitude_error_arcsec(res.R, np.array(REFERENCE[name]["R"]))["boresight"] < 0.1 * 3600
+    assert res.camera.fov_deg == pytest.approx(REFERENCE[name]["fov_deg"], rel=0.005)
+
+
 @pytest.mark.slow
 def test_mirrored_photographs_solve_turned_over_or_not_at_all(blind):
     """A mirror image has the same edge ratios as the sky but the wrong handedness: no rotation fits it as it

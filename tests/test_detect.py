@@ -64,8 +64,10 @@ def test_a_broken_satellite_trail_is_taken_out_and_the_stars_kept(catalog):
 def test_the_brightest_measured_alone_are_the_first_of_all_measured_unless_a_trail_or_saturation_says_not(
         catalog):
     """`_brightest_first` (the FOV-given first try's stars): the brightest max_stars measured alone are, field
-    for field, the first max_stars of the stars measured for the searches after it; where a trail was taken
-    out, or a saturated star was left unmeasured (its whole disk may rank it among them), it declines."""
+    for field, the first max_stars of the stars measured for the searches after it; where a saturated star was
+    left unmeasured (its whole disk may rank it among them), or a trail was taken out and stars are left
+    unmeasured, it declines. A trail taken out among the brightest measured gives its places to the stars after
+    it: the first max_stars of every detection measured, trails taken out of them all."""
     from skyview.solver.pipeline import _brightest_first, measured_stars
 
     frame = _frame(catalog, seed=4)  # blind8: 31 stars detected
@@ -86,7 +88,15 @@ def test_the_brightest_measured_alone_are_the_first_of_all_measured_unless_a_tra
     for k in range(10):
         p0 = (120 + 40 * k, 600 - 25 * k)
         cv2.line(img, p0, (p0[0] + 8, p0[1] - 5), peak, 2)
-    assert detect_stars(img, max_stars=40).params["n_trail_rejected"] > 0 and _brightest_first(img, 5.0, 40) is None
+    few = detect_stars(img, faint_search=False, max_stars=20)
+    every = detect_stars(img, faint_search=False, max_stars=None)
+    assert few.params["n_trail_rejected"] >= 8 and len(few) == 20 and few.n_unmeasured == len(every) - 20 > 0
+    for f in ("uv", "brightness", "peak", "n_pixels", "saturated", "elongated", "edge", "blended", "axis_ratio"):
+        np.testing.assert_array_equal(getattr(few, f), getattr(every, f)[:20])
+    assert _brightest_first(img, 5.0, 20) is None
+    first = _brightest_first(img, 5.0, 40)  # every detection measured: the first try has them all
+    assert first.params["n_trail_rejected"] >= 8 and first.n_unmeasured == 0
+    np.testing.assert_array_equal(first.uv, every.uv)
 
 
 def test_compact_stars_pass_unchanged(catalog):

@@ -147,3 +147,43 @@ def test_a_wide_rectilinear_lens_is_told_from_a_fisheye(catalog, fov, seed, give
     corners = np.array([[0.0, 0.0], [1279.0, 0.0], [0.0, 959.0], [1279.0, 959.0], [639.5, 479.5]])
     sky_true, sky = cam.unproject(corners) @ R, res.camera.unproject(corners) @ res.R
     assert np.degrees(np.arccos(np.clip(np.sum(sky_true * sky, axis=1), -1, 1))).max() < 0.05
+
+
+# the 21 detections of a sharpened (unsharp-masked) photograph whose sky was stretched near white, most of them
+# noise in its top corners: the blind fisheye search's patterns of them imply FOVs at which an equisolid lens
+# cannot see the corner stars (beyond 180 deg from its axis its rays do not exist)
+CORNER_DETECTIONS = np.array([
+    (49.747420774219215, 301.4670930625355),
+    (107.18226563781207, 63.513364417680336),
+    (2.9517533392650757, 71.62772411635882),
+    (806.4967885480859, 90.08073815563297),
+    (693.0370397828399, 37.37937749755095),
+    (803.8656402389781, 53.57385982414461),
+    (15.608880391806771, 38.619204423202106),
+    (60.51444795631527, 19.25731760144578),
+    (957.2560082413887, 94.75735945407185),
+    (3.0926179602712134, 162.11948117159773),
+    (44.439796853070426, 16.47249636184801),
+    (14.243946884678698, 12.369232993232483),
+    (24.506712910878655, 9.55297553711659),
+    (969.0615460305047, 7.664418495832319),
+    (31.314476064319372, 31.293250530826228),
+    (1016.8165705348335, 5.103901381216428),
+    (5.6349576858518535, 22.670299346102755),
+    (17.843013741754334, 15.660498954333676),
+    (5.770878407805562, 12.92913782245102),
+    (7.329246337680691, 73.15465313937206),
+    (15.786080012714569, 4.274419933576729),
+])
+
+
+def test_a_fisheye_search_passes_over_stars_its_lens_cannot_see():
+    """A pattern whose implied FOV puts a star past an equisolid lens's 180 deg (no ray: NaN) is no hypothesis:
+    the search goes on and answers (here: nothing to find), where its attitude fit raised LinAlgError."""
+    from skyview.solver.pipeline import blind_solver
+
+    beyond = ~np.isfinite(Camera.from_fov(240.0, 1024, 768, model=EQUISOLID).unproject(CORNER_DETECTIONS)).all(axis=1)
+    assert beyond.any()  # some of these stars are beyond the lens at the widest FOV searched
+    ident = blind_solver().identifier.identify(CORNER_DETECTIONS, 1024, 768, fov_deg=200.0, fov_error=0.2,
+                                               model=EQUISOLID)
+    assert not ident.identified and ident.reason

@@ -130,7 +130,8 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     leaves those for later (`params["faint_search"]` is then "deferred" and `fainter_stars` runs them:
     a solver tries the stars it has first, ~7.5 ms saved on a sparse frame that solves). Other keyword
     arguments go to `detect_centroids`. The binning used and the number of trail fragments taken out are in
-    `params["binning"]` and `params["n_trail_rejected"]`.
+    `params["binning"]` and `params["n_trail_rejected"]`; with `max_stars`, fragments taken out of the brightest
+    measured give their places to the detections after them (the first max_stars of every detection measured).
     """
     if binning is not None and (int(binning) != binning or binning < 1):
         raise BadInput(f"binning={binning} must be a positive integer")
@@ -211,7 +212,16 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
         c = kept
     if binning is None and b == 1 and elongated_every_way(image, c):
         c = _round_first(c)
-    return _without_trails(c, reject_trails)
+    out = _without_trails(c, reject_trails)
+    m = kwargs.get("max_stars")
+    if out.params["n_trail_rejected"] and c.n_unmeasured and m is not None:
+        # trail fragments held places among the brightest m measured (a satellite's row of them, or a caption's:
+        # a camera's date stamp, a watermark, each letter a blob brighter than the stars): the stars after them
+        # fill those places, the first m of every detection measured, trails taken out of them all
+        full = detect_stars(image, k_sigma=k_sigma, binning=binning, reject_trails=reject_trails,
+                            faint_search=faint_search, **{**kwargs, "max_stars": None})
+        return _first(full, int(m))
+    return out
 
 
 def _on_their_own_background(image: np.ndarray, c: Centroids, k_sigma: float) -> Centroids:

@@ -466,6 +466,8 @@ class BlindIdentifier(CameraRefit):
             rows4 = self.rows[pr].astype(np.int64)
             cam = Camera.from_fov(float(fov), width, height, model=state.model)
             b = cam.unproject(uv[obs4])
+            if not np.isfinite(b).all():  # a star beyond what the lens can see at this FOV (a fisheye's corner
+                continue  # past its 180 deg from the axis): no ray, no hypothesis
             r = self.catalog.xyz[rows4]
             # correspondence: the permutation of the catalog stars whose separations agree best
             cost = np.abs(pdb.separations(r)[PERM_EDGES] - pdb.separations(b)[None, :]).sum(axis=1)
