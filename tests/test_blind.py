@@ -359,6 +359,32 @@ def test_a_photograph_with_a_caption_and_a_watermark_solves_blind(k):
     assert res.camera.fov_deg == pytest.approx(REFERENCE[name]["fov_deg"], rel=0.005)
 
 
+@pytest.mark.parametrize("k", [0, 1])
+def test_a_quarter_size_copy_of_a_photograph_solves_blind(k):
+    """A copy a quarter the size (256 x 192, as a web page shows it): the stars narrower than a pixel, each a
+    single bright pixel the centroider takes for a hot pixel (1-2 stars found); the frame upsampled twice
+    finds them (`stars.undersampled_stars`) where they are in the photograph, and it solves."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    import skyview
+    from skyview.detect.centroids import detect_centroids
+    from skyview.detect.stars import detect_stars
+
+    name = sorted(REFERENCE)[k]
+    full = load_image(REAL / name)
+    small = cv2.resize(full, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+    assert len(detect_centroids(small)) <= 2
+    stars = detect_stars(small)
+    assert stars.params["upsampled"] == 2 and len(stars) >= 8
+    d = cKDTree((detect_stars(full).uv + 0.5) / 4.0 - 0.5).query(stars.uv)[0]
+    assert np.mean(d < 0.5) >= 0.8  # where the photograph's stars are, to half a (small) pixel
+    res = skyview.solve(small)
+    assert res.solved, res.reason
+    assert attitude_error_arcsec(res.R, np.array(REFERENCE[name]["R"]))["boresight"] < 0.1 * 3600
+    assert res.camera.fov_deg == pytest.approx(REFERENCE[name]["fov_deg"], rel=0.02)
+
+
 @pytest.mark.slow
 def test_mirrored_photographs_solve_turned_over_or_not_at_all(blind):
     """A mirror image has the same edge ratios as the sky but the wrong handedness: no rotation fits it as it

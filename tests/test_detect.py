@@ -268,3 +268,26 @@ def test_saturated_fluxes_from_the_width_check_are_measured_again_the_same():
     # fluxes ten times larger, given as known, become the two stars' brightness: the known ones are read
     boosted = _saturated_by_aperture(img, c, 1, 10.0 * known)
     assert np.array_equal(np.sort(boosted.brightness)[::-1][:2], 10.0 * known)
+
+
+def test_a_frame_looks_undersampled_only_when_its_point_like_pixels_outnumber_narrow_stars():
+    """`looks_undersampled`: few stars, their hot pixels and one-pixel blobs twice their number and three more,
+    and the stars it measured narrower than 0.6 px (or none measured the PSF); never on a frame over 4 MP."""
+    import dataclasses
+
+    from skyview.detect.centroids import Centroids
+    from skyview.detect.stars import looks_undersampled
+
+    def frame(n_hot, sigma, measured, shape=(192, 256)):
+        c = Centroids.empty(n_hot_pixels_rejected=n_hot, n_small_rejected=2, psf_sigma_px=sigma, image_shape=shape,
+                            params={"psf_measured": measured})
+        return dataclasses.replace(c, uv=np.zeros((3, 2)), brightness=np.ones(3), peak=np.ones(3),
+                                   n_pixels=np.ones(3, dtype=np.int64), saturated=np.zeros(3, dtype=bool),
+                                   elongated=np.zeros(3, dtype=bool), edge=np.zeros(3, dtype=bool),
+                                   blended=np.zeros(3, dtype=bool), axis_ratio=np.ones(3))
+
+    assert looks_undersampled(frame(20, 0.45, True))  # 22 point-like >= 2 (3 + 3)
+    assert looks_undersampled(frame(20, 1.2, False))  # no star measured the PSF (1.2 px assumed)
+    assert not looks_undersampled(frame(20, 1.1, True))  # hot pixels beside well-sampled stars are hot pixels
+    assert not looks_undersampled(frame(9, 0.45, True))  # 11 < 12
+    assert not looks_undersampled(frame(20, 0.45, True, shape=(3000, 2000)))  # too large to upsample

@@ -1211,6 +1211,7 @@ def _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw,
         if valid is not None:  # (None: every window inside the image)
             good &= valid[:, h0 - 1:h0 + 2, h0 - 1:h0 + 2].all(axis=(1, 2))
         g = np.sort(g_s2[good])  # _median_sorted of the sorted values = np.median
+        params["psf_measured"] = bool(g.size)  # by the bright unsaturated stars (none: 1.2 px assumed)
         s_eff = math.sqrt(float(_median_sorted(g))) if g.size else math.sqrt(1.2 ** 2 + 1.0 / 12.0)
         s_eff = min(max(s_eff, 0.4), 5.0)
         psf_used = math.sqrt(max(s_eff ** 2 - 1.0 / 12.0, 0.04))

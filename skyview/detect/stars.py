@@ -16,7 +16,9 @@ and a binning that finds at least twice as many is kept.
 Faint frames (a star tracker's short exposure, 8 bits, a background of 1-2 DN) show few stars above
 the threshold pixel by pixel: when fewer than a dozen are found and binning does not help, the frame
 filtered by its PSF (`matched_filter_stars`, about twice the signal to noise) is searched, its hot
-pixels taken out first, and kept when it finds at least three more.
+pixels taken out first, and kept when it finds at least three more. A frame that draws its stars narrower
+than a pixel (a web-sized copy of a photograph) shows them as single pixels taken for hot pixels: when those
+outnumber the stars, the frame upsampled twice is searched (`undersampled_stars`).
 Then `skyview.detect.trails.trail_members` takes out satellite, aircraft and meteor trails broken into
 rows of fragments. Star trackers' own images (compact PSF, no trails) pass through unchanged.
 """
@@ -42,6 +44,10 @@ MAX_BINNING = 16
 FEW_STARS = 12  # fewer detections than this: try the image binned (stars too wide to detect), then the matched filter
 MATCHED_FILTER_GAIN = 3  # the matched filter's stars are kept when they are at least this many more
 MIN_BINNED_SIDE = 64  # never bin an image below this many pixels a side
+UNDERSAMPLED_POINTS = 2  # a sparse frame whose hot pixels and one-pixel blobs outnumber its stars this many times
+UNDERSAMPLED_MAX_PIXELS = 4_000_000  # ... is searched upsampled twice when it has at most this many pixels
+UNDERSAMPLED_SIGMA_PX = 0.6  # ... and its measured stars (if any) are narrower than this
+HOT_PIXEL_CENTRE_PX = 0.02  # found upsampled this close to a pixel's centre on both axes: a hot pixel
 WIDTH_CHECK_STARS = 15  # the brightest detections whose widths say whether a frame's stars are wide
 LOCAL_PEAK_FRACTION = 0.6  # a detection on a background map stands this share of k_sigma above its own border ...
 LOCAL_MISFIT_SIGMAS = 1.0  # ... and is ranked by its own border where that lies this many sigma above the map
@@ -197,6 +203,10 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
                 cm = matched_filter_stars(image, c, k_sigma=k_sigma, **kwargs)
                 if len(cm) >= len(c) + MATCHED_FILTER_GAIN:
                     c, moments = cm, None  # (other stars: the width check's moments are not theirs)
+                elif looks_undersampled(c):
+                    cu = undersampled_stars(image, k_sigma=k_sigma, **kwargs)
+                    if len(cu) >= len(c) + MATCHED_FILTER_GAIN:
+                        c, moments = cu, None
             else:
                 c.params["faint_search"] = "deferred"
     c = _saturated_by_aperture(binned, c, b, moments[1] if moments is not None and b == 1 and first_flux else None)
@@ -327,9 +337,48 @@ def fainter_stars(image: np.ndarray, c: Centroids, *, k_sigma: float = 5.0, reje
     if c.params.get("faint_search") != "deferred":
         return None
     full = detect_stars(image, k_sigma=k_sigma, reject_trails=reject_trails, **kwargs)
-    if full.params.get("binning", 1) == 1 and "matched_filter_sigma_px" not in full.params:
+    if full.params.get("binning", 1) == 1 and "matched_filter_sigma_px" not in full.params \
+            and "upsampled" not in full.params:
         return None
     return full
+
+
+def looks_undersampled(c: Centroids) -> bool:
+    """Whether a sparse frame's point-like rejections (hot pixels, one-pixel blobs) outnumber its stars
+    UNDERSAMPLED_POINTS times over (counting MATCHED_FILTER_GAIN more stars), and the stars it did measure are
+    narrower than UNDERSAMPLED_SIGMA_PX (or too faint to measure the PSF): the stars may be drawn narrower than
+    a pixel, each a single bright pixel (`undersampled_stars`); a frame of at most UNDERSAMPLED_MAX_PIXELS that
+    shows at least one star (those straddling pixels). (Hot pixels beside stars of a well-sampled PSF, or alone
+    on a frame of none, are hot pixels.)"""
+    H, W = c.image_shape
+    points = int(c.n_hot_pixels_rejected) + int(c.n_small_rejected)
+    narrow = not c.params.get("psf_measured") or c.psf_sigma_px < UNDERSAMPLED_SIGMA_PX
+    return len(c) >= 1 and H * W <= UNDERSAMPLED_MAX_PIXELS and narrow and \
+        points >= UNDERSAMPLED_POINTS * (len(c) + MATCHED_FILTER_GAIN)
+
+
+def undersampled_stars(image: np.ndarray, *, k_sigma: float = 5.0, **kwargs) -> Centroids:
+    """Stars of a frame that draws them narrower than a pixel (a web-sized copy of a photograph, a sensor behind
+    optics in sharp focus): most are single bright pixels, which the centroider takes for hot pixels (no
+    neighbour reaches 15 % of them) or leaves out as one-pixel blobs. The frame upsampled twice (bilinear: each
+    pixel a peak its upsampled neighbours share) is searched and the positions mapped back (pixel x of the
+    upsampled frame lies at (x + 0.5) / 2 - 0.5 of this one; window sums and areas a quarter, the PSF sigma a
+    half). A hot pixel is found as a star too: the solver tries these only after the frame's own stars did not
+    solve (`fainter_stars`). params["upsampled"] is 2."""
+    gray = to_gray(image)
+    H, W = gray.shape
+    up = cv2.resize(gray, (2 * W, 2 * H), interpolation=cv2.INTER_LINEAR)
+    block = 2 * int(kwargs.get("background_block", 64))  # (the background's blocks keep their size on the sky)
+    cu = detect_centroids(up, k_sigma=k_sigma, **{**kwargs, "background_block": block})
+    cu = dataclasses.replace(cu, uv=(cu.uv + 0.5) / 2.0 - 0.5, brightness=cu.brightness / 4.0,
+                             n_pixels=np.maximum(1, cu.n_pixels // 4), psf_sigma_px=cu.psf_sigma_px / 2.0,
+                             image_shape=(H, W), params={**cu.params, "binning": 1, "upsampled": 2})
+    # a pixel whose neighbours hold none of its light (a hot pixel: it never went through the optics) lands on
+    # its own centre to the noise's share; a star narrower than a pixel still lends its neighbours some
+    off_centre = (np.abs(cu.uv - np.round(cu.uv)) > HOT_PIXEL_CENTRE_PX).any(axis=1)
+    n_hot = int(np.count_nonzero(~off_centre))
+    return dataclasses.replace(take(cu, off_centre), n_hot_pixels_rejected=cu.n_hot_pixels_rejected + n_hot) \
+        if n_hot else cu
 
 
 def matched_filter_stars(image: np.ndarray, c: Centroids, *, k_sigma: float = 5.0, **kwargs) -> Centroids:

@@ -253,6 +253,7 @@ def _detect_centroids_reference(image: np.ndarray, *, k_sigma: float = 5.0, wind
     streak = _streaks(_gather(f, bkg, resid, pi, pj, hs)[0], hs, sigma) & (peak_val >= 20.0 * sigma)
     if psf_sigma_px is None:
         good = g_ok & ~saturated & valid3.all(axis=(1, 2)) & (peak_val > 20.0 * sigma) & ~streak
+        params["psf_measured"] = bool(good.any())  # by the bright unsaturated stars (none: 1.2 px assumed)
         s_eff = float(np.sqrt(np.median(g_s2[good]))) if good.any() else math.sqrt(1.2 ** 2 + 1.0 / 12.0)
         s_eff = float(np.clip(s_eff, 0.4, 5.0))
         psf_used = float(np.sqrt(max(s_eff ** 2 - 1.0 / 12.0, 0.04)))
