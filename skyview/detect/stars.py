@@ -152,9 +152,12 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     first_flux = True  # the width check's fluxes are those of the first stars of c (None: of others)
     if binning is None:
         # the centroider measured its stars' width from the unsaturated bright ones: when they are
-        # compact, none of the brightest is saturated and there are enough, there is nothing to bin
+        # compact and there are enough, there is nothing to bin, the brightest saturated or not (wide blobs
+        # among them that are not saturated, yet did not measure that width, are not stars of these optics: a
+        # nebula's knots, a glow); when no star measured it (1.2 px assumed), only if none of the brightest is
+        # saturated (a defocused lens saturates its bright stars into wide disks)
         compact = (math.isfinite(c.psf_sigma_px) and c.psf_sigma_px < 1.5
-                   and not c.saturated[:WIDTH_CHECK_STARS].any())
+                   and (c.params.get("psf_measured", False) or not c.saturated[:WIDTH_CHECK_STARS].any()))
         # few compact stars and faint_search=False: the width check (is the frame one of wide stars that
         # binning would gather?) waits with the matched filter for `fainter_stars`
         deferred = not faint_search and compact and len(c) < FEW_STARS
@@ -216,10 +219,18 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
         if (kept.params.get("n_background_rejected") or kept.params.get("n_background_rebrightened")) \
                 and c.n_unmeasured and m is not None:
             # measured places lost to the map's error, or ranks it gave: every detection measured, the first m kept
-            full = detect_centroids(image, k_sigma=k_sigma, **{**kwargs, "max_stars": None})
-            full = dataclasses.replace(full, params={**c.params, **full.params, "binning": 1})
-            kept = _first(_on_their_own_background(image, _saturated_by_aperture(image, full, 1), k_sigma), int(m))
+            kept = _first(_every_detection(image, c, k_sigma, kwargs), int(m))
         c = kept
+        wide = extended_for_their_peak(c)
+        if wide.any() and not wide.all():
+            # blobs far wider than a star of the frame's PSF and of their peak (a nebula's knots, a glow's
+            # ripples, a caption's letters) are ranked after the stars; where they held measured places, every
+            # detection is measured and ranked so, the first m kept
+            if c.n_unmeasured and m is not None:
+                every = _every_detection(image, c, k_sigma, kwargs)
+                c = _first(_stars_first(every, extended_for_their_peak(every)), int(m))
+            else:
+                c = _stars_first(c, wide)
     if binning is None and b == 1 and elongated_every_way(image, c):
         c = _round_first(c)
     out = _without_trails(c, reject_trails)
@@ -231,6 +242,42 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
         full = detect_stars(image, k_sigma=k_sigma, binning=binning, reject_trails=reject_trails,
                             faint_search=faint_search, **{**kwargs, "max_stars": None})
         return _first(full, int(m))
+    return out
+
+
+def _every_detection(image: np.ndarray, c: Centroids, k_sigma: float, kwargs: dict) -> Centroids:
+    """Every detection of an unbinned frame measured (`c`: its brightest measured, with their params), its
+    saturated stars' brightness from their disks and each read against its own background, as detect_stars
+    reads the measured ones."""
+    full = detect_centroids(image, k_sigma=k_sigma, **{**kwargs, "max_stars": None})
+    full = dataclasses.replace(full, params={**c.params, **full.params, "binning": 1})
+    return _on_their_own_background(image, _saturated_by_aperture(image, full, 1), k_sigma)
+
+
+EXTENDED_AREAS = 4.0  # a blob over this many times the area a star of its peak spreads above the threshold ...
+EXTENDED_EXTRA_PX = 4  # ... and this many pixels more is not a star of the frame's optics
+
+
+def extended_for_their_peak(c: Centroids) -> np.ndarray:
+    """(N,) bool: the unsaturated detections whose blob covers more than EXTENDED_AREAS times the area a star of
+    their peak would spread above the threshold, plus EXTENDED_EXTRA_PX (a Gaussian PSF of sigma s whose peak
+    stands P above the background covers 2 pi s^2 ln(P / threshold) pixels above it), where the frame's PSF was
+    measured compact (under 1.5 px) by its bright unsaturated stars: a nebula's knots, a glow the map does not
+    follow, a caption's letters. The peak is read against the frame's level (a brighter local background makes
+    the area a star may cover larger: never a star taken for a blob). None where the PSF was not measured."""
+    n = len(c)
+    s = c.psf_sigma_px
+    if n == 0 or not c.params.get("psf_measured") or not (math.isfinite(s) and s < 1.5) or not c.threshold > 0:
+        return np.zeros(n, dtype=bool)
+    above = np.maximum(c.peak - c.background_level, c.threshold)
+    area = 2.0 * math.pi * (s * s + 1.0 / 12.0) * np.log(above / c.threshold)
+    return ~c.saturated & (c.n_pixels > EXTENDED_AREAS * area + EXTENDED_EXTRA_PX)
+
+
+def _stars_first(c: Centroids, wide: np.ndarray) -> Centroids:
+    """c with the detections `wide` after the others, each group in its order; how many: params["extended_last"]."""
+    out = take(c, np.argsort(wide, kind="stable"))
+    out.params["extended_last"] = int(np.count_nonzero(wide))
     return out
 
 
