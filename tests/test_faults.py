@@ -320,3 +320,20 @@ def test_ctrl_c_stops_a_bench_at_once_and_saves_what_finished(tmp_path):
     assert saved["interrupted"] and 0 < saved["trials_finished"] < 2000
     time.sleep(0.5)
     assert not [w for w in workers if _running(w)]  # no orphaned workers
+
+
+def test_a_frame_of_hot_pixels_alone_says_so(capsys, tmp_path):
+    """A dark frame whose only bright points are single pixels: not solved (exit 1), in one line that says they
+    were taken for hot pixels, not only that the sky is blank."""
+    import cv2
+
+    from skyview.cli import main
+
+    img = np.full((600, 800), 10, np.uint8)
+    rng = np.random.default_rng(0)
+    img[rng.integers(0, 600, 300), rng.integers(0, 800, 300)] = 255
+    path = tmp_path / "hot.png"
+    cv2.imwrite(str(path), img)
+    assert main(["solve", str(path)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "taken for a sensor's hot pixels" in err[0] and "Traceback" not in err[0]

@@ -150,7 +150,11 @@ def result_from_identification(centroids: Centroids, obs: Observation, ident: Id
     common = dict(method=method, variant=variant, camera=camera, centroids=centroids,
                   database_key=database_key or {}, epoch=catalog.epoch, sigma_rad=sigma_rad, catalog=catalog)
     if ident is None or len(centroids) == 0:
-        return SolveResult(status=NOT_SOLVED, reason="no stars found in the image (blank or empty sky)",
+        hot = int(centroids.n_hot_pixels_rejected) if centroids is not None else 0
+        reason = ("no stars found in the image (blank or empty sky)" if not hot else
+                  f"no stars found in the image: its {hot} bright points are single pixels (or a few side by side) "
+                  "with dark neighbours, taken for a sensor's hot pixels")
+        return SolveResult(status=NOT_SOLVED, reason=reason,
                            identification=None, time_ms={"identify": 0.0, "attitude": 0.0, "solve": 0.0},
                            **common)
     result = SolveResult(status=NOT_SOLVED, reason=ident.reason or ident.status, identification=ident, **common)
