@@ -65,9 +65,9 @@ def test_the_brightest_measured_alone_are_the_first_of_all_measured_unless_a_tra
         catalog):
     """`_brightest_first` (the FOV-given first try's stars): the brightest max_stars measured alone are, field
     for field, the first max_stars of the stars measured for the searches after it; where a saturated star was
-    left unmeasured (its whole disk may rank it among them), or a trail was taken out and stars are left
-    unmeasured, it declines. A trail taken out among the brightest measured gives its places to the stars after
-    it: the first max_stars of every detection measured, trails taken out of them all."""
+    left unmeasured (its whole disk may rank it among them), it declines. A trail taken out among the brightest
+    measured gives its places to the stars after it: the first max_stars of every detection measured, trails
+    taken out of them all, so the first try keeps them (not measured again for the searches)."""
     from skyview.solver.pipeline import _brightest_first, measured_stars
 
     frame = _frame(catalog, seed=4)  # blind8: 31 stars detected
@@ -93,7 +93,9 @@ def test_the_brightest_measured_alone_are_the_first_of_all_measured_unless_a_tra
     assert few.params["n_trail_rejected"] >= 8 and len(few) == 20 and few.n_unmeasured == len(every) - 20 > 0
     for f in ("uv", "brightness", "peak", "n_pixels", "saturated", "elongated", "edge", "blended", "axis_ratio"):
         np.testing.assert_array_equal(getattr(few, f), getattr(every, f)[:20])
-    assert _brightest_first(img, 5.0, 20) is None
+    twenty = _brightest_first(img, 5.0, 20)  # the first 20 of every detection, as the searches' would be
+    np.testing.assert_array_equal(twenty.uv, every.uv[:20])
+    np.testing.assert_array_equal(twenty.uv, detect_stars(img, faint_search=False, max_stars=measured_stars(20)).uv[:20])
     first = _brightest_first(img, 5.0, 40)  # every detection measured: the first try has them all
     assert first.params["n_trail_rejected"] >= 8 and first.n_unmeasured == 0
     np.testing.assert_array_equal(first.uv, every.uv)

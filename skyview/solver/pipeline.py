@@ -849,13 +849,13 @@ def measured_stars(max_stars: int) -> int:
 def _brightest_first(img: np.ndarray, k_sigma: float, max_stars: int) -> Centroids | None:
     """The frame's brightest max_stars stars, measured alone, when they are the first max_stars of the stars
     `_plain_then_fainter` measures (`measured_stars`), field for field: the centroider ranks every detection
-    before measuring (`detect_centroids`' max_stars), and `detect_stars` keeps that order unless a trail was
-    taken out (its fainter fragments, and the stars after them, are then not the same) or a saturated star
-    left unmeasured could rank among them by its whole disk; nor when most of them are elongated but they were
-    not found to be trails (`skyview.detect.trailed`: its vote may read more stars than these). None in those
-    cases."""
+    before measuring (`detect_centroids`' max_stars), and `detect_stars` keeps that order (where trail fragments
+    or blobs wider than a star held measured places, it measures every detection and keeps the first max_stars
+    of them: the same prefix of the same list) unless a saturated star left unmeasured could rank among them by
+    its whole disk; nor when most of them are elongated but they were not found to be trails
+    (`skyview.detect.trailed`: its vote may read more stars than these). None in those cases."""
     stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=max_stars)
-    if stars.n_unmeasured and (stars.n_unmeasured_saturated or stars.params.get("n_trail_rejected")):
+    if stars.n_unmeasured and stars.n_unmeasured_saturated:
         return None
     if "trailed" not in stars.params and may_be_trailed(stars):
         return None  # (whether its stars are trails may read more of them than these)
