@@ -9,6 +9,7 @@ import pytest
 from skyview.cli import main
 from skyview.core.attitude import R_from_radec_roll, attitude_error_arcsec
 from skyview.core.camera import Camera
+from skyview.core.errors import BadInput
 from skyview.simulate.render import (
     SensorModel,
     save_sequence,
@@ -190,6 +191,45 @@ def test_a_sequence_goes_on_past_frames_it_cannot_read(slew, tmp_path, capsys, c
     assert "3 of 12 frames could not be solved at all" in err and "Traceback" not in err
     none = main(["solve-sequence", str(tmp_path / "frame_004.png"), str(tmp_path / "dropped.png"), "--fov-deg", "12"])
     assert none == 2 and "none of the 2 frames could be read" in capsys.readouterr().err
+
+
+def test_a_sequence_folder_goes_on_past_frames_it_cannot_read(slew, tmp_path, capsys, cache, monkeypatch):
+    """A sequence.json whose frames include a corrupt one and one of another size: tracking and the stochastic
+    method both go on past them (each that frame's error, exit code 1), and the frames are read one at a time as
+    they are solved, not all before the first (memory flat over a long sequence)."""
+    import cv2
+
+    import skyview.solver.sequence as sq
+
+    save_sequence(slew, tmp_path)
+    (tmp_path / "frame_004.png").write_bytes(b"\x89PNG but not really")
+    cv2.imwrite(str(tmp_path / "frame_007.png"), np.zeros((64, 80), np.uint16))
+    reads = []
+    load = sq.load_image
+    monkeypatch.setattr(sq, "load_image", lambda p: reads.append(p) or load(p))
+    seq = sq.load_sequence(tmp_path)
+    assert len(reads) == 1 and len(seq.images) == 10  # the first frame only: the size
+    assert isinstance(seq.images.read(4), BadInput) and "frame_007.png is 80x64" in str(seq.images.read(7))
+    with pytest.raises(BadInput):
+        seq.images[4]
+    rc = main(["solve-sequence", str(tmp_path), "--method", "angle", "--variant", "improved", "--json"])
+    out, err = capsys.readouterr()
+    rows = [json.loads(x) for x in out.strip().splitlines()]
+    assert rc == 1 and [r["status"] for r in rows] == ["solved"] * 4 + ["error"] + ["solved"] * 2 + ["error"] + \
+        ["solved"] * 2
+    assert all(r["wrong_matches"] == 0 and r["error_arcsec"]["boresight"] < 3.0 for r in rows if r["solved"])
+    assert "2 of 10 frames could not be solved at all" in err and "Traceback" not in err
+    # the stochastic method: the unreadable frames are frames without stars, carried across with the turns
+    rc = main(["solve-sequence", str(tmp_path), "--json"])
+    out, err = capsys.readouterr()
+    d = json.loads(out)
+    assert rc == 1 and d["frames_unusable"] == [4, 7] and len(d["frames"]) == 10
+    assert [f["status"] for f in d["frames"] if f["frame"] in (4, 7)] == ["error", "error"]
+    assert all(f.get("wrong_matches", 0) == 0 for f in d["frames"])
+    assert "2 of 10 frames could not be used: frames 4, 7" in err and "Traceback" not in err
+    for k in range(10):  # none readable: one line, exit code 2
+        (tmp_path / f"frame_{k:03d}.png").write_bytes(b"")
+    assert main(["solve-sequence", str(tmp_path)]) == 2 and "none of the 10 images" in capsys.readouterr().err
 
 
 def test_slew_bench(cache):

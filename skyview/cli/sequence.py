@@ -80,6 +80,9 @@ def _solve_sequence_method(a) -> int:
         print(text)
     else:
         for f in out["frames"]:
+            if f["status"] == "error":
+                print(f"frame {f['frame']}: error: {f['error']} (a frame without stars: the sequence goes on)")
+                continue
             line = (f"frame {f['frame']}: {f.get('n_centroids', f['stars'])} centroids, {f['above_prior']} stars above "
                     f"the prior, leading HIP {f['top_hips'][0] if f['top_hips'] else '-'} at {f['top_posterior']:.3f}")
             if f.get("true_hip") is not None:
@@ -91,10 +94,15 @@ def _solve_sequence_method(a) -> int:
         if res.solved:
             print(f"solved at frame {out['frame']}: RA {out['ra_deg']:.5f} deg  Dec {out['dec_deg']:+.5f} deg  "
                   f"roll {out['roll_deg']:+.4f} deg")
+    if res.errors:
+        bad = sorted(res.errors)
+        print(f"skyview: {len(bad)} of {len(res.identifications)} frames could not be used: "
+              f"frame{'s' if len(bad) > 1 else ''} {', '.join(map(str, bad))} (the method carried its hypotheses "
+              f"across {'them' if len(bad) > 1 else 'it'} with the turns)", file=sys.stderr)
     if not res.solved:
         print(f"skyview: not solved: {out.get('reason', '')}", file=sys.stderr)
         return EXIT_NOT_SOLVED
-    return EXIT_SOLVED
+    return EXIT_NOT_SOLVED if res.errors else EXIT_SOLVED
 
 
 def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
@@ -118,7 +126,9 @@ def _solve_sequence_track(a, paths: list[str], one: bool) -> int:
     truths = None
     if one:
         seq = load_sequence(paths[0], a.fov_deg)
-        images, turns, camera, names = seq.images, seq.turns, seq.camera, [str(p) for p in seq.paths]
+        # (read one at a time as the loop asks: a frame that cannot be read is that frame's error)
+        images = (seq.images.read(k) for k in range(len(seq.images)))
+        turns, camera, names = seq.turns, seq.camera, [str(p) for p in seq.paths]
         truths = None if a.no_truth else seq.truths
     else:
         for p in paths:
@@ -263,7 +273,8 @@ def _record_sequence(a, res) -> None:
 
     seq = load_sequence(a.path, a.fov_deg)  # the images (solve_sequence read them too) and the turns
     truths = None if a.no_truth else seq.truths
-    info = record_sequence(a.record, res, seq.images, truths=truths, turns=seq.turns, force=a.force,
+    images = [None if isinstance(im, BadInput) else im for im in map(seq.images.read, range(len(seq.images)))]
+    info = record_sequence(a.record, res, images, truths=truths, turns=seq.turns, force=a.force,
                            meta={"sequence": str(a.path), "frames": len(seq.images), "variant": a.variant,
                                  "truth": "the simulator's sidecars" if truths is not None else "-"})
     done = (f"identified at frame{'s' if len(info.identified) > 1 else ''} {', '.join(map(str, info.identified))}"

@@ -389,7 +389,8 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
                     turns: list[np.ndarray] | None = None, force: bool = False, meta: dict | None = None,
                     notes: list[str] | None = None, reference: dict | None = None,
                     name: str | None = None) -> SequenceRecordInfo:
-    """Write `seq_result` (a sequence.SequenceResult of `images`, one per frame) as a Rerun recording.
+    """Write `seq_result` (a sequence.SequenceResult of `images`, one per frame; None for a frame that could
+    not be read) as a Rerun recording.
 
     truths: the simulator's per-frame truth dicts when known (true attitude, drawn stars, false stars);
     without them the result's own `true_R` (and truth rows) are used when it has them. turns: the known
@@ -404,12 +405,12 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
     K = len(ids)
     if K == 0:
         raise BadInput("the sequence has no frames to record")
-    images = [np.asarray(im) for im in images]
+    images = [None if im is None else np.asarray(im) for im in images]
     camera = seq_result.camera
     if len(images) != K:
         raise BadInput(f"{len(images)} images for a sequence of {K} frames")
     for k, im in enumerate(images):
-        if im.shape != (camera.height, camera.width):
+        if im is not None and im.shape != (camera.height, camera.width):
             raise BadInput(f"image {k} is {im.shape[-1]}x{im.shape[0]} but the camera is {camera.width}x{camera.height}")
     if truths is not None and len(truths) != K:
         raise BadInput(f"{len(truths)} truth sidecars for a sequence of {K} frames")
@@ -436,7 +437,7 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
     title = name or p.stem
     digest = hashlib.sha1()
     for im in images:
-        digest.update(np.ascontiguousarray(im).tobytes())
+        digest.update(b"-" if im is None else np.ascontiguousarray(im).tobytes())
     rec_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"skyview:{title}:{seq_result.method}:{seq_result.variant}:"
                                                 f"sequence:{digest.hexdigest()}"))
     n_steps = sum(len(s) for s in steps)
@@ -452,7 +453,8 @@ def record_sequence(path: str | os.PathLike, seq_result, images: list[np.ndarray
             note = _write_frame(fr, k, seq_result, images[k], centroids[k], shown[k],
                                 None if true_R is None else true_R[k], None if truths is None else truths[k], figs[k],
                                 eye=sequence_eye(R_mid))
-            image_note = image_note or f"frame {k}: {note}"
+            if note:
+                image_note = image_note or f"frame {k}: {note}"
             for i, v in enumerate(views[k]):
                 rec.set_time(STEP_TIMELINE, sequence=first + i)
                 drawn = D.log_step(rec, v, centroids[k], drawn)
@@ -503,8 +505,12 @@ def _write_frame(fr: _Frames, k: int, seq_result, image, uv_c: np.ndarray, R_vie
         fr.log(D.CAMERA, D.pose(R_view))
     else:
         fr.clear(D.CAMERA)
-    shown_img, note = D.display_image(image)
-    fr.log(D.IMAGE, rr.Image(shown_img, color_model="L").compress(jpeg_quality=D.JPEG_QUALITY))
+    if image is None:  # (a frame that could not be read: no picture, its error in the result)
+        fr.clear(D.IMAGE)
+        note = ""
+    else:
+        shown_img, note = D.display_image(image)
+        fr.log(D.IMAGE, rr.Image(shown_img, color_model="L").compress(jpeg_quality=D.JPEG_QUALITY))
     n = len(uv_c)
     labels = [f"#{i}" for i in range(n)]
     fr.log(D.CENTROIDS, rr.Points2D(D.rerun_uv(uv_c) if n else np.zeros((0, 2), np.float32),

@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +40,7 @@ from scipy.spatial import cKDTree
 from skyview.core.attitude import attitude_error_arcsec, quat_from_R, radec_roll_from_R
 from skyview.core.camera import Camera
 from skyview.core.catalog import DEFAULT_EPOCH, GuideCatalog, load_guide_catalog
-from skyview.core.errors import BadInput
+from skyview.core.errors import BadInput, SkyviewError
 from skyview.detect.centroids import Centroids, detect_centroids, load_image
 from skyview.identify import make_identifier
 from skyview.identify.base import Identification, Observation, is_sequence_method
@@ -124,12 +125,57 @@ def vector_frame(catalog: GuideCatalog, camera: Camera, R: np.ndarray, sigma_rad
     return obs, rows
 
 
+class SequenceFrames(Sequence):
+    """The images of a sequence on disk, read one at a time as they are asked for (memory flat over a long
+    run, whatever its length). `read(k)`: frame k's image, or the BadInput that says why it cannot be used
+    (unreadable, or not the sequence's size), for a loop that goes on past it; frames[k] raises that error."""
+
+    def __init__(self, paths: list[Path], shape: tuple[int, int], first: tuple[int, np.ndarray] | None = None):
+        self.paths = list(paths)
+        self.shape = tuple(shape)
+        self._first = first  # (index, image) of the frame load_sequence read for the size: not read twice
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def read(self, k: int) -> np.ndarray | BadInput:
+        if self._first is not None and self._first[0] == k:
+            im, self._first = self._first[1], None
+            return im
+        im = _read_frame(self.paths[k])
+        if isinstance(im, np.ndarray) and im.shape != self.shape:
+            return BadInput(f"{self.paths[k].name} is {im.shape[1]}x{im.shape[0]}, the sequence's frames are "
+                            f"{self.shape[1]}x{self.shape[0]}")
+        return im
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        im = self.read(range(len(self))[k])
+        if isinstance(im, BadInput):
+            raise im
+        return im
+
+
+def _read_frame(path: Path) -> np.ndarray | BadInput:
+    """The image at path, or the error that says why it cannot be read."""
+    try:
+        return load_image(path)
+    except (BadInput, SkyviewError) as exc:
+        return exc if isinstance(exc, BadInput) else BadInput(str(exc))
+
+
+def frame_or_error(images, k: int) -> np.ndarray | BadInput:
+    """Frame k of a list of images or of `SequenceFrames` (its image, or why it cannot be used)."""
+    return images.read(k) if isinstance(images, SequenceFrames) else images[k]
+
+
 @dataclass
 class SequenceInput:
-    """A sequence read from disk: images, the turns between them (dR_cam), the camera, and the
-    simulator's sensor and truth when the sidecar has them."""
+    """A sequence read from disk: its images (`SequenceFrames`: read as they are asked for), the turns
+    between them (dR_cam), the camera, and the simulator's sensor and truth when the sidecar has them."""
 
-    images: list[np.ndarray]
+    images: SequenceFrames
     turns: list[np.ndarray]
     camera: Camera
     paths: list[Path]
@@ -152,7 +198,9 @@ def _rotation(m: Any, what: str) -> np.ndarray:
 def load_sequence(path: str | Path, fov_deg: float | None = None) -> SequenceInput:
     """Read a sequence: a sequence.json (or the folder holding one) with "images" and "relative"
     (len(images) - 1 entries with "dR_cam"), as `simulate.save_sequence` writes it. The camera comes
-    from fov_deg (and the image size) when given, else from the sidecar."""
+    from fov_deg (and the image size) when given, else from the sidecar. Only the first frame that can be
+    read is read here (the sequence's size); the others are read as they are solved (`SequenceFrames`),
+    and one that cannot be read is that frame's error, not the sequence's (none readable: BadInput)."""
     p = Path(path)
     if p.is_dir():
         p = p / "sequence.json"
@@ -183,11 +231,19 @@ def load_sequence(path: str | Path, fov_deg: float | None = None) -> SequenceInp
         if not isinstance(n, str) or Path(n).is_absolute() or folder not in q.resolve().parents:
             raise BadInput(f"{p}: image {n!r} is not a file in the sequence's folder")
         paths.append(q)
-    images = [load_image(q) for q in paths]
-    shapes = {im.shape for im in images}
-    if len(shapes) != 1:
-        raise BadInput(f"the images of {p} differ in size: {sorted(shapes)}")
-    H, W = images[0].shape
+    # the first frame that can be read gives the sequence's size (and, with fov_deg, its camera); the others
+    # are read as they are solved: one that cannot be read, or is another size, is that frame's error
+    first, errors = None, []
+    for k, q in enumerate(paths):
+        im = _read_frame(q)
+        if isinstance(im, np.ndarray):
+            first = (k, im)
+            break
+        errors.append(im)
+    if first is None:
+        raise BadInput(f"none of the {len(paths)} images of {p} can be read (the first: {errors[0]})")
+    H, W = first[1].shape
+    images = SequenceFrames(paths, (H, W), first)
     frames = meta.get("frames") if isinstance(meta.get("frames"), list) else None
     cam_d = meta.get("camera") or (frames[0].get("camera") if frames and isinstance(frames[0], dict) else None)
     if fov_deg is not None:
@@ -226,6 +282,7 @@ class SequenceResult:
     time_ms: dict[str, float] = field(default_factory=dict)
     database_key: dict = field(default_factory=dict)
     mag_zero_point: float | None = None
+    errors: dict[int, str] = field(default_factory=dict)  # frame -> why it could not be used (no stars from it)
 
     @property
     def frame(self) -> int | None:
@@ -263,7 +320,7 @@ class SequenceResult:
         ok = bool(r.identified)
         matches = matched_stars(self.catalog, self.observations[k].uv, r.matches) if ok else []
         out: dict[str, Any] = {"frame": k, **solution_dict(
-            status="solved" if ok else "failed", reason=r.reason or r.status, R=r.R if ok else None,
+            status="solved" if ok else ("error" if k in self.errors else "failed"), reason=r.reason or r.status, R=r.R if ok else None,
             p_false=r.verification.get("p_false") if ok else None, method=self.method, variant=self.variant,
             camera=self.camera, epoch=self.catalog.epoch,
             n_centroids=len(self.centroids[k]) if self.centroids is not None else 0, matches=matches)}
@@ -274,6 +331,8 @@ class SequenceResult:
             "x": st.get("x"),
         })
         tf = self.truth_figures()[k] if self.truth is not None else {}
+        if k in self.errors:
+            out["error"] = self.errors[k]
         if tf.get("true_row") is not None:
             out["true_hip"] = int(self.catalog.hip[tf["true_row"]])
             out["true_posterior"] = tf["true_posterior"]
@@ -298,6 +357,7 @@ class SequenceResult:
         out.update({"frames": [self.frame_dict(k) for k in range(len(self.identifications))],
                     "catalog_stars": len(self.catalog), "mag_zero_point": self.mag_zero_point,
                     "camera": self.camera.to_dict(), "epoch": self.catalog.epoch,
+                    "frames_unusable": sorted(self.errors),
                     "time_ms": {k: round(v, 3) for k, v in self.time_ms.items()},
                     "database_key": self.database_key})
         return out
@@ -346,20 +406,27 @@ class SequenceSolver:
                               database_key=self.identifier.database_key,
                               mag_zero_point=getattr(self.identifier, "mag_zero_point", None))
 
-    def solve_images(self, images: list[np.ndarray], turns: list[np.ndarray], truths: list[dict] | None = None,
-                     sigma_mag: float = 0.0, seed: int = 0) -> SequenceResult:
+    def solve_images(self, images: list[np.ndarray] | SequenceFrames, turns: list[np.ndarray],
+                     truths: list[dict] | None = None, sigma_mag: float = 0.0, seed: int = 0) -> SequenceResult:
         """Centroid every image and run the sequence. truths: the simulator's per-frame sidecars (for
-        the record); sigma_mag > 0 perturbs the measured magnitudes (the paper's experiment)."""
-        if not images:
+        the record); sigma_mag > 0 perturbs the measured magnitudes (the paper's experiment). A frame of
+        `SequenceFrames` that cannot be read (or a BadInput in the list) is a frame without stars: the
+        method carries its hypotheses across it with the turn, and the result says why (`errors`)."""
+        if not len(images):
             raise BadInput("a sequence needs at least one image")
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
-        cents, obs = [], []
-        for im in images:
-            if im.ndim != 2 or im.shape != (self.camera.height, self.camera.width):
-                raise BadInput(f"image of shape {im.shape} does not fit the camera "
-                               f"{self.camera.width}x{self.camera.height}")
-            c = detect_centroids(im, k_sigma=self.k_sigma)
+        cents, obs, errors = [], [], {}
+        for k in range(len(images)):
+            im = frame_or_error(images, k)
+            if isinstance(im, BadInput):
+                errors[k] = str(im)
+                c = Centroids.empty(image_shape=(self.camera.height, self.camera.width))
+            else:
+                if im.ndim != 2 or im.shape != (self.camera.height, self.camera.width):
+                    raise BadInput(f"image of shape {im.shape} does not fit the camera "
+                                   f"{self.camera.width}x{self.camera.height}")
+                c = detect_centroids(im, k_sigma=self.k_sigma)
             cents.append(c)
             obs.append(perturb_magnitudes(observation(c, self.camera, self.sigma_rad, self.max_stars), sigma_mag, rng))
         t1 = time.perf_counter()
@@ -369,6 +436,9 @@ class SequenceSolver:
             true_R = [np.asarray(t["R"], dtype=np.float64) for t in truths]
         res = self.solve_observations(obs, turns, truth=truth, true_R=true_R)
         res.centroids = cents
+        res.errors = errors
+        for k, msg in errors.items():
+            res.identifications[k].reason = f"the frame could not be used: {msg}"
         res.time_ms = {"centroid": (t1 - t0) * 1e3, **res.time_ms}
         return res
 
