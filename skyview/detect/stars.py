@@ -221,14 +221,14 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
             # measured places lost to the map's error, or ranks it gave: every detection measured, the first m kept
             kept = _first(_every_detection(image, c, k_sigma, kwargs), int(m))
         c = kept
-        wide = extended_for_their_peak(c)
+        wide = not_stars_of_the_optics(image, c)
         if wide.any() and not wide.all():
             # blobs far wider than a star of the frame's PSF and of their peak (a nebula's knots, a glow's
             # ripples, a caption's letters) are ranked after the stars; where they held measured places, every
             # detection is measured and ranked so, the first m kept
             if c.n_unmeasured and m is not None:
                 every = _every_detection(image, c, k_sigma, kwargs)
-                c = _first(_stars_first(every, extended_for_their_peak(every)), int(m))
+                c = _first(_stars_first(every, not_stars_of_the_optics(image, every)), int(m))
             else:
                 c = _stars_first(c, wide)
     if binning is None and b == 1 and elongated_every_way(image, c):
@@ -272,6 +272,81 @@ def extended_for_their_peak(c: Centroids) -> np.ndarray:
     above = np.maximum(c.peak - c.background_level, c.threshold)
     area = 2.0 * math.pi * (s * s + 1.0 / 12.0) * np.log(above / c.threshold)
     return ~c.saturated & (c.n_pixels > EXTENDED_AREAS * area + EXTENDED_EXTRA_PX)
+
+
+FLAT_TOP_RATIO = 0.7  # a blob whose pixels above the threshold are fewer than this share of a star's of its peak ...
+FLAT_TOP_HALF_AREAS = 2.0  # ... for as many above half its peak, and whose pixels above half its peak exceed this
+FLAT_TOP_EXTRA_PX = 4  # many times (plus this many) the core of the frame's PSF, ...
+FLAT_TOP_MIN_PEAK = 5.0  # ... its peak this many thresholds or more above its surroundings, is drawn, not a star
+FLAT_TOP_RADIUS = 6  # px: the half-size of the window its pixels are counted in
+
+
+def flat_topped(image: np.ndarray, c: Centroids) -> np.ndarray:
+    """(N,) bool: the unsaturated detections whose light is a plateau, not a star's peak, where the frame's PSF
+    was measured compact (under 1.5 px): a label's or a caption's letters, a drawn mark. A Gaussian star whose
+    peak stands P above its surroundings covers 2 pi s^2 ln(P / T) pixels above the threshold T and 2 pi s^2 ln 2
+    above half its peak: their ratio is ln(P / T) / ln 2 whatever its width. A letter's strokes, one line of
+    one brightness, put most of their pixels above half the peak: the ratio is near 1. A detection is drawn when,
+    counted in the (2 FLAT_TOP_RADIUS + 1)^2 window around it less its border's median (`background_windows`),
+    the ratio is under FLAT_TOP_RATIO of a star's and its pixels above half the peak exceed FLAT_TOP_HALF_AREAS
+    times the PSF's core (2 pi s^2 ln 2) plus FLAT_TOP_EXTRA_PX (the photographs' stars: 1-6 such pixels; the
+    letters of a chart's labels: 18 or more). Only peaks FLAT_TOP_MIN_PEAK thresholds or more above their
+    surroundings are judged (the ratio of a fainter star is too near 1 to tell)."""
+    n = len(c)
+    out = np.zeros(n, dtype=bool)
+    s = c.psf_sigma_px
+    if n == 0 or not c.params.get("psf_measured") or not (math.isfinite(s) and s < 1.5) or not c.threshold > 0:
+        return out
+    core = 2.0 * math.pi * (s * s + 1.0 / 12.0) * math.log(2.0)
+    need = FLAT_TOP_HALF_AREAS * core + FLAT_TOP_EXTRA_PX
+    # (a plateau of `need` pixels above half the peak spreads at least as many above the threshold)
+    cand = np.flatnonzero(~c.saturated & (c.n_pixels > need)
+                          & (c.peak - c.background_level >= FLAT_TOP_MIN_PEAK * c.threshold))
+    if len(cand) == 0:
+        return out
+    img = to_gray(image)
+    # a first look, 5 x 5 around each peak against the frame's level: a star of a PSF under 1.5 px puts at most
+    # two of the 16 pixels around its 3 x 3 centre above half its peak (a plateau's strokes run through them)
+    H, W = img.shape
+    # (column, row), a window reaching past the image's edge moved inside it: the look only passes detections on
+    # to the count below, which leaves out windows that do not fit)
+    ji = np.minimum(np.maximum(np.rint(c.uv[cand]).astype(np.int64), 2), np.array([W - 3, H - 3]))
+    v = img.reshape(-1).take((ji[:, 1] * W + ji[:, 0])[:, None] + _RING5_OFFSETS(W)).astype(np.float64)
+    half = np.maximum.reduce(v[:, :9], axis=1)
+    half += c.background_level  # (v's level read as the frame's: (max + level) / 2 is half the peak above it)
+    half *= 0.5
+    cand = cand[np.add.reduce(v[:, 9:] >= half[:, None], axis=1) >= 3]
+    if len(cand) == 0:
+        return out
+    r = FLAT_TOP_RADIUS
+    win, inside = background_windows(img, c.uv[cand], r)
+    if len(win) == 0:
+        return out
+    cand = cand[inside]
+    peak = win[:, r - 1:r + 2, r - 1:r + 2].max(axis=(1, 2))
+    t = float(c.threshold)
+    judged = peak >= FLAT_TOP_MIN_PEAK * t
+    above_t = np.count_nonzero((win >= t).reshape(len(win), -1), axis=1)
+    above_half = np.count_nonzero((win >= 0.5 * peak[:, None, None]).reshape(len(win), -1), axis=1)
+    star_ratio = np.log(np.maximum(peak, t) / t) / math.log(2.0)
+    out[cand] = judged & (above_half > need) & (above_t < FLAT_TOP_RATIO * star_ratio * above_half)
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _RING5_OFFSETS(W: int) -> np.ndarray:
+    """Flat offsets in a width-W image of a 5 x 5 window's pixels: the 3 x 3 centre first (9), then the 16 around it."""
+    d = np.arange(-2, 3)
+    off = (d[:, None] * W + d[None, :]).ravel()
+    centre = (np.abs(d)[:, None] <= 1) & (np.abs(d)[None, :] <= 1)
+    return np.concatenate([off[centre.ravel()], off[~centre.ravel()]])
+
+
+def not_stars_of_the_optics(image: np.ndarray, c: Centroids) -> np.ndarray:
+    """(N,) bool: detections that are not stars drawn by the frame's optics, to be ranked after the stars: blobs far
+    wider than a star of their peak (`extended_for_their_peak`: a nebula's knots, a glow's ripples) and plateaus
+    (`flat_topped`: letters, drawn marks)."""
+    return extended_for_their_peak(c) | flat_topped(image, c)
 
 
 def _stars_first(c: Centroids, wide: np.ndarray) -> Centroids:
