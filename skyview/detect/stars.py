@@ -274,15 +274,16 @@ def extended_for_their_peak(c: Centroids) -> np.ndarray:
     return ~c.saturated & (c.n_pixels > EXTENDED_AREAS * area + EXTENDED_EXTRA_PX)
 
 
-FLAT_TOP_RATIO = 0.7  # a blob whose pixels above the threshold are fewer than this share of a star's of its peak ...
+FLAT_TOP_RATIO = 0.8  # a blob whose pixels above the threshold are fewer than this share of a star's of its peak ...
 FLAT_TOP_HALF_AREAS = 2.0  # ... for as many above half its peak, and whose pixels above half its peak exceed this
 FLAT_TOP_EXTRA_PX = 4  # many times (plus this many) the core of the frame's PSF, ...
-FLAT_TOP_MIN_PEAK = 5.0  # ... its peak this many thresholds or more above its surroundings, is drawn, not a star
+FLAT_TOP_MIN_PEAK = 3.0  # ... its peak this many thresholds or more above its surroundings, is drawn, not a star
 FLAT_TOP_RADIUS = 6  # px: the half-size of the window its pixels are counted in
 
 
 def flat_topped(image: np.ndarray, c: Centroids) -> np.ndarray:
-    """(N,) bool: the unsaturated detections whose light is a plateau, not a star's peak, where the frame's PSF
+    """(N,) bool: the detections whose light is a plateau, not a star's peak (and the saturated ones whose core is
+    strokes: `_saturated_strokes`), where the frame's PSF
     was measured compact (under 1.5 px): a label's or a caption's letters, a drawn mark. A Gaussian star whose
     peak stands P above its surroundings covers 2 pi s^2 ln(P / T) pixels above the threshold T and 2 pi s^2 ln 2
     above half its peak: their ratio is ln(P / T) / ln 2 whatever its width. A letter's strokes, one line of
@@ -299,19 +300,21 @@ def flat_topped(image: np.ndarray, c: Centroids) -> np.ndarray:
         return out
     core = 2.0 * math.pi * (s * s + 1.0 / 12.0) * math.log(2.0)
     need = FLAT_TOP_HALF_AREAS * core + FLAT_TOP_EXTRA_PX
-    # (a plateau of `need` pixels above half the peak spreads at least as many above the threshold)
-    cand = np.flatnonzero(~c.saturated & (c.n_pixels > need)
+    img = to_gray(image)
+    _saturated_strokes(img, c, out)
+    # (a letter's own blob may be small: the plateau counted is its word's, as far as the window reaches)
+    cand = np.flatnonzero(~c.saturated & (c.n_pixels > core)
                           & (c.peak - c.background_level >= FLAT_TOP_MIN_PEAK * c.threshold))
     if len(cand) == 0:
         return out
-    img = to_gray(image)
-    # a first look, 5 x 5 around each peak against the frame's level: a star of a PSF under 1.5 px puts at most
-    # two of the 16 pixels around its 3 x 3 centre above half its peak (a plateau's strokes run through them)
+    # a first look, 7 x 7 around each peak against the frame's level: a star of a PSF under 1.5 px puts all but a
+    # pixel or two of those above half its peak in its 3 x 3 centre (sun20's and the photographs' stars: 1,663 of
+    # 1,676 with two or fewer beyond it); a stroke through the centre leaves it on both sides (drawn letters: 3+)
     H, W = img.shape
     # (column, row), a window reaching past the image's edge moved inside it: the look only passes detections on
     # to the count below, which leaves out windows that do not fit)
-    ji = np.minimum(np.maximum(np.rint(c.uv[cand]).astype(np.int64), 2), np.array([W - 3, H - 3]))
-    v = img.reshape(-1).take((ji[:, 1] * W + ji[:, 0])[:, None] + _RING5_OFFSETS(W)).astype(np.float64)
+    ji = np.minimum(np.maximum(np.rint(c.uv[cand]).astype(np.int64), 3), np.array([W - 4, H - 4]))
+    v = img.reshape(-1).take((ji[:, 1] * W + ji[:, 0])[:, None] + _WINDOW7_OFFSETS(W)).astype(np.float64)
     half = np.maximum.reduce(v[:, :9], axis=1)
     half += c.background_level  # (v's level read as the frame's: (max + level) / 2 is half the peak above it)
     half *= 0.5
@@ -333,13 +336,65 @@ def flat_topped(image: np.ndarray, c: Centroids) -> np.ndarray:
     return out
 
 
+STROKE_CORE = 0.9  # a saturated detection's core: its window's pixels at this share of its top or more ...
+STROKE_MIN_PX = 6  # ... of this many pixels or more, ...
+STROKE_SPREAD = 2.0  # ... spread this many times a disk's moment of inertia or more, is drawn strokes, not a star
+
+
+def _saturated_strokes(img: np.ndarray, c: Centroids, out: np.ndarray) -> None:
+    """Mark in `out` the saturated detections whose saturated core is strokes, not a disk: letters drawn at the
+    image's full value (white labels, text drawn without anti-aliasing). A star saturates into a disk, whose
+    STROKE_MIN_PX or more core pixels (the largest connected part of those at STROKE_CORE of the top of its window
+    or more, the window FLAT_TOP_RADIUS in half-size less its border's median: one disk of a close pair) have the
+    moment of inertia of a disk, N^2 / 2 pi about
+    their centre (the photographs' saturated stars: 0.95-1.01 of it); a letter's strokes spread the same pixels
+    out (3 times it and more)."""
+    if not c.saturated.any():
+        return
+    sat = np.flatnonzero(c.saturated)
+    r = FLAT_TOP_RADIUS
+    win, inside = background_windows(img, c.uv[sat], r)
+    if len(win) == 0:
+        return
+    sat = sat[inside]
+    top = win.reshape(len(win), -1).max(axis=1)
+    core = _largest_part(win >= STROKE_CORE * top[:, None, None])  # (one disk of a saturated pair, not both)
+    n = np.count_nonzero(core, axis=1)
+    xy = _window_xy(r)  # (pixels, 2) offsets
+    m1 = core @ xy / np.maximum(n, 1)[:, None]
+    inertia = core @ (xy * xy).sum(axis=1) - n * (m1 * m1).sum(axis=1)
+    out[sat] = (n >= STROKE_MIN_PX) & (inertia > STROKE_SPREAD * n * n / (2.0 * math.pi))
+
+
+def _largest_part(masks: np.ndarray) -> np.ndarray:
+    """(n, side * side) bool: of each (side, side) mask of `masks`, its largest 8-connected part (the first where two
+    are as large): one cv2.connectedComponents over the masks stacked with a blank row between them."""
+    n, side = masks.shape[0], masks.shape[1]
+    stack = np.zeros((n, side + 1, side), dtype=np.uint8)
+    stack[:, :side] = masks
+    _, lab = cv2.connectedComponents(stack.reshape(-1, side), connectivity=8, ltype=cv2.CV_32S)
+    lab = lab.reshape(n, side + 1, side)[:, :side].reshape(n, -1)
+    size = np.bincount(lab.ravel())
+    size[0] = 0
+    best = lab[np.arange(n), size[lab].argmax(axis=1)]
+    return (lab == best[:, None]) & (best[:, None] > 0)
+
+
+@functools.lru_cache(maxsize=4)
+def _window_xy(r: int) -> np.ndarray:
+    """(pixels, 2) float: the (dx, dy) of each pixel of a (2r + 1)^2 window, row-major."""
+    d = np.arange(-r, r + 1, dtype=np.float64)
+    yy, xx = np.meshgrid(d, d, indexing="ij")
+    return np.stack([xx.ravel(), yy.ravel()], axis=1)
+
+
 @functools.lru_cache(maxsize=8)
-def _RING5_OFFSETS(W: int) -> np.ndarray:
-    """Flat offsets in a width-W image of a 5 x 5 window's pixels: the 3 x 3 centre first (9), then the 16 around it."""
-    d = np.arange(-2, 3)
+def _WINDOW7_OFFSETS(W: int) -> np.ndarray:
+    """Flat offsets in a width-W image of a 7 x 7 window's pixels: the 3 x 3 centre first (9), then the others."""
+    d = np.arange(-3, 4)
     off = (d[:, None] * W + d[None, :]).ravel()
-    centre = (np.abs(d)[:, None] <= 1) & (np.abs(d)[None, :] <= 1)
-    return np.concatenate([off[centre.ravel()], off[~centre.ravel()]])
+    centre = ((np.abs(d)[:, None] <= 1) & (np.abs(d)[None, :] <= 1)).ravel()
+    return np.concatenate([off[centre], off[~centre]])
 
 
 def not_stars_of_the_optics(image: np.ndarray, c: Centroids) -> np.ndarray:
