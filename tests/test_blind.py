@@ -334,6 +334,15 @@ def test_a_colour_jpeg_of_a_real_photograph_solves_blind(blind):
     assert res.camera.fov_deg == pytest.approx(REFERENCE[name]["fov_deg"], rel=0.005)
 
 
+def _stretched(name: str) -> np.ndarray:
+    """The photograph stretched to 8 bits as a photographer's export has it: the black point 2 sigma under the sky,
+    the sky at 25."""
+    img16 = load_image(REAL / name).astype(np.float64)
+    med = float(np.median(img16))
+    sigma = 1.4826 * float(np.median(np.abs(img16 - med)))
+    return np.clip((img16 - (med - 2 * sigma)) * (25.0 / (2 * sigma)), 0, 255).astype(np.uint8)
+
+
 @pytest.mark.parametrize("k", [1, 5])
 def test_a_photograph_with_a_caption_and_a_watermark_solves_blind(k):
     """A camera's date stamp and a photographer's watermark: each letter a blob brighter than the stars, rows of
@@ -344,10 +353,7 @@ def test_a_photograph_with_a_caption_and_a_watermark_solves_blind(k):
     import skyview
 
     name = sorted(REFERENCE)[k]
-    img16 = load_image(REAL / name).astype(np.float64)
-    med = float(np.median(img16))
-    sigma = 1.4826 * float(np.median(np.abs(img16 - med)))
-    img8 = np.clip((img16 - (med - 2 * sigma)) * (25.0 / (2 * sigma)), 0, 255).astype(np.uint8)  # the sky at 25
+    img8 = _stretched(name)
     colour = cv2.cvtColor(img8, cv2.COLOR_GRAY2BGR)
     cv2.putText(colour, "2019-07-29 20:47:26  ISO 3200  f/2.8  10s", (10, 753), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
                 (255, 255, 255), 1, cv2.LINE_AA)
@@ -380,10 +386,7 @@ def test_a_photograph_with_a_chart_s_labels_solves_blind(k, style):
     from skyview.detect.stars import detect_stars, flat_topped, not_stars_of_the_optics
 
     name = sorted(REFERENCE)[k]
-    img16 = load_image(REAL / name).astype(np.float64)
-    med = float(np.median(img16))
-    sigma = 1.4826 * float(np.median(np.abs(img16 - med)))
-    img8 = np.clip((img16 - (med - 2 * sigma)) * (25.0 / (2 * sigma)), 0, 255).astype(np.uint8)  # the sky at 25
+    img8 = _stretched(name)
     chart = cv2.cvtColor(img8, cv2.COLOR_GRAY2BGR)
     font, scale, colour, thickness, line = _LABEL_STYLES[style]
     rng = np.random.default_rng(5)
