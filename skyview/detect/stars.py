@@ -258,6 +258,13 @@ EXTENDED_AREAS = 4.0  # a blob over this many times the area a star of its peak 
 EXTENDED_EXTRA_PX = 4  # ... and this many pixels more is not a star of the frame's optics
 
 
+def _psf_measured_compact(c: Centroids) -> bool:
+    """Whether the frame's bright unsaturated stars measured its PSF under 1.5 px (and it has a threshold): the frames
+    whose stars the blob tests (`extended_for_their_peak`, `flat_topped`) can tell drawn or extended light from."""
+    s = c.psf_sigma_px
+    return bool(c.params.get("psf_measured")) and math.isfinite(s) and s < 1.5 and c.threshold > 0
+
+
 def extended_for_their_peak(c: Centroids) -> np.ndarray:
     """(N,) bool: the unsaturated detections whose blob covers more than EXTENDED_AREAS times the area a star of
     their peak would spread above the threshold, plus EXTENDED_EXTRA_PX (a Gaussian PSF of sigma s whose peak
@@ -267,7 +274,7 @@ def extended_for_their_peak(c: Centroids) -> np.ndarray:
     the area a star may cover larger: never a star taken for a blob). None where the PSF was not measured."""
     n = len(c)
     s = c.psf_sigma_px
-    if n == 0 or not c.params.get("psf_measured") or not (math.isfinite(s) and s < 1.5) or not c.threshold > 0:
+    if n == 0 or not _psf_measured_compact(c):
         return np.zeros(n, dtype=bool)
     above = np.maximum(c.peak - c.background_level, c.threshold)
     area = 2.0 * math.pi * (s * s + 1.0 / 12.0) * np.log(above / c.threshold)
@@ -283,8 +290,8 @@ FLAT_TOP_RADIUS = 6  # px: the half-size of the window its pixels are counted in
 
 def flat_topped(image: np.ndarray, c: Centroids) -> np.ndarray:
     """(N,) bool: the detections whose light is a plateau, not a star's peak (and the saturated ones whose core is
-    strokes: `_saturated_strokes`), where the frame's PSF
-    was measured compact (under 1.5 px): a label's or a caption's letters, a drawn mark. A Gaussian star whose
+    strokes: `_saturated_strokes`), where the frame's PSF was measured compact (under 1.5 px): a label's or a
+    caption's letters, a drawn mark. A Gaussian star whose
     peak stands P above its surroundings covers 2 pi s^2 ln(P / T) pixels above the threshold T and 2 pi s^2 ln 2
     above half its peak: their ratio is ln(P / T) / ln 2 whatever its width. A letter's strokes, one line of
     one brightness, put most of their pixels above half the peak: the ratio is near 1. A detection is drawn when,
@@ -296,7 +303,7 @@ def flat_topped(image: np.ndarray, c: Centroids) -> np.ndarray:
     n = len(c)
     out = np.zeros(n, dtype=bool)
     s = c.psf_sigma_px
-    if n == 0 or not c.params.get("psf_measured") or not (math.isfinite(s) and s < 1.5) or not c.threshold > 0:
+    if n == 0 or not _psf_measured_compact(c):
         return out
     core = 2.0 * math.pi * (s * s + 1.0 / 12.0) * math.log(2.0)
     need = FLAT_TOP_HALF_AREAS * core + FLAT_TOP_EXTRA_PX
@@ -314,7 +321,7 @@ def flat_topped(image: np.ndarray, c: Centroids) -> np.ndarray:
     # (column, row), a window reaching past the image's edge moved inside it: the look only passes detections on
     # to the count below, which leaves out windows that do not fit)
     ji = np.minimum(np.maximum(np.rint(c.uv[cand]).astype(np.int64), 3), np.array([W - 4, H - 4]))
-    v = img.reshape(-1).take((ji[:, 1] * W + ji[:, 0])[:, None] + _WINDOW7_OFFSETS(W)).astype(np.float64)
+    v = img.reshape(-1).take((ji[:, 1] * W + ji[:, 0])[:, None] + _window7_offsets(W)).astype(np.float64)
     half = np.maximum.reduce(v[:, :9], axis=1)
     half += c.background_level  # (v's level read as the frame's: (max + level) / 2 is half the peak above it)
     half *= 0.5
@@ -346,9 +353,8 @@ def _saturated_strokes(img: np.ndarray, c: Centroids, out: np.ndarray) -> None:
     image's full value (white labels, text drawn without anti-aliasing). A star saturates into a disk, whose
     STROKE_MIN_PX or more core pixels (the largest connected part of those at STROKE_CORE of the top of its window
     or more, the window FLAT_TOP_RADIUS in half-size less its border's median: one disk of a close pair) have the
-    moment of inertia of a disk, N^2 / 2 pi about
-    their centre (the photographs' saturated stars: 0.95-1.01 of it); a letter's strokes spread the same pixels
-    out (3 times it and more)."""
+    moment of inertia of a disk, N^2 / 2 pi about their centre (the photographs' saturated stars: 0.95-1.01 of it);
+    a letter's strokes spread the same pixels out (3 times it and more)."""
     if not c.saturated.any():
         return
     sat = np.flatnonzero(c.saturated)
@@ -389,7 +395,7 @@ def _window_xy(r: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _WINDOW7_OFFSETS(W: int) -> np.ndarray:
+def _window7_offsets(W: int) -> np.ndarray:
     """Flat offsets in a width-W image of a 7 x 7 window's pixels: the 3 x 3 centre first (9), then the others."""
     d = np.arange(-3, 4)
     off = (d[:, None] * W + d[None, :]).ravel()
