@@ -67,9 +67,12 @@ Fast forms (issue 11) and what each keeps; tests/test_centroid.py checks them ag
   median, MAD and clipped sums as the per-sample path, bit for bit.
 - the above-threshold pixels of the crossing bands found 8 bytes at a time first (`_flatnonzero_sparse`):
   the same indices.
-- small things on Python numbers (a few dozen items, where numpy's per-call cost dominates): the
-  deblender's candidate maxima (grouped by blob, each group by one stable sort: the same peaks in the
-  same order), the fit's stop test (the same float64 operations), the histogram noise above.
+- the deblender's walk over each blob's local maxima, brightest first, every blob at once (`_dipped_peaks`:
+  round r tests each blob's r-th candidate against the peaks the blob accepted before it, the lines' points
+  as np.linspace makes them): the same peaks in the same order (a dense 60 deg field's thousands of blobs in
+  a few dozen batched steps, not one numpy call per candidate).
+- small things on Python numbers (a few dozen items, where numpy's per-call cost dominates): the fit's
+  stop test (the same float64 operations), the histogram noise above.
 - 3 x 3 neighbourhoods of the above-threshold pixels on a flat sky read in the frame's dtype as 9
   rows (the ring's maximum from contiguous rows, the background subtracted after it: the same
   numbers; pixels in the first or last column or row get the gather's zero-padded neighbourhood, read
@@ -1615,40 +1618,75 @@ def _split_blends_px(px, H, W, bkg, resid, idx, lab, val, raw, comp, area, pi, p
     cand = _flatnonzero(is_big[lab] & (val >= nbm) & (raw < sat))
     if cand.size == 0:
         return None
-    # the few candidates in Python numbers: each blob's local maxima in index order, by label
-    c_flat, c_val, c_raw = idx[cand].tolist(), val[cand].tolist(), raw[cand].tolist()
-    blobs = {}
-    for q, L in enumerate(lab[cand].tolist()):
-        blobs.setdefault(L, []).append(q)
-    k_of = {L: k for k, L in enumerate(comp.tolist())}
-    pil, pjl = pi.tolist(), pj.tolist()
-    out = []
-    for L in sorted(blobs):
-        m = blobs[L]
-        k0 = k_of[L]
-        if len(m) == 1 and c_flat[m[0]] == pil[k0] * W + pjl[k0]:
-            continue  # the blob's only local maximum is its peak: nothing to split
-        acc = [(pil[k0], pjl[k0])]
-        for q in sorted(m, key=lambda q: -c_val[q]):  # brightest first, ties in index order (a stable sort)
-            if len(acc) >= max_peaks:
-                break
-            (i, j), v = divmod(c_flat[q], W), c_val[q]
-            d = [math.hypot(i - a, j - b) for a, b in acc]
-            n_near = min(range(len(d)), key=d.__getitem__)  # np.argmin(d): the first nearest
-            if d[n_near] < min_sep:
-                continue
-            a, b = acc[n_near]
-            t = np.linspace(0.0, 1.0, int(math.ceil(2 * d[n_near])) + 1)
-            si = np.rint(i + t * (a - i)).astype(np.int64)
-            sj = np.rint(j + t * (b - j)).astype(np.int64)
-            seg = resid[si, sj] if resid is not None else px.take(si * W + sj) - bkg
-            if v - float(seg.min()) >= max(3.0 * sigma, 0.2 * v):
-                acc.append((i, j))
-                out.append((L, i, j, v, c_raw[q]))
-    if not out:
+    return _dipped_peaks(px, W, bkg, resid, idx[cand], val[cand], raw[cand], lab[cand], comp, pi, pj, sigma,
+                         min_sep, max_peaks)
+
+
+def _dipped_peaks(px, W, bkg, resid, c_flat, c_val, c_raw, c_lab, comp, pi, pj, sigma, min_sep, max_peaks):
+    """The secondary peaks of _split_blends_px from its candidates (each blob's local maxima, in index order):
+    the reference's walk, every blob at once. Each blob takes its candidates brightest first (ties in index
+    order); a candidate at least min_sep from the blob's accepted peaks (its peak first) is accepted when the
+    lowest pixel on the line to the nearest of them (np.linspace's points, rounded) lies max(3 sigma, 20 %) of
+    it below it; at most max_peaks a blob. Round r looks at every blob's r-th candidate at once (each blob's
+    accepted peaks depend only on its earlier candidates): the same distances (square roots of whole numbers),
+    points, pixels and comparisons as the walk one candidate at a time. (components, rows, columns, values,
+    raw values) in the walk's order (blobs by label, then as accepted), or None."""
+    order = np.lexsort((np.arange(c_flat.size), -c_val, c_lab))  # by blob, brightest first, ties in index order
+    c_flat, c_val, c_raw, c_lab = c_flat[order], c_val[order].astype(np.float64), c_raw[order], c_lab[order]
+    first = np.flatnonzero(np.r_[True, c_lab[1:] != c_lab[:-1]])  # each blob's first candidate
+    count = np.diff(np.r_[first, c_lab.size])
+    k_of = np.empty(int(comp.max()) + 1, dtype=np.int64)
+    k_of[comp] = np.arange(comp.size)
+    k0 = k_of[c_lab[first]]
+    peak_i, peak_j = pi[k0].astype(np.int64), pj[k0].astype(np.int64)
+    # a blob whose only local maximum is its peak: nothing to split
+    live = ~((count == 1) & (c_flat[first] == peak_i * W + peak_j))
+    n_b = first.size
+    acc_i = np.zeros((n_b, max_peaks), dtype=np.int64)
+    acc_j = np.zeros((n_b, max_peaks), dtype=np.int64)
+    acc_i[:, 0], acc_j[:, 0] = peak_i, peak_j
+    n_acc = np.ones(n_b, dtype=np.int64)
+    slot = np.arange(max_peaks)
+    taken = []  # (blob, round, candidate) of each accepted peak
+    for r in range(int(count.max()) if n_b else 0):
+        b = np.flatnonzero(live & (count > r) & (n_acc < max_peaks))
+        if b.size == 0:
+            continue
+        q = first[b] + r
+        i, j = c_flat[q] // W, c_flat[q] % W
+        d2 = (i[:, None] - acc_i[b]) ** 2 + (j[:, None] - acc_j[b]) ** 2  # whole numbers
+        d2 = np.where(slot[None, :] < n_acc[b, None], d2, np.iinfo(np.int64).max)
+        near = d2.argmin(axis=1)  # the first nearest
+        d = np.sqrt(d2[np.arange(b.size), near].astype(np.float64))
+        far = d >= min_sep
+        if not far.any():
+            continue
+        b, q, i, j, near, d = b[far], q[far], i[far], j[far], near[far], d[far]
+        a_i, a_j = acc_i[b, near], acc_j[b, near]
+        # np.linspace(0, 1, n) of each line: k (1 / (n - 1)), its last point 1 exactly
+        n_pts = np.ceil(2.0 * d).astype(np.int64) + 1
+        ends = np.cumsum(n_pts)
+        starts = ends - n_pts
+        k = np.arange(ends[-1]) - np.repeat(starts, n_pts)
+        t = k * np.repeat(1.0 / (n_pts - 1), n_pts)
+        t[ends - 1] = 1.0
+        ii, jj = np.repeat(i, n_pts), np.repeat(j, n_pts)
+        si = np.rint(ii + t * (np.repeat(a_i, n_pts) - ii)).astype(np.int64)
+        sj = np.rint(jj + t * (np.repeat(a_j, n_pts) - jj)).astype(np.int64)
+        seg = resid.reshape(-1)[si * W + sj] if resid is not None else px.take(si * W + sj) - bkg
+        low = np.minimum.reduceat(seg, starts).astype(np.float64)
+        v = c_val[q]
+        ok = v - low >= np.maximum(3.0 * sigma, 0.2 * v)
+        if ok.any():
+            b, q = b[ok], q[ok]
+            acc_i[b, n_acc[b]], acc_j[b, n_acc[b]] = c_flat[q] // W, c_flat[q] % W
+            n_acc[b] += 1
+            taken.append(np.stack([b, np.full(b.size, r), q]))
+    if not taken:
         return None
-    o = np.array(out, dtype=np.float64)
-    return o[:, 0].astype(np.int64), o[:, 1].astype(np.int64), o[:, 2].astype(np.int64), o[:, 3], o[:, 4]
+    t_b, _, t_q = np.concatenate(taken, axis=1)[:, np.lexsort(np.concatenate(taken, axis=1)[[1, 0]])]
+    return (c_lab[t_q].astype(np.int64), (c_flat[t_q] // W).astype(np.int64), (c_flat[t_q] % W).astype(np.int64),
+            c_val[t_q], c_raw[t_q].astype(np.float64))
 
 
 # ============================================================================ helpers

@@ -40,7 +40,7 @@ from skyview.detect.centroids import (
     load_image,
     to_gray,
 )
-from skyview.detect.stars import detect_stars, fainter_stars
+from skyview.detect.stars import detect_stars, every_detection_measured_once, fainter_stars
 from skyview.detect.trailed import may_be_trailed
 from skyview.identify import make_identifier
 from skyview.io.fits import undeclared_row_order
@@ -711,24 +711,25 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
 
     t0 = time.perf_counter()
     result, t_cent, brightest = None, 0.0, None
-    if method is None and fov_deg is not None and not wide and not measure_all:
-        # given an FOV, the first try reads only the brightest max_stars: measured alone, they answer when
-        # it verifies at the FOV given (the usual case); else the stars the searches after it read are
-        # measured and the first try is handed to them (`_brightest_first`)
-        brightest = _brightest_first(img, k_sigma, max_stars)
-        t_cent = (time.perf_counter() - t0) * 1e3
-        if brightest is not None:
-            fast = fast_try(brightest)
-            if fast.solved and (exact or not _camera_is_off(fast)):
-                result = fast
-            else:
-                tried = fast
-    if result is None:
-        # (when the brightest max_stars were every star detected, they are what would be measured again)
-        every = brightest if tried is not None and not brightest.n_unmeasured else None
-        result, t_more = _plain_then_fainter(img, k_sigma, solve_stars,
-                                             None if measure_all else measured_stars(max_stars), stars=every)
-        t_cent += t_more
+    with every_detection_measured_once():  # (a dense field's every detection measured once for both readings)
+        if method is None and fov_deg is not None and not wide and not measure_all:
+            # given an FOV, the first try reads only the brightest max_stars: measured alone, they answer when
+            # it verifies at the FOV given (the usual case); else the stars the searches after it read are
+            # measured and the first try is handed to them (`_brightest_first`)
+            brightest = _brightest_first(img, k_sigma, max_stars)
+            t_cent = (time.perf_counter() - t0) * 1e3
+            if brightest is not None:
+                fast = fast_try(brightest)
+                if fast.solved and (exact or not _camera_is_off(fast)):
+                    result = fast
+                else:
+                    tried = fast
+        if result is None:
+            # (when the brightest max_stars were every star detected, they are what would be measured again)
+            every = brightest if tried is not None and not brightest.n_unmeasured else None
+            result, t_more = _plain_then_fainter(img, k_sigma, solve_stars,
+                                                 None if measure_all else measured_stars(max_stars), stars=every)
+            t_cent += t_more
     if method is not None and fov_deg is None and result.method != method:
         needs_fov(result)  # the blind search found no FOV for the method, with either set of stars
     result.time_ms = {"centroid": t_cent, **{k: v for k, v in result.time_ms.items() if k != "centroid"}}
@@ -870,16 +871,17 @@ def _plain_then_fainter(img: np.ndarray, k_sigma: float, solve, measured: int | 
     set of stars may follow. measured: the brightest detections measured (None: every one). (the result,
     the detection's milliseconds)"""
     t0 = time.perf_counter()
-    if stars is None:
-        stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=measured)
-    t_cent = (time.perf_counter() - t0) * 1e3
-    result = solve(stars, 0, stars.params.get("faint_search") != "deferred")
-    if not result.solved:
-        t1 = time.perf_counter()
-        fainter = fainter_stars(img, stars, k_sigma=k_sigma, max_stars=measured)
-        t_cent += (time.perf_counter() - t1) * 1e3
-        if fainter is not None:
-            result = _with_time_of(solve(fainter, _checks(result), True), result)
+    with every_detection_measured_once():
+        if stars is None:
+            stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=measured)
+        t_cent = (time.perf_counter() - t0) * 1e3
+        result = solve(stars, 0, stars.params.get("faint_search") != "deferred")
+        if not result.solved:
+            t1 = time.perf_counter()
+            fainter = fainter_stars(img, stars, k_sigma=k_sigma, max_stars=measured)
+            t_cent += (time.perf_counter() - t1) * 1e3
+            if fainter is not None:
+                result = _with_time_of(solve(fainter, _checks(result), True), result)
     return result, t_cent
 
 
