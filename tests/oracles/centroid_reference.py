@@ -526,53 +526,30 @@ def _split_blends(f, bkg, resid, idx, lab, val, raw, comp, area, pi, pj, sigma, 
     if not ismax.any():
         return None
     c_lab, c_val, c_i, c_j, c_raw = slab[ismax], sval[ismax], ri[ismax], rj[ismax], sraw[ismax]
-    return dipped_peaks_walk(_Frame(f), W, bkg, resid, c_i * W + c_j, c_val, c_raw, c_lab, comp, pi, pj, sigma,
-                             min_sep, max_peaks)
-
-
-class _Frame:
-    """The frame's pixels read by flat index (`_Pixels.take`'s form): its float32 values."""
-
-    def __init__(self, f: np.ndarray):
-        self.flat = f.reshape(-1)
-
-    def take(self, fi: np.ndarray) -> np.ndarray:
-        return self.flat[fi]
-
-
-def dipped_peaks_walk(px, W, bkg, resid, c_flat, c_val, c_raw, c_lab, comp, pi, pj, sigma, min_sep, max_peaks):
-    """`skyview.detect.centroids._dipped_peaks` one candidate at a time, in Python numbers (its former form): each
-    blob by label, its local maxima brightest first (ties in index order), each tested against the blob's accepted
-    peaks as they stand."""
-    c_flat, c_val, c_raw = c_flat.tolist(), c_val.tolist(), c_raw.tolist()
-    blobs = {}
-    for q, L in enumerate(c_lab.tolist()):
-        blobs.setdefault(L, []).append(q)
-    k_of = {L: k for k, L in enumerate(comp.tolist())}
-    pil, pjl = pi.tolist(), pj.tolist()
+    where = {int(c): k for k, c in enumerate(comp)}
     out = []
-    for L in sorted(blobs):
-        m = blobs[L]
-        k0 = k_of[L]
-        if len(m) == 1 and c_flat[m[0]] == pil[k0] * W + pjl[k0]:
-            continue  # the blob's only local maximum is its peak: nothing to split
-        acc = [(pil[k0], pjl[k0])]
-        for q in sorted(m, key=lambda q: -c_val[q]):  # brightest first, ties in index order (a stable sort)
+    for L in np.unique(c_lab):
+        m = np.flatnonzero(c_lab == L)
+        k0 = where[int(L)]
+        if len(m) == 1 and c_i[m[0]] == pi[k0] and c_j[m[0]] == pj[k0]:
+            continue
+        acc = [(int(pi[k0]), int(pj[k0]))]
+        for q in m[np.argsort(-c_val[m], kind="stable")]:
             if len(acc) >= max_peaks:
                 break
-            (i, j), v = divmod(c_flat[q], W), c_val[q]
+            i, j, v = int(c_i[q]), int(c_j[q]), float(c_val[q])
             d = [math.hypot(i - a, j - b) for a, b in acc]
-            n_near = min(range(len(d)), key=d.__getitem__)  # np.argmin(d): the first nearest
+            n_near = int(np.argmin(d))
             if d[n_near] < min_sep:
                 continue
             a, b = acc[n_near]
             t = np.linspace(0.0, 1.0, int(math.ceil(2 * d[n_near])) + 1)
             si = np.rint(i + t * (a - i)).astype(np.int64)
             sj = np.rint(j + t * (b - j)).astype(np.int64)
-            seg = resid[si, sj] if resid is not None else px.take(si * W + sj) - bkg
+            seg = resid[si, sj] if resid is not None else f[si, sj] - bkg
             if v - float(seg.min()) >= max(3.0 * sigma, 0.2 * v):
                 acc.append((i, j))
-                out.append((L, i, j, v, c_raw[q]))
+                out.append((int(L), i, j, v, float(c_raw[q])))
     if not out:
         return None
     o = np.array(out, dtype=np.float64)
