@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from skyview.cli import main
+from skyview.core.errors import BadInput
 
 
 def run(capsys, *argv):
@@ -162,6 +163,36 @@ def test_simulate_refuses_to_overwrite_and_to_write_into_a_missing_folder(capsys
     assert code == 2 and one_line_error(err)
     code, out, err = run(capsys, "simulate", "--ra", "1", "--dec", "95", "--out", str(tmp_path / "x.png"))
     assert code == 2 and one_line_error(err)
+
+
+def test_simulate_frames_into_a_folder_it_makes_as_the_docs_say(capsys, tmp_path, monkeypatch):
+    """`skyview simulate --frames N --out seq/` (docs/tracking.md, docs/stochastic.md) writes the folder seq with
+    frame_000.png ... and sequence.json, making it when it is not there, and `skyview solve-sequence seq/` reads
+    it; a name ending in .json keeps the stem form beside each other; a folder made by a run whose write failed
+    is not left behind, nor is anything written into a folder whose parent is missing."""
+    monkeypatch.chdir(tmp_path)
+    sky = ["simulate", "--ra", "83.8", "--dec", "-5.4", "--roll", "20", "--fov-deg", "12", "--turn-deg", "2"]
+    code, out, err = run(capsys, *sky, "--frames", "3", "--out", "seq/")
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "seq").iterdir()) == [
+        "frame_000.json", "frame_000.png", "frame_001.json", "frame_001.png", "frame_002.json", "frame_002.png",
+        "sequence.json"]
+    code, out, err = run(capsys, "solve-sequence", "seq/", "--method", "angle", "--variant", "improved", "--json")
+    frames = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert code == 0 and len(frames) == 3 and all(f["solved"] for f in frames)
+    code, out, err = run(capsys, *sky, "--frames", "2", "--out", "run.json")
+    assert code == 0 and (tmp_path / "run_001.png").is_file() and (tmp_path / "run.json").is_file()
+    code, out, err = run(capsys, *sky, "--frames", "2", "--out", "seq")  # its frames are there already
+    assert code == 2 and one_line_error(err) and "already exists" in err
+    code, out, err = run(capsys, *sky, "--frames", "2", "--out", "nowhere/seq")
+    assert code == 2 and one_line_error(err) and not (tmp_path / "nowhere").exists()
+
+    def full_disk(*args, **kwargs):
+        raise BadInput("cannot write seq2/frame_000.png: no space left on the device")
+
+    monkeypatch.setattr("skyview.simulate.render.save_sequence", full_disk)
+    code, out, err = run(capsys, *sky, "--frames", "2", "--out", "seq2")
+    assert code == 2 and one_line_error(err) and not (tmp_path / "seq2").exists()
 
 
 def test_solve_output_is_never_overwritten(capsys, orion, tmp_path):

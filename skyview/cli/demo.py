@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import time
@@ -29,6 +30,7 @@ def cmd_simulate(a) -> int:
     from skyview.core.catalog import load_guide_catalog
     from skyview.detect.centroids import max_image_pixels
     from skyview.simulate.render import (
+        IMAGE_SUFFIXES,
         JPEG_DEFAULT_QUALITY,
         SensorModel,
         is_jpeg_path,
@@ -72,8 +74,22 @@ def cmd_simulate(a) -> int:
                    sky_gradient_deg=a.sky_gradient_deg, jpeg_quality=jpeg_quality)
     kw.update({k: v for k, v in effects.items() if v})  # effects left off are not passed
     if a.frames > 1:
+        # --out names a folder (frame_000.png ... and sequence.json in it), made when it is not there yet (its
+        # parent must be); a path ending in .json or an image suffix writes <stem>_000.png ... and <stem>.json
+        made = None
+        if not out.exists() and not out.is_symlink() and out.suffix.lower() not in (*IMAGE_SUFFIXES, ".json"):
+            if not out.parent.is_dir():
+                raise BadInput(f"folder {out.parent} does not exist")
+            out.mkdir()
+            made = out
         seq = simulate_sequence(catalog, camera, R, a.frames, _turn(a), sensor, **kw)
-        paths = save_sequence(seq, out, force=a.force)
+        try:
+            paths = save_sequence(seq, out, force=a.force)
+        except BaseException:
+            if made is not None:  # (the folder this run made, left empty by the failed write)
+                with contextlib.suppress(OSError):
+                    made.rmdir()
+            raise
         print(f"wrote {len(seq.frames)} frames and {paths[-1]}")
         return EXIT_SOLVED
     frame = simulate_image(catalog, camera, R, sensor, **kw)
@@ -231,6 +247,8 @@ def add_parsers(sub) -> None:
                    help="write a JPEG at this quality, 1-100 (16-bit images scaled to 8 bit by the background "
                         "noise first); an --out ending in .jpg alone means quality 95")
     s.add_argument("--out", required=True,
-                   help="output PNG or JPEG (.jpg) (truth next to it as .json); with --frames a folder")
+                   help="output PNG or JPEG (.jpg) (truth next to it as .json); with --frames a folder (made if it is not "
+                        "there: frame_000.png ... and sequence.json in it; a name ending in .json writes "
+                        "NAME_000.png ... and NAME.json beside each other instead)")
     s.add_argument("--force", action="store_true", help="overwrite existing files")
     s.set_defaults(func=cmd_simulate)
