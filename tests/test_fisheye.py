@@ -13,7 +13,7 @@ from skyview.core.catalog import vec_to_radec
 from skyview.core.errors import BadInput
 from skyview.simulate.render import simulate_image
 from skyview.simulate.scenarios import get_scenario
-from skyview.solver.pipeline import BlindSolver
+from skyview.solver.pipeline import NARROW_AFTER_CHECKS, BlindSolver
 
 
 @pytest.mark.parametrize("model", [EQUIDISTANT, EQUISOLID])
@@ -87,6 +87,11 @@ def test_a_fisheye_sky_is_solved_blind(catalog, name):
         assert res.solved, res.reason
         assert res.camera.fisheye and any("fisheye" in n for n in res.notes)
         assert attitude_error_arcsec(res.R, R)["boresight"] < 0.5 * cam.pixel_scale_rad * 206265
+        # the fisheye's first hypotheses are checked before the guide catalog's whole pinhole search (the
+        # pinhole's first NARROW_AFTER_CHECKS, its own and a mirror image's, a batch over; its whole search checks
+        # some 2,000), then the fisheye that solves
+        assert [s["kind"] for s in res.searches] == ["pinhole", "fisheye"], res.searches
+        assert res.searches[0]["hypotheses"] <= 3 * NARROW_AFTER_CHECKS and res.searches[1]["solved"]
         # the lens: the same pixels for the same directions as the true one, wherever the stars are
         uv = np.array([[m["u"], m["v"]] for m in res.matches])
         np.testing.assert_allclose(res.camera.project(cam.unproject(uv) @ R @ res.R.T)[0], uv, atol=0.6)

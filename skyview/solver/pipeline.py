@@ -253,24 +253,46 @@ class BlindSolver:
         fov_error = DEFAULT_FOV_ERROR if fov_error is None else fov_error  # (None: the default tolerance)
         kw = dict(fov_deg=fov_deg, fov_error=fov_error, mirror=mirror)
         if fov_deg is not None and fov_deg * (1 - fov_error) > self.fov_range_deg[1]:
-            result = None  # wider than the pinhole search reaches: a fisheye only
-        else:
-            result = self._pinhole(centroids, width, height, checks_before=checks_before, **kw)
-            if result.solved or not self._fisheye_may_solve(centroids, fov_deg, fov_error):
-                return result
-        # a fisheye (all-sky, meteor cameras): the equidistant lens searched, its k1 and k2 fitted (an equisolid
-        # lens is an equidistant one with k1 = -1/24, k2 = 1/1920)
-        checks = _checks(result) if result is not None else checks_before
+            return self._fisheye(centroids, width, height, checks_before=checks_before, **kw)  # wider: a fisheye only
+        fisheye = self._fisheye_may_solve(centroids, fov_deg, fov_error)
+        result = self._pinhole(centroids, width, height, checks_before=checks_before, quick_fisheye=fisheye, **kw)
+        if result.solved or not fisheye:
+            return result
+        fres = self._fisheye(centroids, width, height, checks_before=_checks(result), **kw)
+        if fres.solved:
+            return _with_time_of(fres, result)
+        result = _with_time_of(result, fres)
+        lo, hi = FISHEYE_FOV_RANGE_DEG
+        result.reason = f"{result.reason}; as a fisheye ({lo:g}-{hi:g} deg): {_short(fres.reason)}"
+        return result
+
+    def _fisheye(self, centroids: Centroids, width: int, height: int, *, checks_before: int,
+                 max_checks: int | None = None, slide: bool = True, **kw) -> SolveResult:
+        """The fisheye search (all-sky, meteor cameras): the equidistant lens searched, its k1 and k2 fitted (an
+        equisolid lens is an equidistant one with k1 = -1/24, k2 = 1/1920), each lens until one fits its stars as
+        a lens should (an equisolid lens seen through an equidistant search may verify with its distortion unfitted
+        and its attitude pulled aside); max_checks: each lens's budget of hypotheses (None: the whole search)."""
+        checks = checks_before
         fres = None
+        tried = []
         for lens in (EQUIDISTANT, EQUISOLID):
-            # each lens searched until one fits its stars as a lens should (an equisolid lens seen through an
-            # equidistant search may verify with its distortion unfitted and its attitude pulled aside)
-            r = self._solve_centroids(centroids, width, height, model=lens, checks_before=checks, **kw)
+            r = self._solve_centroids(centroids, width, height, model=lens, checks_before=checks,
+                                      max_checks=max_checks, slide=slide, **kw)
+            tried.append(r)
             checks = max(checks, _checks(r))
             if fres is None or (r.solved and (not fres.solved or _fit_rms(r) < _fit_rms(fres))):
                 fres = r
             if fres.solved and _fit_rms(fres) <= FISHEYE_MAX_RMS_PX:
                 break
+        if len(tried) > 1:  # one fisheye search of both lenses: their time, and their hypotheses in one entry
+            searches = [s for r in tried for s in r.searches]
+            for r in tried:
+                if r is not fres:
+                    _with_time_of(fres, r)
+            fres.searches = [{**searches[0], "hypotheses": sum(s["hypotheses"] for s in searches),
+                              "solved": any(s["solved"] for s in searches)}]
+        if fres.identification is not None:  # (the searches after it count both lenses' hypotheses)
+            fres.identification.stats["checks"] = checks
         if fres.solved and _fit_rms(fres) > FISHEYE_MAX_RMS_PX:
             rms = _fit_rms(fres)
             fres.status, fres.R, fres.rows_reversed, fres.centroids = NOT_SOLVED, None, False, centroids
@@ -283,14 +305,7 @@ class BlindSolver:
                     "fitted best through a pinhole)")
             fres.notes.append(f"{what}: {cam.fov_deg:.1f} deg across, the {cam.model} lens with k1 {cam.k1:+.4f} and "
                               f"k2 {cam.k2:+.5f} fitted to its stars")
-        if result is None:
-            return fres
-        if fres.solved:
-            return _with_time_of(fres, result)
-        result = _with_time_of(result, fres)
-        lo, hi = FISHEYE_FOV_RANGE_DEG
-        result.reason = f"{result.reason}; as a fisheye ({lo:g}-{hi:g} deg): {_short(fres.reason)}"
-        return result
+        return fres
 
     def _fisheye_may_solve(self, centroids: Centroids, fov_deg: float | None, fov_error: float) -> bool:
         """Whether the fisheye search is worth running after the pinhole searches failed."""
@@ -299,34 +314,54 @@ class BlindSolver:
         return fov_deg is None or fov_deg * (1.0 + fov_error) >= FISHEYE_FOV_RANGE_DEG[0]
 
     def _pinhole(self, centroids: Centroids, width: int, height: int, *, fov_deg: float | None,
-                 fov_error: float, checks_before: int = 0, mirror: bool = True) -> SolveResult:
-        """The pinhole searches: the guide catalog's, and the deep catalog's for a narrow field."""
-        if not _narrow_field_may_solve(self.deep, centroids, fov_deg, fov_error):
+                 fov_error: float, checks_before: int = 0, mirror: bool = True,
+                 quick_fisheye: bool = False) -> SolveResult:
+        """The pinhole searches: the guide catalog's, and the deep catalog's for a narrow field. quick_fisheye: the
+        fisheye search runs after them (`solve_centroids`): its first NARROW_AFTER_CHECKS hypotheses are checked
+        before the guide catalog's whole search, as the narrow fields' are."""
+        narrow_may = _narrow_field_may_solve(self.deep, centroids, fov_deg, fov_error)
+        if not narrow_may and not quick_fisheye:
             return self._solve_centroids(centroids, width, height, fov_deg=fov_deg, fov_error=fov_error,
                                          checks_before=checks_before, mirror=mirror)
-        # the guide catalog's search first, with a short budget of hypotheses (what a field it covers
-        # nearly always needs); then the narrow fields; then, if the first search was cut short, the whole
-        # of it again: a narrow field is not made to wait for the guide catalog's full budget
+        # the guide catalog's search first, with a short budget of hypotheses (what a field it covers nearly always
+        # needs); then the narrow fields, and a fisheye's first hypotheses (an all-sky frame's pattern nearly
+        # always verifies among them); then, if the first search was cut short, the whole of it again: a narrow
+        # field or a fisheye is not made to wait for the guide catalog's full budget
         kw = dict(fov_deg=fov_deg, fov_error=fov_error, mirror=mirror)
         first = self._solve_centroids(centroids, width, height, max_checks=NARROW_AFTER_CHECKS, slide=False,
                                       checks_before=checks_before, **kw)
         if first.solved:
             return first
-        narrow = narrow_field_solver(self.epoch, **self._narrow_kwargs)
-        nres = narrow._solve_centroids(centroids, width, height, slide=False, checks_before=_checks(first), **kw)
-        if nres.solved:
-            nres.notes.append(f"a narrow field ({nres.camera.fov_deg:.2f} deg): solved in the deep catalog "
-                              "(Hipparcos-2 + Gaia DR3 to G 10)")
-            return _with_time_of(nres, first)
+        others = []  # the searches after the first one, in order
+        if narrow_may:
+            narrow = narrow_field_solver(self.epoch, **self._narrow_kwargs)
+            nres = narrow._solve_centroids(centroids, width, height, slide=False, checks_before=_checks(first), **kw)
+            if nres.solved:
+                nres.notes.append(f"a narrow field ({nres.camera.fov_deg:.2f} deg): solved in the deep catalog "
+                                  "(Hipparcos-2 + Gaia DR3 to G 10)")
+                return _with_time_of(nres, first)
+            others.append(nres)
+        if quick_fisheye:
+            fres = self._fisheye(centroids, width, height, checks_before=max(_checks(r) for r in [first, *others]),
+                                 max_checks=NARROW_AFTER_CHECKS, slide=False, **kw)
+            if fres.solved:
+                for r in [first, *others]:
+                    fres = _with_time_of(fres, r)
+                return fres
+            others.append(fres)
+        checks = max(_checks(r) for r in [first, *others])
         result = first
         if _checks(first, normal=True) >= NARROW_AFTER_CHECKS or len(centroids) >= 16:
             # the guide catalog's whole search (its first cut short by its budget, not by the mirror image's
             # checks): its full budget, and the pattern stars sliding past the brightest
-            result = _with_time_of(self._solve_centroids(centroids, width, height, checks_before=_checks(nres), **kw),
-                                   first)
-        elif result.identification is not None:  # (the searches after these count the deep catalog's checks too)
-            result.identification.stats["checks"] = max(_checks(first), _checks(nres))
-        result = _with_time_of(result, nres)
+            result = _with_time_of(self._solve_centroids(centroids, width, height, checks_before=checks, **kw), first)
+        elif result.identification is not None:  # (the searches after these count the others' checks too)
+            result.identification.stats["checks"] = checks
+        for r in others:
+            result = _with_time_of(result, r)
+        if not narrow_may:
+            return result
+        nres = others[0]
         if not result.solved:
             result.reason = f"{result.reason}; as a narrow field in the deep catalog: {nres.reason}"
         return result
