@@ -1604,3 +1604,29 @@ def test_a_photograph_that_does_not_solve_says_what_was_tried_in_words():
     assert story.count("\n- ") == 3 and "What to try" in story and "crop them out" in story
     md = result_markdown(run)
     assert "- a fisheye lens" in md and "the solver's own words" in md
+
+
+def test_the_view_fitted_to_a_fisheye_stays_a_perspective_that_draws():
+    """'boresight' fits the sensor in the tab's view: 1.2 times its field, but never more than MAX_FIT_FOV_DEG. A
+    fisheye's 180 deg would ask for a perspective of 180 deg, which draws nothing (the all-sky photograph's
+    view was a dark screen); an 8 deg sensor is fitted as before."""
+    import contextlib
+    import math
+    from types import SimpleNamespace
+
+    from skyview.core.camera import EQUISOLID, Camera
+    from skyview.viewer.camera_control import MAX_FIT_FOV_DEG, CameraControl
+
+    tab = SimpleNamespace(fov=1.0, position=(0.0, 0.0, 0.0), look_at=(0.0, 0.0, 1.0), up_direction=(0.0, -1.0, 0.0),
+                          image_width=1200, image_height=800, _state=SimpleNamespace(update_timestamp=1.0))
+    client = SimpleNamespace(camera=tab, atomic=contextlib.nullcontext)  # (a tab that reported its view)
+    sky = SimpleNamespace(detail=False, set_zoom=lambda z: None, set_detail=lambda on: None)
+    control = CameraControl(client, sky, contextlib.nullcontext(), contextlib.nullcontext)
+    R = np.eye(3)
+    for camera, want_deg in ((Camera.from_fov(180.0, 1024, 1024, model=EQUISOLID), MAX_FIT_FOV_DEG),
+                             (Camera.from_fov(8.0, 1024, 768), 2.0 * math.degrees(math.atan(1.2 * math.tan(
+                                 math.radians(Camera.from_fov(8.0, 1024, 768).fov_v_deg) / 2.0))))):
+        run = SimpleNamespace(R_shown=R, source=SimpleNamespace(camera=camera, fov_deg=camera.fov_deg))
+        control.point("boresight", run)
+        assert math.degrees(tab.fov) == pytest.approx(want_deg, rel=1e-9)
+        assert tab.look_at == tuple(R[2])

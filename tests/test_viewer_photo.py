@@ -225,6 +225,7 @@ def test_a_telescope_field_and_an_all_sky_frame_are_drawn_from_what_solved_them(
     run = _upload(s, sky.image, "allsky.png", typed_fov=8.0)
     assert run.result.solved and run.source.camera.fisheye and run.source.camera.model == run.result.camera.model
     assert s.panel.upload_fov.value <= 90.0  # the next photograph's hint stays a pinhole's
+    _assert_fisheye_drawn(s, run)
     run = _upload(s, load_image(REAL / PHOTO), "mine.png", typed_fov=8.0)
     assert run.result.solved and not run.source.camera.fisheye
     # the panel image carries the solved photograph's RA/Dec grid: the same panel drawn without it differs
@@ -238,6 +239,56 @@ def test_a_telescope_field_and_an_all_sky_frame_are_drawn_from_what_solved_them(
                     run.outcomes[:n])
     assert panel.shape == bare.shape and np.count_nonzero(np.any(panel != bare, axis=2)) > 500
     assert image_grid(run.result.camera, run.result.R)
+
+
+def _assert_fisheye_drawn(s, run) -> None:
+    """An all-sky photograph in the 3-D scene: no frustum (none holds 180 deg) but a mesh over the sphere, textured
+    with the photograph as it is (an unlit material, a JPEG texture), where every identified star's direction
+    crosses the mesh at the texture coordinates of its own centroid; its rings on the sphere around those
+    directions."""
+    import json as json_module
+    import struct
+
+    from skyview.viewer.geometry import fisheye_photo_mesh
+
+    cam = run.source.camera
+    handle = s.sky.h["frustum"]
+    assert type(handle).__name__ == "GlbHandle"
+    glb = handle.glb_data
+    n_json = struct.unpack("<I", glb[12:16])[0]
+    tree = json_module.loads(glb[20:20 + n_json])
+    assert tree["extensionsUsed"] == ["KHR_materials_unlit"] and tree["images"][0]["mimeType"] == "image/jpeg"
+    assert tree["materials"][0]["doubleSided"] and "KHR_materials_unlit" in tree["materials"][0]["extensions"]
+    # the mesh: each matched star's direction (camera frame) through its triangle, read back as a pixel
+    vertices, faces, uv = fisheye_photo_mesh(cam, 1.0)
+    pix = np.stack([uv[:, 0] * cam.width - 0.5, (1.0 - uv[:, 1]) * cam.height - 0.5], axis=1)
+    obs = sorted(run.result.identification.matches)
+    assert len(obs) >= 10
+    errors = []
+    for o in obs:
+        d = run.catalog.xyz[run.result.identification.matches[o]] @ run.result.R.T
+        a, b, c = (vertices[faces[:, k]] for k in range(3))
+        # the ray t d through each triangle (Moller-Trumbore, all triangles at once)
+        e1, e2 = b - a, c - a
+        p = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, p)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w1 = np.einsum("ij,ij->i", -a, p) / det
+            q = np.cross(-a, e1)
+            w2 = (q @ d) / det
+            t = np.einsum("ij,ij->i", e2, q) / det
+        hit = np.flatnonzero((w1 >= -1e-9) & (w2 >= -1e-9) & (w1 + w2 <= 1 + 1e-9) & (t > 0))
+        assert len(hit), o
+        f = faces[hit[0]]
+        at = (1 - w1[hit[0]] - w2[hit[0]]) * pix[f[0]] + w1[hit[0]] * pix[f[1]] + w2[hit[0]] * pix[f[2]]
+        errors.append(float(np.hypot(*(at - run.result.centroids.uv[o]))))
+    assert np.median(errors) < 1.0 and max(errors) < 3.0, errors  # pixels of the photograph
+    # the rings: around each centroid's direction, on the sphere
+    rings = np.asarray(s.sky.h["centroids"].points, dtype=np.float64).reshape(-1, 14, 2, 3)[:, :, 0]
+    centre = rings.mean(axis=1)
+    want = cam.unproject(run.result.centroids.uv[:len(rings)])
+    cosang = np.einsum("ij,ij->i", centre / np.linalg.norm(centre, axis=1, keepdims=True), want)
+    assert np.degrees(np.arccos(np.clip(cosang, -1, 1))).max() < 0.05
 
 
 @pytest.mark.slow

@@ -17,6 +17,9 @@ from skyview.core.camera import Camera
 from skyview.viewer.run import Run
 
 WIDE_FOV_DEG = 70.0
+# the widest view fitted to a sensor: a perspective view from the sphere's centre shows at most this much (a fisheye's
+# 120-240 deg would need a view of 180 deg or more, which draws nothing): an all-sky frame's middle, zoom out for more
+MAX_FIT_FOV_DEG = 120.0
 REFERENCE_TAN = math.tan(math.radians(30.0))  # star sizes are tuned for a 60-degree view
 
 
@@ -68,7 +71,8 @@ class CameraControl:
             aspect = cam.image_width / cam.image_height
             half_v = math.radians(camera.fov_v_deg) / 2.0
             half_h = math.radians(camera.fov_deg) / 2.0
-            fov = 2.0 * math.atan(1.2 * max(math.tan(half_v), math.tan(half_h) / aspect))
+            fov = 2.0 * math.atan(1.2 * max(math.tan(min(half_v, 1.5)), math.tan(min(half_h, 1.5)) / aspect))
+            fov = min(fov, math.radians(MAX_FIT_FOV_DEG))
         elif mode == "wide":
             fov = math.radians(WIDE_FOV_DEG)
         else:

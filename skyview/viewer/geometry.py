@@ -154,6 +154,75 @@ def image_plane_xy(camera: Camera, uv: np.ndarray) -> np.ndarray:
     return v[:, :2] / v[:, 2:]
 
 
+PHOTO_MESH_POINTS = 65  # a fisheye photograph's surface: a grid of this many points a side (a 180 deg lens: 2.8 deg apart)
+
+
+def fisheye_photo_mesh(camera: Camera, depth: float, n: int = PHOTO_MESH_POINTS
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A fisheye photograph's surface in the camera frame, where no plane can hold it: the directions of an n x n
+    grid of its pixels, its border included (the lens's own projection, k1 and k2 included), at `depth`, and
+    each point's texture coordinate (the image's left edge at 0, its top edge at 1: trimesh's convention, which
+    its glTF export turns over). A cell with a corner the lens does not see (beyond an equisolid lens's 180 deg
+    from its axis) is left out. (vertices (V, 3), faces (F, 3), uv (V, 2))"""
+    u, v = np.meshgrid(np.linspace(-0.5, camera.width - 0.5, n), np.linspace(-0.5, camera.height - 0.5, n))
+    d = camera.unproject(np.stack([u.ravel(), v.ravel()], axis=1))
+    seen = np.isfinite(d).all(axis=1)
+    vertices = np.where(seen[:, None], d, 0.0) * depth
+    uv = np.stack([(u.ravel() + 0.5) / camera.width, 1.0 - (v.ravel() + 0.5) / camera.height], axis=1)
+    k = np.arange(n * n).reshape(n, n)
+    a, b, c, e = k[:-1, :-1].ravel(), k[:-1, 1:].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, c, b], axis=1), np.stack([b, c, e], axis=1)])
+    return vertices, faces[seen[faces].all(axis=1)], uv
+
+
+def fisheye_photo_glb(camera: Camera, texture_rgb: np.ndarray, depth: float, jpeg_quality: int = 85) -> bytes:
+    """`fisheye_photo_mesh` textured with the photograph (an RGB texture of it, any size), as binary glTF: its
+    texture a JPEG, its material unlit (KHR_materials_unlit: the photograph as it is, whatever the scene's lights)
+    and seen from both sides."""
+    import io
+    import json
+    import struct
+
+    import cv2
+    import trimesh
+    from PIL import Image
+
+    vertices, faces, uv = fisheye_photo_mesh(camera, depth)
+    ok, jpeg = cv2.imencode(".jpg", np.ascontiguousarray(texture_rgb[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    image = Image.open(io.BytesIO(jpeg.tobytes()))  # (a JPEG's image: the glTF holds its bytes as a JPEG)
+    material = trimesh.visual.material.PBRMaterial(baseColorTexture=image, doubleSided=True, metallicFactor=0.0,
+                                                   roughnessFactor=1.0)
+    mesh = trimesh.Trimesh(vertices, faces, visual=trimesh.visual.TextureVisuals(uv=uv, material=material),
+                           process=False)
+    glb = trimesh.exchange.gltf.export_glb(mesh)
+    # the material unlit: the JSON chunk rewritten (the binary chunk after it as it is)
+    n_json = struct.unpack("<I", glb[12:16])[0]
+    tree = json.loads(glb[20:20 + n_json])
+    for m in tree.get("materials", []):
+        m.setdefault("extensions", {})["KHR_materials_unlit"] = {}
+    tree["extensionsUsed"] = sorted(set(tree.get("extensionsUsed", [])) | {"KHR_materials_unlit"})
+    text = json.dumps(tree, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    rest = glb[20 + n_json:]
+    return struct.pack("<III", 0x46546C67, 2, 12 + 8 + len(text) + len(rest)) + struct.pack(
+        "<II", len(text), 0x4E4F534A) + text + rest
+
+
+def sky_ring_segments(directions: np.ndarray, radius_rad: float, depth: float, n: int = 14) -> np.ndarray:
+    """Circles (as segments) of angular radius `radius_rad` around unit directions (N, 3) of the camera frame, at
+    `depth`: `ring_segments` for a fisheye's photograph, whose surface is a sphere, not a plane."""
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    if len(d) == 0:
+        return np.zeros((0, 2, 3), dtype=np.float32)
+    e1 = np.cross(d, np.where(np.abs(d[:, 2:]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]]))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(d, e1)
+    t = np.linspace(0.0, 2.0 * np.pi, n + 1)
+    pts = depth * (math.cos(radius_rad) * d[:, None, :] + math.sin(radius_rad) * (
+        np.cos(t)[None, :, None] * e1[:, None, :] + np.sin(t)[None, :, None] * e2[:, None, :]))
+    return np.stack([pts[:, :-1], pts[:, 1:]], axis=2).reshape(-1, 2, 3)
+
+
 def undistorted(image: np.ndarray, camera: Camera) -> np.ndarray:
     """The image (of the camera's sensor, or a resized texture of it) as an ideal pinhole of the same focal
     length and principal point would have taken it (OpenCV's remap with the camera's radial k1, k2): drawn

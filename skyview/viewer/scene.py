@@ -40,6 +40,7 @@ from skyview.present.drawables import (
 )
 from skyview.viewer.geometry import (
     STAR_NAMES,
+    fisheye_photo_glb,
     frustum_scale,
     image_plane_xy,
     local_grid,
@@ -47,6 +48,7 @@ from skyview.viewer.geometry import (
     pose_wxyz,
     ring_segments,
     sky_grid_labels,
+    sky_ring_segments,
 )
 from skyview.viewer.run import Run
 
@@ -134,6 +136,9 @@ class SkyScene:
                         "candidates": True}
         self._run: Run | None = None
         self._image_plane_xy, self._ring = np.zeros((0, 2)), 0.0  # centroids on the image plane, ring radius
+        # a fisheye's photograph: its centroids' directions in the camera frame (None: a pinhole's, on the plane)
+        self._mark_dirs: np.ndarray | None = None
+        self._fisheye = False  # the photograph drawn is a fisheye's (a textured mesh, not the frustum's image)
         self._tex: np.ndarray | None = None
         self.detail = True  # centroid numbers and fine-grid labels: only when the field fills the view
         self.final = True  # the identification is on screen (last step, or no step selected)
@@ -271,8 +276,7 @@ class SkyScene:
                 if k and v[2] > 0.5:
                     add(v[:2] / v[2], n, 0.85, True, -2e3)
         for i, hd in enumerate(nums):  # beside the ring, on the image plane at IMAGE_DEPTH
-            add((self._image_plane_xy[i] + np.array([0.8, -0.8]) * self._ring) / IMAGE_DEPTH, len(hd.text), 0.7,
-                False, i - 1e3 * (i in self._measured))
+            add(self._number_xy(i), len(hd.text), 0.7, False, i - 1e3 * (i in self._measured))
         for k, (text, p) in enumerate(self._grid_labels):
             add((R @ p)[:2] / max(float(R[2] @ p), 1e-6), len(text), 0.7, False, 1e3 + k)
         keep = place_labels(np.array(anchors).reshape(-1, 2), np.array(priority), np.array(sizes).reshape(-1, 2),
@@ -281,6 +285,30 @@ class SkyScene:
             hd.visible = bool(k) and self.visible["numbers"] and self.detail
         for hd, k in zip(grid, keep[len(nums):]):
             hd.visible = bool(k) and self.visible["grid"] and self.detail
+
+    def _number_xy(self, i: int) -> np.ndarray:
+        """Where centroid i's number is placed against the other labels, on the plane of the view down the boresight
+        (a fisheye's star more than ~87 deg off its axis: far away, beside nothing)."""
+        if self._mark_dirs is None:
+            return (self._image_plane_xy[i] + np.array([0.8, -0.8]) * self._ring) / IMAGE_DEPTH
+        d = self._mark_dirs[i]
+        if not d[2] > 0.05:
+            return np.array([1e6, 1e6])
+        return d[:2] / d[2] + np.array([0.8, -0.8]) * self._ring
+
+    def _rings(self, idx: np.ndarray, scale: float, depth: float) -> np.ndarray:
+        """Segments of rings around the centroids idx, `scale` times the ring size, at `depth`: on the image plane
+        (a pinhole's photograph) or on the sphere (a fisheye's)."""
+        if self._mark_dirs is None:
+            return ring_segments(self._image_plane_xy[idx], self._ring * scale, depth)
+        return sky_ring_segments(self._mark_dirs[idx], self._ring * scale, depth)
+
+    def _marks3(self, depth: float) -> np.ndarray:
+        """The centroids as points (N, 3) of the camera frame at `depth`: on the image plane or on the sphere."""
+        if self._mark_dirs is None:
+            xy = self._image_plane_xy
+            return np.concatenate([xy, np.full((len(xy), 1), depth)], axis=1)
+        return self._mark_dirs * depth
 
     def draw_fine_grid(self, b: np.ndarray, fov_deg: float, radius_rad: float) -> None:
         """A finer RA/Dec grid around the boresight, labelled in degrees."""
@@ -332,22 +360,36 @@ class SkyScene:
         self.draw_fine_grid(R[2], cam.fov_deg, 1.8 * cam.half_diagonal_rad)
         depth = IMAGE_DEPTH
         self.h["camera"] = s.add_frame(NODES["camera"], wxyz=pose_wxyz(R), position=(0.0, 0.0, 0.0), show_axes=False)
-        self.h["frustum"] = s.add_camera_frustum(
-            NODES["frustum"], fov=math.radians(cam.fov_v_deg), aspect=cam.width / cam.height,
-            scale=frustum_scale(cam, depth), color=EST_RGB if run.result.R is not None else TRUE_RGB,
-            thickness=1.5, thickness_units="screen", image=tex if self.visible["image"] else None,
-            format="jpeg", jpeg_quality=85)
-        self.h["footprint"] = s.add_line_segments(
-            NODES["footprint"], _f32(polylines_as_segments([sensor_footprint(cam, R)])),
-            EST_RGB if run.result.R is not None else TRUE_RGB, thickness=2.0, thickness_units="screen")
-        # centroids: rings on the image plane, coloured by outcome, numbered by brightness
-        xy = image_plane_xy(cam, run.result.centroids.uv) * depth
-        self._image_plane_xy = xy
-        ring = RING_PX * max(cam.width, cam.height) / 1024.0 / cam.fx * depth
+        color = EST_RGB if run.result.R is not None else TRUE_RGB
+        self._fisheye = cam.fisheye
+        if not cam.fisheye:
+            self.h["frustum"] = s.add_camera_frustum(
+                NODES["frustum"], fov=math.radians(cam.fov_v_deg), aspect=cam.width / cam.height,
+                scale=frustum_scale(cam, depth), color=color, thickness=1.5, thickness_units="screen",
+                image=tex if self.visible["image"] else None, format="jpeg", jpeg_quality=85)
+        elif tex is not None:
+            # a fisheye's photograph where its lens saw each pixel: a mesh over the sphere at `depth` (no frustum
+            # holds a field of up to 240 deg), textured with the photograph as it is (`fisheye_photo_glb`)
+            self.h["frustum"] = s.add_glb(NODES["frustum"], fisheye_photo_glb(cam, tex, depth),
+                                          visible=self.visible["image"])
+        border = polylines_as_segments([sensor_footprint(cam, R)])
+        border = border[np.isfinite(border).all(axis=(1, 2))]  # (a fisheye's corners it does not see)
+        self.h["footprint"] = s.add_line_segments(NODES["footprint"], _f32(border), color, thickness=2.0,
+                                                  thickness_units="screen")
+        # centroids: rings on the image plane (on the sphere, a fisheye's), coloured by outcome, numbered by brightness
+        uv = run.result.centroids.uv
+        if cam.fisheye:
+            self._mark_dirs = cam.unproject(uv).reshape(-1, 3)
+            self._image_plane_xy = np.zeros((len(uv), 2))  # (a pinhole's only)
+            ring = RING_PX * max(cam.width, cam.height) / 1024.0 / cam.fx  # radians (fx: px per radian at its axis)
+        else:
+            self._mark_dirs = None
+            self._image_plane_xy = image_plane_xy(cam, uv) * depth
+            ring = RING_PX * max(cam.width, cam.height) / 1024.0 / cam.fx * depth
         self._ring = ring
         segs, cols = [], []
         for i, o in enumerate(run.outcomes[:max_rings]):
-            rs = ring_segments(xy[i:i + 1], ring, depth * 0.9995)
+            rs = self._rings(np.array([i]), 1.0, depth * 0.9995)
             segs.append(rs)
             cols.append(np.broadcast_to(np.array(OUTCOME_RGB[o], np.uint8), rs.shape))
         self._ring_colors = None
@@ -355,21 +397,24 @@ class SkyScene:
             self._ring_colors = np.ascontiguousarray(np.concatenate(cols))  # at the end: coloured by outcome
             self.h["centroids"] = s.add_line_segments(NODES["centroids"], _f32(np.concatenate(segs)),
                                                       self._ring_colors, thickness=1.5, thickness_units="screen")
+        at = self._marks3(depth * 0.999)
+        lift = np.array([0.8, -0.8, 0.0]) * (ring * depth if cam.fisheye else ring)
         self.h["numbers"] = [
-            s.add_label(f"{NODES['numbers']}/{i}", str(i),
-                        position=_f32([xy[i, 0] + ring * 0.8, xy[i, 1] - ring * 0.8, depth * 0.999]),
-                        font_screen_scale=0.7, anchor="bottom-left", visible=False)
-            for i in range(min(len(xy), 40))]
+            s.add_label(f"{NODES['numbers']}/{i}", str(i), position=_f32(at[i] + lift), font_screen_scale=0.7,
+                        anchor="bottom-left", visible=False)
+            for i in range(min(len(at), 40))]
         self._place_field_labels()  # the numbers and the grid's degrees that overlap no other label
         if run.R_true is not None and run.result.R is not None:
             self.h["true_camera"] = s.add_frame(NODES["true_camera"], wxyz=pose_wxyz(run.R_true),
                                                 position=(0.0, 0.0, 0.0), show_axes=False,
                                                 visible=self.visible["true"])
-            self.h["true_frustum"] = s.add_camera_frustum(
-                NODES["true_frustum"], fov=math.radians(cam.fov_v_deg), aspect=cam.width / cam.height,
-                scale=frustum_scale(cam, depth * 1.001), color=TRUE_RGB, thickness=1.0, thickness_units="screen")
+            if not cam.fisheye:
+                self.h["true_frustum"] = s.add_camera_frustum(
+                    NODES["true_frustum"], fov=math.radians(cam.fov_v_deg), aspect=cam.width / cam.height,
+                    scale=frustum_scale(cam, depth * 1.001), color=TRUE_RGB, thickness=1.0, thickness_units="screen")
+            true_border = polylines_as_segments([sensor_footprint(cam, run.R_true)])
             self.h["true_footprint"] = s.add_line_segments(
-                NODES["true_footprint"], _f32(polylines_as_segments([sensor_footprint(cam, run.R_true)])),
+                NODES["true_footprint"], _f32(true_border[np.isfinite(true_border).all(axis=(1, 2))]),
                 TRUE_RGB, thickness=1.2, thickness_units="screen", visible=self.visible["true"])
         # matches: triangles between the matched catalog stars, the stars themselves and their HIP ids
         if run.matches:
@@ -447,21 +492,19 @@ class SkyScene:
             else:
                 hd.visible = False
         if "observed" in self.h:
-            xy = self._image_plane_xy
-            p3 = np.concatenate([xy, np.full((len(xy), 1), IMAGE_DEPTH * 0.999)], axis=1)
+            p3 = self._marks3(IMAGE_DEPTH * 0.999)
             for role in IMAGE_ROLES:
                 hd = self.h[role]
                 dr = d.drawables.get(role) if d is not None else None
                 seg = np.zeros((0, 2, 3))
                 if dr is not None and role == "pattern":
-                    e = dr.edges[(dr.edges < len(xy)).all(axis=1)] if len(dr.edges) else dr.edges
+                    e = dr.edges[(dr.edges < len(p3)).all(axis=1)] if len(dr.edges) else dr.edges
                     if len(e):
                         seg = np.stack([p3[e[:, 0]], p3[e[:, 1]]], axis=1)
                 elif dr is not None:
-                    sel = dr.observed[dr.observed < len(xy)]
+                    sel = dr.observed[dr.observed < len(p3)]
                     if len(sel):
-                        seg = ring_segments(xy[sel], self._ring * (1.7 if role == "observed" else 1.35),
-                                            IMAGE_DEPTH * 0.999)
+                        seg = self._rings(sel, 1.7 if role == "observed" else 1.35, IMAGE_DEPTH * 0.999)
                 if len(seg):
                     hd.points = _f32(seg)
                     hd.colors = np.broadcast_to(np.array(dr.color, np.uint8), seg.shape).copy()
@@ -527,7 +570,10 @@ class SkyScene:
     def set_visible(self, what: str, on: bool) -> None:
         self.visible[what] = bool(on)
         if what == "image" and "frustum" in self.h:
-            self.h["frustum"].image = self._tex if on else None
+            if self._fisheye:  # (a mesh of its own, shown or hidden)
+                self.h["frustum"].visible = bool(on)
+            else:
+                self.h["frustum"].image = self._tex if on else None
         if what == "candidates":
             for key in SKY_ROLES:
                 if key in self.h and not on:

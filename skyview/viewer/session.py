@@ -413,7 +413,9 @@ class Session:
 
     def _draw_run(self, run: Run, t_request: float | None = None) -> None:
         t0 = time.perf_counter()
-        tex = undistorted(texture(run.source.image), run.source.camera)  # the lens's distortion taken out
+        tex = texture(run.source.image)
+        if not run.source.camera.fisheye:  # (a fisheye's is drawn through its own lens: `SkyScene.draw_run`)
+            tex = undistorted(tex, run.source.camera)  # the lens's distortion taken out
         base = panel_base(stretch(run.source.image))
         # the RA/Dec grid of a solved image, through the camera of its solve
         grid = image_grid(run.result.camera, run.result.R) if run.result.solved else None
