@@ -753,3 +753,40 @@ def test_viewer_draws_the_genetic_search_box(genetic, tmp_path):
         proc.terminate()
         proc.wait(timeout=10)
     assert square > none + 2e-4 and roll > none + 2e-4, (none, square, roll)
+
+
+def test_a_fisheye_photograph_is_recorded_where_its_lens_saw_it(tmp_path, catalog, solved):
+    """`skyview solve ALLSKY --record`: Rerun's Pinhole has no fisheye model, so the image in 3-D is the sensor's
+    mesh (`sky_geometry.sensor_mesh`) at IMAGE_PLANE_DISTANCE, textured with the image shown (Rerun's texture
+    coordinates, the top-left corner at 0, 0), and the Pinhole's own plane is kept small; its 2-D view reads the
+    image as before. A pinhole's recording has no such mesh."""
+    from skyview.core.attitude import random_attitudes
+    from skyview.core.sky_geometry import sensor_mesh
+    from skyview.simulate.render import simulate_image
+    from skyview.simulate.scenarios import get_scenario
+
+    sc = get_scenario("allsky180")
+    frame = simulate_image(catalog, sc.camera(), random_attitudes(1, np.random.default_rng(3))[0], sc.sensor(),
+                           seed=3, **sc.render_kwargs())
+    png, rrd = tmp_path / "allsky.png", tmp_path / "allsky.rrd"
+    cv2.imwrite(str(png), frame.image)
+    assert main(["solve", str(png), "--json", "--record", str(rrd)]) == 0
+    entities = read(rrd)
+    photo = entities["/camera/photo"]
+    assert photo["static"]
+    positions = np.array(column(photo, "Mesh3D:vertex_positions")[0], dtype=np.float64)
+    texcoords = np.array(column(photo, "Mesh3D:vertex_texcoords")[0], dtype=np.float64)
+    triangles = np.array(column(photo, "Mesh3D:triangle_indices")[0])
+    from skyview.solver.pipeline import solve_image
+
+    camera = solve_image(frame.image).camera  # (the same solve: the camera the recording drew)
+    assert camera.fisheye
+    directions, faces, pixels = sensor_mesh(camera)
+    np.testing.assert_allclose(positions, directions * D.IMAGE_PLANE_DISTANCE, atol=1e-5)
+    np.testing.assert_allclose(texcoords, (pixels + 0.5) / [camera.width, camera.height], atol=1e-6)
+    assert np.array_equal(triangles, faces) and len(faces) > 7000
+    plane = column(entities["/camera/image"], "Pinhole:image_plane_distance")[0]
+    assert plane == pytest.approx([D.FISHEYE_IMAGE_PLANE], rel=1e-6)
+    assert "/camera/photo" not in solved[3]  # a pinhole's image stays on its Pinhole's plane
+    plane = column(solved[3]["/camera/image"], "Pinhole:image_plane_distance")[0]
+    assert plane == pytest.approx([D.IMAGE_PLANE_DISTANCE], rel=1e-6)

@@ -249,7 +249,8 @@ def _assert_fisheye_drawn(s, run) -> None:
     import json as json_module
     import struct
 
-    from skyview.viewer.geometry import fisheye_photo_mesh
+    from skyview.core.sky_geometry import sensor_mesh
+    from skyview.viewer.scene import IMAGE_DEPTH
 
     cam = run.source.camera
     handle = s.sky.h["frustum"]
@@ -260,8 +261,21 @@ def _assert_fisheye_drawn(s, run) -> None:
     assert tree["extensionsUsed"] == ["KHR_materials_unlit"] and tree["images"][0]["mimeType"] == "image/jpeg"
     assert tree["materials"][0]["doubleSided"] and "KHR_materials_unlit" in tree["materials"][0]["extensions"]
     # the mesh: each matched star's direction (camera frame) through its triangle, read back as a pixel
-    vertices, faces, uv = fisheye_photo_mesh(cam, 1.0)
-    pix = np.stack([uv[:, 0] * cam.width - 0.5, (1.0 - uv[:, 1]) * cam.height - 0.5], axis=1)
+    vertices, faces, pix = sensor_mesh(cam)
+    # what the page receives is that mesh: its points at the image's depth, each with its pixel's texture
+    # coordinate as glTF reads them (0, 0 the image's top-left corner)
+    binary = glb[20 + n_json + 8:]
+
+    def accessor(i):
+        a = tree["accessors"][i]
+        view = tree["bufferViews"][a["bufferView"]]
+        width = {"VEC2": 2, "VEC3": 3}[a["type"]]
+        return np.frombuffer(binary, np.float32, a["count"] * width,
+                             view.get("byteOffset", 0) + a.get("byteOffset", 0)).reshape(-1, width)
+
+    attributes = tree["meshes"][0]["primitives"][0]["attributes"]
+    np.testing.assert_allclose(accessor(attributes["POSITION"]), vertices * IMAGE_DEPTH, atol=1e-6)
+    np.testing.assert_allclose(accessor(attributes["TEXCOORD_0"]), (pix + 0.5) / [cam.width, cam.height], atol=1e-6)
     obs = sorted(run.result.identification.matches)
     assert len(obs) >= 10
     errors = []

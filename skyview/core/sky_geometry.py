@@ -102,6 +102,26 @@ def sensor_footprint(camera: Camera, R: np.ndarray, n_per_edge: int = 16) -> np.
     return camera.unproject(uv) @ np.asarray(R)  # v_icrs = R^T v_cam
 
 
+SENSOR_MESH_POINTS = 65  # `sensor_mesh`: a grid of this many points a side (a 180 deg lens: 2.8 deg apart)
+
+
+def sensor_mesh(camera: Camera, n: int = SENSOR_MESH_POINTS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sensor as a mesh of the directions its pixels see, where no plane holds its image (a fisheye's): an
+    n x n grid of pixel positions from edge to edge (-0.5 to W - 0.5), each point's camera-frame unit vector (the
+    lens's own projection, k1 and k2 included), and the two triangles of each grid cell; a cell with a corner
+    the lens does not see (beyond an equisolid lens's 180 deg from its axis) is left out. Drawn at a depth with
+    the image as its texture, its stars lie where their directions cross it. (directions (V, 3), triangles
+    (F, 3), pixels (V, 2))"""
+    u, v = np.meshgrid(np.linspace(-0.5, camera.width - 0.5, n), np.linspace(-0.5, camera.height - 0.5, n))
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1)
+    d = camera.unproject(pixels)
+    seen = np.isfinite(d).all(axis=1)
+    k = np.arange(n * n).reshape(n, n)
+    a, b, c, e = k[:-1, :-1].ravel(), k[:-1, 1:].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, c, b], axis=1), np.stack([b, c, e], axis=1)])
+    return np.where(seen[:, None], d, 0.0), faces[seen[faces].all(axis=1)], pixels
+
+
 def radec_grid(ra_step_deg: float = 30.0, dec_step_deg: float = 15.0, n_points: int = 90) -> list[np.ndarray]:
     """Polylines of constant RA (meridians) and constant Dec (parallels) as ICRS unit vectors."""
     lines = []

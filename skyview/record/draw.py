@@ -47,6 +47,8 @@ TIMELINE = "step"
 JPEG_QUALITY = 85
 PIXEL_OFFSET = 0.5  # skyview pixel centre (integer) -> Rerun pixel centre (half-integer)
 IMAGE_PLANE_DISTANCE = 1.03  # where the sensor image sits in 3D: just behind the stars on the unit sphere
+FISHEYE_IMAGE_PLANE = 0.02  # a fisheye's Pinhole plane: out of the way (its image is drawn on PHOTO)
+PHOTO_MAX_SIDE = 768  # px: a fisheye's texture on PHOTO at most this many a side (RGB, uncompressed in the .rrd)
 SKY_MATCH_RADIUS = 0.006  # an identified star on the sky (world units: the sphere's radius is 1)
 SKY_OBSERVED_RADIUS = 0.004  # an observed star's direction on the sky
 
@@ -83,6 +85,9 @@ MATCH_LABELS = "sky/matches/labels"
 STEP_SKY = "sky/step"  # sky/step/<role> for the sky roles of skyview.present.drawables
 CAMERA = "camera"
 IMAGE = "camera/image"
+# a fisheye's image in 3-D: the sensor's mesh textured with it (Rerun's Pinhole has no fisheye model; the
+# Pinhole's own plane is kept small, FISHEYE_IMAGE_PLANE, and the 2-D view reads the image from it as before)
+PHOTO = "camera/photo"
 CENTROIDS = "camera/image/centroids"
 IMAGE_MATCHES = "camera/image/matches"
 IMAGE_LABELS = "camera/image/labels"
@@ -207,10 +212,30 @@ def pinhole(camera, color=None) -> list:
     K = camera.K.copy()
     K[0, 2] += PIXEL_OFFSET
     K[1, 2] += PIXEL_OFFSET
+    plane = FISHEYE_IMAGE_PLANE if camera.fisheye else IMAGE_PLANE_DISTANCE
     return [rr.Pinhole(image_from_camera=K, resolution=[camera.width, camera.height],
-                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=IMAGE_PLANE_DISTANCE,
+                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=plane,
                        color=color, line_width=0.0002),
             rr.TransformAxes3D(axis_length=0.0)]
+
+
+def fisheye_photo(camera, shown: np.ndarray) -> rr.Mesh3D:
+    """A fisheye's image in 3-D, where the lens saw each pixel: the sensor's mesh (`sky_geometry.sensor_mesh`) at
+    IMAGE_PLANE_DISTANCE in the camera frame, textured with the image shown (grey, at most PHOTO_MAX_SIDE a side;
+    Rerun's texture coordinates: 0, 0 the image's top-left corner), seen from both sides."""
+    import cv2
+
+    directions, faces, pixels = sg.sensor_mesh(camera)
+    g = np.asarray(shown)
+    scale = PHOTO_MAX_SIDE / max(g.shape[:2])
+    if scale < 1.0:
+        g = cv2.resize(g, (max(1, round(g.shape[1] * scale)), max(1, round(g.shape[0] * scale))),
+                       interpolation=cv2.INTER_AREA)
+    rgb = np.repeat(g[:, :, None], 3, axis=2) if g.ndim == 2 else g[:, :, :3]
+    uv = (pixels + 0.5) / np.array([camera.width, camera.height])
+    return rr.Mesh3D(vertex_positions=(directions * IMAGE_PLANE_DISTANCE).astype(np.float32),
+                     triangle_indices=faces.astype(np.uint32), vertex_texcoords=uv.astype(np.float32),
+                     albedo_texture=np.ascontiguousarray(rgb.astype(np.uint8)), face_rendering="DoubleSided")
 
 
 def pose(R: np.ndarray) -> rr.Transform3D:

@@ -22,6 +22,7 @@ Entity paths (see docs/recordings.md; constants in `skyview.record.draw`):
                                 the sky view's opening eye (the rest are on the image)
     camera                      camera pose: Transform3D(mat3x3=R, relation=ChildFromParent)
     camera/image                Pinhole + the sensor image (JPEG, the viewer's stretch)
+    camera/photo                a fisheye's image in 3-D: the sensor's mesh textured with it (no Pinhole holds it)
     camera/image/centroids      centroids (static), labelled with their brightness rank (#0 brightest)
     camera/image/step/<role>    the stars the step measured (observed, pattern) and those measured before (known)
     camera/image/matches        matched catalog stars reprojected with the estimated attitude (last step on)
@@ -77,6 +78,7 @@ from skyview.record.draw import (
     MATCHES,
     NO_AXES,
     OBSERVED,
+    PHOTO,
     RESULT,
     SKY_COLUMN_SHARES,
     SKY_MATCH_RADIUS,
@@ -92,6 +94,7 @@ from skyview.record.draw import (
     catalog_radii,
     check_output_path,
     display_image,
+    fisheye_photo,
     fmt,
     image_labels,
     log_sky,
@@ -262,6 +265,8 @@ def _write_static(rec, result, image, catalog, truth, R_est, R_true, R_view) -> 
         rec.log(TRUE_CAMERA, *pinhole(camera, color=C_FOV_TRUE), static=True)
     shown, note = display_image(image)
     rec.log(IMAGE, rr.Image(shown, color_model="L").compress(jpeg_quality=JPEG_QUALITY), static=True)
+    if camera.fisheye and R_view is not None:  # (in 3-D where its lens saw each pixel: no plane holds it)
+        rec.log(PHOTO, fisheye_photo(camera, shown), static=True)
     cents = result.centroids
     n = len(cents)
     if n:

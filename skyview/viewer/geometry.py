@@ -15,7 +15,7 @@ import viser.transforms as vtf
 
 from skyview.core.camera import Camera
 from skyview.core.catalog import GuideCatalog, radec_to_vec, vec_to_radec
-from skyview.core.sky_geometry import polylines_as_segments
+from skyview.core.sky_geometry import polylines_as_segments, sensor_mesh
 
 # Proper names of the brightest stars (HIP -> name), for the sky labels.
 STAR_NAMES = {
@@ -154,29 +154,8 @@ def image_plane_xy(camera: Camera, uv: np.ndarray) -> np.ndarray:
     return v[:, :2] / v[:, 2:]
 
 
-PHOTO_MESH_POINTS = 65  # a fisheye photograph's surface: a grid of this many points a side (a 180 deg lens: 2.8 deg apart)
-
-
-def fisheye_photo_mesh(camera: Camera, depth: float, n: int = PHOTO_MESH_POINTS
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A fisheye photograph's surface in the camera frame, where no plane can hold it: the directions of an n x n
-    grid of its pixels, its border included (the lens's own projection, k1 and k2 included), at `depth`, and
-    each point's texture coordinate (the image's left edge at 0, its top edge at 1: trimesh's convention, which
-    its glTF export turns over). A cell with a corner the lens does not see (beyond an equisolid lens's 180 deg
-    from its axis) is left out. (vertices (V, 3), faces (F, 3), uv (V, 2))"""
-    u, v = np.meshgrid(np.linspace(-0.5, camera.width - 0.5, n), np.linspace(-0.5, camera.height - 0.5, n))
-    d = camera.unproject(np.stack([u.ravel(), v.ravel()], axis=1))
-    seen = np.isfinite(d).all(axis=1)
-    vertices = np.where(seen[:, None], d, 0.0) * depth
-    uv = np.stack([(u.ravel() + 0.5) / camera.width, 1.0 - (v.ravel() + 0.5) / camera.height], axis=1)
-    k = np.arange(n * n).reshape(n, n)
-    a, b, c, e = k[:-1, :-1].ravel(), k[:-1, 1:].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel()
-    faces = np.concatenate([np.stack([a, c, b], axis=1), np.stack([b, c, e], axis=1)])
-    return vertices, faces[seen[faces].all(axis=1)], uv
-
-
 def fisheye_photo_glb(camera: Camera, texture_rgb: np.ndarray, depth: float, jpeg_quality: int = 85) -> bytes:
-    """`fisheye_photo_mesh` textured with the photograph (an RGB texture of it, any size), as binary glTF: its
+    """The sensor's mesh (`core.sky_geometry.sensor_mesh`) at `depth`, textured with the photograph (an RGB texture of it, any size), as binary glTF: its
     texture a JPEG, its material unlit (KHR_materials_unlit: the photograph as it is, whatever the scene's lights)
     and seen from both sides."""
     import io
@@ -187,7 +166,11 @@ def fisheye_photo_glb(camera: Camera, texture_rgb: np.ndarray, depth: float, jpe
     import trimesh
     from PIL import Image
 
-    vertices, faces, uv = fisheye_photo_mesh(camera, depth)
+    directions, faces, pixels = sensor_mesh(camera)
+    vertices = directions * depth
+    # texture coordinates: the image's left edge at 0, its top edge at 1 (trimesh's convention; its glTF export
+    # turns them over)
+    uv = np.stack([(pixels[:, 0] + 0.5) / camera.width, 1.0 - (pixels[:, 1] + 0.5) / camera.height], axis=1)
     ok, jpeg = cv2.imencode(".jpg", np.ascontiguousarray(texture_rgb[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
     image = Image.open(io.BytesIO(jpeg.tobytes()))  # (a JPEG's image: the glTF holds its bytes as a JPEG)
     material = trimesh.visual.material.PBRMaterial(baseColorTexture=image, doubleSided=True, metallicFactor=0.0,
