@@ -191,6 +191,25 @@ def test_broken_pipe_is_not_an_error(sky):
 
 # ------------------------------------------------------------------------------------------ recordings
 
+def test_ctrl_c_during_a_solve_is_one_line_and_with_json_one_object(capsys, monkeypatch, sky):
+    """Ctrl-C in the middle of a solve: "skyview: interrupted" on stderr, exit 130, no traceback; with --json a
+    script reading stdout still gets its one JSON object, which says so."""
+    import skyview.solver.pipeline as pipeline
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "solve_image", interrupted)
+    for extra in ([], ["--json"]):
+        assert main(["solve", str(sky), *extra]) == 130
+        out, err = capsys.readouterr()
+        assert err.strip() == "skyview: interrupted" and "Traceback" not in err
+        if extra:
+            assert json.loads(out) == {"status": "interrupted", "exit_code": 130}
+        else:
+            assert out == ""
+
+
 def test_damaged_recordings_are_refused(capsys, tmp_path):
     src = Path(__file__).parent.parent / "recordings" / "angle-cole8.rrd"
     data = src.read_bytes()

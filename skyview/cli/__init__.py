@@ -65,8 +65,13 @@ def main(argv: list[str] | None = None) -> int:
         return _error(f"error: {exc}", EXIT_BAD_INPUT, want_json)
     except SkyviewError as exc:
         return _error(str(exc), EXIT_BAD_INPUT, want_json)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # (with --json, a script reading stdout gets its one object: interrupted)
         print("skyview: interrupted", file=sys.stderr)
+        if want_json:
+            try:
+                print(json.dumps({"status": "interrupted", "exit_code": 130}))
+            except (BrokenPipeError, OSError):
+                pass
         return 130
     except BrokenPipeError:  # `skyview solve ... | head`: the reader left; not an error of ours
         try:
