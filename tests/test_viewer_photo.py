@@ -255,6 +255,9 @@ def _assert_fisheye_drawn(s, run) -> None:
     cam = run.source.camera
     handle = s.sky.h["frustum"]
     assert type(handle).__name__ == "GlbHandle"
+    for on in (False, True):  # the View tab's "image" switch hides and shows it
+        s.sky.set_visible("image", on)
+        assert handle.visible is on
     glb = handle.glb_data
     n_json = struct.unpack("<I", glb[12:16])[0]
     tree = json_module.loads(glb[20:20 + n_json])

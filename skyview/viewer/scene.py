@@ -138,7 +138,6 @@ class SkyScene:
         self._image_plane_xy, self._ring = np.zeros((0, 2)), 0.0  # centroids on the image plane, ring radius
         # a fisheye's photograph: its centroids' directions in the camera frame (None: a pinhole's, on the plane)
         self._mark_dirs: np.ndarray | None = None
-        self._fisheye = False  # the photograph drawn is a fisheye's (a textured mesh, not the frustum's image)
         self._tex: np.ndarray | None = None
         self.detail = True  # centroid numbers and fine-grid labels: only when the field fills the view
         self.final = True  # the identification is on screen (last step, or no step selected)
@@ -361,7 +360,6 @@ class SkyScene:
         depth = IMAGE_DEPTH
         self.h["camera"] = s.add_frame(NODES["camera"], wxyz=pose_wxyz(R), position=(0.0, 0.0, 0.0), show_axes=False)
         color = EST_RGB if run.result.R is not None else TRUE_RGB
-        self._fisheye = cam.fisheye
         if not cam.fisheye:
             self.h["frustum"] = s.add_camera_frustum(
                 NODES["frustum"], fov=math.radians(cam.fov_v_deg), aspect=cam.width / cam.height,
@@ -570,7 +568,7 @@ class SkyScene:
     def set_visible(self, what: str, on: bool) -> None:
         self.visible[what] = bool(on)
         if what == "image" and "frustum" in self.h:
-            if self._fisheye:  # (a mesh of its own, shown or hidden)
+            if self._mark_dirs is not None:  # a fisheye's photograph: a mesh of its own, shown or hidden
                 self.h["frustum"].visible = bool(on)
             else:
                 self.h["frustum"].image = self._tex if on else None
