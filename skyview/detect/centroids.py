@@ -100,6 +100,8 @@ Fast forms (issue 11) and what each keeps; tests/test_centroid.py checks them ag
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import dataclasses
 import functools
 import math
 import os
@@ -910,21 +912,70 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
                      background_block: int = 64, iterations: int = 6, deblend: bool = True,
                      max_stars: int | None = None) -> Centroids:
     """Find stars in a 2-D image and measure their sub-pixel centroids: `_detect_centroids` (its docstring
-    says how) with a pair of work maps lent for the call (`_WorkMaps`)."""
+    says how) with a pair of work maps lent for the call (`_WorkMaps`). Within `detections_kept`, a frame
+    detected before (the same image object, the same options) is measured again from its detection, and an
+    answer given before is given again (a copy of its params)."""
     shape = np.shape(image)
+    options = dict(k_sigma=k_sigma, window=window, min_pixels=min_pixels, estimator=estimator,
+                   psf_sigma_px=psf_sigma_px, saturation_level=saturation_level, max_axis_ratio=max_axis_ratio,
+                   background_block=background_block, iterations=iterations, deblend=deblend)
+    kept = _DETECTIONS.get()
+    if kept is not None and isinstance(image, np.ndarray) and len(shape) >= 2 \
+            and shape[0] * shape[1] <= DETECTIONS_KEPT_MAX_PIXELS:
+        _check_max_stars(max_stars)
+        key = tuple(options.items())
+        entry = next((e for e in kept if e[0] is image and e[1] == key), None)
+        if entry is None:
+            stage: list = []
+            # (maps of its own: the detection kept refers to them)
+            out = _detect_centroids(image, **options, max_stars=max_stars, stage_out=stage)
+            entry = (image, key, stage[0] if stage else None, {})
+            kept.append(entry)
+            entry[3][max_stars] = out
+        elif max_stars not in entry[3]:
+            entry[3][max_stars] = (entry[2](max_stars) if entry[2] is not None else
+                                   _detect_centroids(image, **options, max_stars=max_stars))
+        out = entry[3][max_stars]
+        return dataclasses.replace(out, params=dict(out.params))
     with _WORK_MAPS.pair(*(shape[:2] if len(shape) >= 2 else (0, 0))) as maps:
-        return _detect_centroids(image, k_sigma=k_sigma, window=window, min_pixels=min_pixels, estimator=estimator,
-                                 psf_sigma_px=psf_sigma_px, saturation_level=saturation_level,
-                                 max_axis_ratio=max_axis_ratio, background_block=background_block,
-                                 iterations=iterations, deblend=deblend, max_stars=max_stars, maps=maps)
+        return _detect_centroids(image, **options, max_stars=max_stars, maps=maps)
+
+
+DETECTIONS_KEPT_MAX_PIXELS = 16_000_000  # `detections_kept` keeps frames up to this size (and their own maps)
+_DETECTIONS: contextvars.ContextVar[list | None] = contextvars.ContextVar("skyview_detections_kept", default=None)
+
+
+@contextlib.contextmanager
+def detections_kept():
+    """Within it, each frame (an image object, up to DETECTIONS_KEPT_MAX_PIXELS) is detected once per set of
+    options: its threshold, labels and blends are kept, and a `detect_centroids` of it with another max_stars
+    only measures (a solve that reads the brightest stars first and more of them after: the same centroids, field
+    for field, as detecting it again); an answer asked for again is given again. The frames, their detections and
+    their background maps are held until the outermost such block ends (nested blocks share it)."""
+    if _DETECTIONS.get() is not None:
+        yield
+        return
+    token = _DETECTIONS.set([])
+    try:
+        yield
+    finally:
+        _DETECTIONS.reset(token)
+
+
+def _check_max_stars(max_stars) -> None:
+    if max_stars is not None and (isinstance(max_stars, bool) or int(max_stars) != max_stars or max_stars < 1):
+        raise BadInput(f"max_stars={max_stars} must be a whole number >= 1 (or None: every star)")
 
 
 def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | None = None, min_pixels: int = 2,
                       estimator: str = DEFAULT_ESTIMATOR, psf_sigma_px: float | None = None,
                       saturation_level: float | None = None, max_axis_ratio: float = 1.4,
                       background_block: int = 64, iterations: int = 6, deblend: bool = True,
-                      max_stars: int | None = None, maps: tuple = (None, None)) -> Centroids:
+                      max_stars: int | None = None, maps: tuple = (None, None),
+                      stage_out: list | None = None) -> Centroids:
     """Find stars in a 2-D image and measure their sub-pixel centroids (see the module docstring).
+    stage_out: a list the measurement of this detection is appended to, as a function of max_stars (none where
+    nothing is left to measure), for `detections_kept`.
 
     window: odd side of the square measurement window (pixels) around each blob's brightest pixel;
     None picks 2*ceil(2.5 sigma_eff) + 1 from the measured PSF (sigma_eff^2 = sigma^2 + 1/12).
@@ -958,8 +1009,7 @@ def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | 
         raise BadInput(f"window={window} must be an odd number >= 3")
     if not (k_sigma > 0):
         raise BadInput(f"k_sigma={k_sigma} must be positive")
-    if max_stars is not None and (isinstance(max_stars, bool) or int(max_stars) != max_stars or max_stars < 1):
-        raise BadInput(f"max_stars={max_stars} must be a whole number >= 1 (or None: every star)")
+    _check_max_stars(max_stars)
     img = np.ascontiguousarray(to_gray(image))  # any memory order (Fortran, transposed views)
     if img.ndim != 2:
         raise BadInput(f"image must be 2-D (grey) or BGR/BGRA, got an array of shape {np.shape(image)}")
@@ -1130,9 +1180,14 @@ def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | 
     def gather(h):
         return _gather_px(px, H, W, bkg, resid, pi, pj, h)
 
-    return _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw, sat, sigma, level, thr,
-                    n_hot, n_small, H, W, estimator=estimator, psf_sigma_px=psf_sigma_px, window=window,
-                    iterations=iterations, max_axis_ratio=max_axis_ratio, params=params, max_stars=max_stars)
+    def measure(m, params=dict(params)):  # (the params as they are before any measurement: each one's copy)
+        return _measure(gather, pi, pj, comp, area, saturated, blended, peak_val, peak_raw, sat, sigma, level, thr,
+                        n_hot, n_small, H, W, estimator=estimator, psf_sigma_px=psf_sigma_px, window=window,
+                        iterations=iterations, max_axis_ratio=max_axis_ratio, params=dict(params), max_stars=m)
+
+    if stage_out is not None:
+        stage_out.append(measure)
+    return measure(max_stars)
 
 
 HOT_CLUSTER_MAX_PX = 4  # a blob this small, its peak this many sigma or more, ...

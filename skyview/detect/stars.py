@@ -25,8 +25,6 @@ rows of fragments. Star trackers' own images (compact PSF, no trails) pass throu
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import dataclasses
 import functools
 import math
@@ -143,7 +141,7 @@ def detect_stars(image: np.ndarray, *, k_sigma: float = 5.0, binning: int | None
     """
     if binning is not None and (int(binning) != binning or binning < 1):
         raise BadInput(f"binning={binning} must be a positive integer")
-    c = _measured(image, k_sigma, kwargs)
+    c = detect_centroids(image, k_sigma=k_sigma, **kwargs)
     H, W = np.shape(image)[:2]
     trail, long_asked = trailed_frame_read(image, c) if binning is None else (None, False)
     if trail is not None:  # every star a trail (an untracked exposure): each measured whole, at mid-exposure
@@ -251,47 +249,9 @@ def _every_detection(image: np.ndarray, c: Centroids, k_sigma: float, kwargs: di
     """Every detection of an unbinned frame measured (`c`: its brightest measured, with their params), its
     saturated stars' brightness from their disks and each read against its own background, as detect_stars
     reads the measured ones."""
-    full = _measured(image, k_sigma, {**kwargs, "max_stars": None})
+    full = detect_centroids(image, k_sigma=k_sigma, **{**kwargs, "max_stars": None})
     full = dataclasses.replace(full, params={**c.params, **full.params, "binning": 1})
     return _on_their_own_background(image, _saturated_by_aperture(image, full, 1), k_sigma)
-
-
-_FRAMES_MEASURED: contextvars.ContextVar[list | None] = contextvars.ContextVar("skyview_frames_measured", default=None)
-
-
-@contextlib.contextmanager
-def every_detection_measured_once():
-    """Within it, each frame's every detection is measured once (`detect_centroids` with max_stars None, for the
-    same image object and options): a solve that reads a frame's brightest stars first and more of them after
-    (the default pipeline given an FOV, the fainter stars of a sparse frame) measures every detection of a dense
-    field, where a blob that is not a star or a trail held a measured place, once instead of at each reading.
-    The frames are held until the outermost such block ends (nested blocks share it)."""
-    if _FRAMES_MEASURED.get() is not None:
-        yield
-        return
-    token = _FRAMES_MEASURED.set([])
-    try:
-        yield
-    finally:
-        _FRAMES_MEASURED.reset(token)
-
-
-def _measured(image: np.ndarray, k_sigma: float, kwargs: dict) -> Centroids:
-    """detect_centroids(image, k_sigma=k_sigma, **kwargs); with max_stars None (every detection) within
-    `every_detection_measured_once`, measured once per image object and options (a copy of its params each
-    time; its arrays are shared, and nothing writes into a Centroids' arrays)."""
-    kept = _FRAMES_MEASURED.get()
-    if kept is None or kwargs.get("max_stars") is not None or not all(
-            v is None or isinstance(v, (bool, int, float, str)) for v in kwargs.values()):
-        return detect_centroids(image, k_sigma=k_sigma, **kwargs)
-    key = (float(k_sigma), tuple(sorted(kwargs.items())))
-    for img, k, c in kept:
-        if img is image and k == key:
-            break
-    else:
-        c = detect_centroids(image, k_sigma=k_sigma, **kwargs)
-        kept.append((image, key, c))
-    return dataclasses.replace(c, params=dict(c.params))
 
 
 EXTENDED_AREAS = 4.0  # a blob over this many times the area a star of its peak spreads above the threshold ...

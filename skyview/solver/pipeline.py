@@ -35,12 +35,13 @@ from skyview.core.lru import LRU
 from skyview.detect.centroids import (
     Centroids,
     detect_centroids,
+    detections_kept,
     estimate_background,
     finite_image,
     load_image,
     to_gray,
 )
-from skyview.detect.stars import detect_stars, every_detection_measured_once, fainter_stars
+from skyview.detect.stars import detect_stars, fainter_stars
 from skyview.detect.trailed import may_be_trailed
 from skyview.identify import make_identifier
 from skyview.io.fits import undeclared_row_order
@@ -746,7 +747,7 @@ def solve_image(image: str | Path | np.ndarray, fov_deg: float | None = None, me
 
     t0 = time.perf_counter()
     result, t_cent, brightest = None, 0.0, None
-    with every_detection_measured_once():  # (a dense field's every detection measured once for both readings)
+    with detections_kept():  # (the frame detected once for the first try's stars and the searches' after it)
         if method is None and fov_deg is not None and not wide and not measure_all:
             # given an FOV, the first try reads only the brightest max_stars: measured alone, they answer when
             # it verifies at the FOV given (the usual case); else the stars the searches after it read are
@@ -906,7 +907,7 @@ def _plain_then_fainter(img: np.ndarray, k_sigma: float, solve, measured: int | 
     set of stars may follow. measured: the brightest detections measured (None: every one). (the result,
     the detection's milliseconds)"""
     t0 = time.perf_counter()
-    with every_detection_measured_once():
+    with detections_kept():
         if stars is None:
             stars = detect_stars(img, k_sigma=k_sigma, faint_search=False, max_stars=measured)
         t_cent = (time.perf_counter() - t0) * 1e3
