@@ -927,31 +927,35 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
         entry = next((e for e in kept if e[0] is image and e[1] == key), None)
         if entry is None:
             stage: list = []
-            # (maps of its own: the detection kept refers to them)
-            out = _detect_centroids(image, **options, max_stars=max_stars, stage_out=stage)
+            with _WORK_MAPS.pair(*shape[:2]) as maps:
+                out = _detect_centroids(image, **options, max_stars=max_stars, maps=maps, stage_out=stage)
             entry = (image, key, stage[0] if stage else None, {})
             kept.append(entry)
             entry[3][max_stars] = out
         elif max_stars not in entry[3]:
-            entry[3][max_stars] = (entry[2](max_stars) if entry[2] is not None else
-                                   _detect_centroids(image, **options, max_stars=max_stars))
+            if entry[2] is not None:
+                entry[3][max_stars] = entry[2](max_stars)
+            else:
+                with _WORK_MAPS.pair(*shape[:2]) as maps:
+                    entry[3][max_stars] = _detect_centroids(image, **options, max_stars=max_stars, maps=maps)
         out = entry[3][max_stars]
         return dataclasses.replace(out, params=dict(out.params))
     with _WORK_MAPS.pair(*(shape[:2] if len(shape) >= 2 else (0, 0))) as maps:
         return _detect_centroids(image, **options, max_stars=max_stars, maps=maps)
 
 
-DETECTIONS_KEPT_MAX_PIXELS = 16_000_000  # `detections_kept` keeps frames up to this size (and their own maps)
+DETECTIONS_KEPT_MAX_PIXELS = 16_000_000  # `detections_kept` keeps frames up to this size
 _DETECTIONS: contextvars.ContextVar[list | None] = contextvars.ContextVar("skyview_detections_kept", default=None)
 
 
 @contextlib.contextmanager
 def detections_kept():
     """Within it, each frame (an image object, up to DETECTIONS_KEPT_MAX_PIXELS) is detected once per set of
-    options: its threshold, labels and blends are kept, and a `detect_centroids` of it with another max_stars
-    only measures (a solve that reads the brightest stars first and more of them after: the same centroids, field
-    for field, as detecting it again); an answer asked for again is given again. The frames, their detections and
-    their background maps are held until the outermost such block ends (nested blocks share it)."""
+    options: on a flat sky its threshold, labels and blends are kept, and a `detect_centroids` of it with another
+    max_stars only measures (a solve that reads the brightest stars first and more of them after: the same
+    centroids, field for field, as detecting it again); under a background map (whose work maps are lent, not
+    kept) it is detected again; an answer asked for again is given again. The frames, their detections and
+    answers are held until the outermost such block ends (nested blocks share it)."""
     if _DETECTIONS.get() is not None:
         yield
         return
@@ -974,8 +978,8 @@ def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | 
                       max_stars: int | None = None, maps: tuple = (None, None),
                       stage_out: list | None = None) -> Centroids:
     """Find stars in a 2-D image and measure their sub-pixel centroids (see the module docstring).
-    stage_out: a list the measurement of this detection is appended to, as a function of max_stars (none where
-    nothing is left to measure), for `detections_kept`.
+    stage_out: a list the measurement of this detection is appended to, as a function of max_stars, for
+    `detections_kept` (none where nothing is left to measure, nor under a background map: the maps are lent).
 
     window: odd side of the square measurement window (pixels) around each blob's brightest pixel;
     None picks 2*ceil(2.5 sigma_eff) + 1 from the measured PSF (sigma_eff^2 = sigma^2 + 1/12).
@@ -1185,7 +1189,7 @@ def _detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | 
                         n_hot, n_small, H, W, estimator=estimator, psf_sigma_px=psf_sigma_px, window=window,
                         iterations=iterations, max_axis_ratio=max_axis_ratio, params=dict(params), max_stars=m)
 
-    if stage_out is not None:
+    if stage_out is not None and resid is None:  # (a flat sky's: nothing it keeps refers to the maps lent)
         stage_out.append(measure)
     return measure(max_stars)
 
