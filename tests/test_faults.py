@@ -80,6 +80,21 @@ def test_damaged_images_are_one_line_errors_with_json(capsys, tmp_path, sky):
         assert obj["status"] == "error" and obj["exit_code"] == 2
         assert obj["error"] and not obj["error"].startswith("error") and obj["error"] in err  # the same sentence
         assert f.read_bytes() == data  # never touched
+        if name.startswith("truncated.") and name != "truncated.tiff":  # said so, with what is missing
+            assert "truncated" in obj["error"], obj["error"]
+
+
+def test_a_link_to_nothing_says_so(capsys, tmp_path):
+    """A symbolic link whose target is missing, or two that point at each other: one line that says it is a link
+    leading to no file (not that the path does not exist: `ls` shows it), exit 2."""
+    (tmp_path / "gone.png").symlink_to(tmp_path / "deleted.png")
+    (tmp_path / "a.png").symlink_to(tmp_path / "b.png")
+    (tmp_path / "b.png").symlink_to(tmp_path / "a.png")
+    for name in ("gone.png", "a.png"):
+        code, out, err = run(capsys, "solve", tmp_path / name)
+        assert code == 2 and one_line(err) and "symbolic link that leads to no file" in err, err
+    code, out, err = run(capsys, "solve", tmp_path / "nothing.png")
+    assert code == 2 and "does not exist" in err
 
 
 def test_a_camera_raw_file_says_what_to_do(capsys, tmp_path):

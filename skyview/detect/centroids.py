@@ -363,6 +363,8 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     """
     p = Path(path)
     if not p.exists():
+        if p.is_symlink():
+            raise BadInput(f"image {p} is a symbolic link that leads to no file (its target is missing, or a loop)")
         raise BadInput(f"image {p} does not exist")
     if p.is_dir():
         raise BadInput(f"image {p} is a directory, not an image file")
@@ -389,6 +391,8 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     finally:
         cv2.utils.logging.setLogLevel(level)
     if img is None:
+        if data[:2].tobytes() == b"\xff\xd8" and b"\xff\xd9" not in data[-64:].tobytes():
+            raise BadInput(f"{p} is not an image OpenCV can read: a truncated JPEG (it ends before its end marker, EOI)")
         raise BadInput(camera_raw_message(p) or f"{p} is not an image OpenCV can read")
     img = to_gray(img)
     if img.size == 0 or img.ndim != 2:
