@@ -923,29 +923,27 @@ def detect_centroids(image: np.ndarray, *, k_sigma: float = 5.0, window: int | N
     options = dict(k_sigma=k_sigma, window=window, min_pixels=min_pixels, estimator=estimator,
                    psf_sigma_px=psf_sigma_px, saturation_level=saturation_level, max_axis_ratio=max_axis_ratio,
                    background_block=background_block, iterations=iterations, deblend=deblend)
+
+    def detect(stage_out: list | None = None) -> Centroids:
+        with _WORK_MAPS.pair(*(shape[:2] if len(shape) >= 2 else (0, 0))) as maps:
+            return _detect_centroids(image, **options, max_stars=max_stars, maps=maps, stage_out=stage_out)
+
     kept = _DETECTIONS.get()
-    if kept is not None and isinstance(image, np.ndarray) and len(shape) >= 2 \
-            and shape[0] * shape[1] <= DETECTIONS_KEPT_MAX_PIXELS:
-        _check_max_stars(max_stars)
-        key = tuple(options.items())
-        entry = next((e for e in kept if e[0] is image and e[1] == key), None)
-        if entry is None:
-            stage: list = []
-            with _WORK_MAPS.pair(*shape[:2]) as maps:
-                out = _detect_centroids(image, **options, max_stars=max_stars, maps=maps, stage_out=stage)
-            entry = (image, key, stage[0] if stage else None, {})
-            kept.append(entry)
-            entry[3][max_stars] = out
-        elif max_stars not in entry[3]:
-            if entry[2] is not None:
-                entry[3][max_stars] = entry[2](max_stars)
-            else:
-                with _WORK_MAPS.pair(*shape[:2]) as maps:
-                    entry[3][max_stars] = _detect_centroids(image, **options, max_stars=max_stars, maps=maps)
-        out = entry[3][max_stars]
-        return dataclasses.replace(out, params=dict(out.params))
-    with _WORK_MAPS.pair(*(shape[:2] if len(shape) >= 2 else (0, 0))) as maps:
-        return _detect_centroids(image, **options, max_stars=max_stars, maps=maps)
+    if kept is None or not isinstance(image, np.ndarray) or len(shape) < 2 \
+            or shape[0] * shape[1] > DETECTIONS_KEPT_MAX_PIXELS:
+        return detect()
+    _check_max_stars(max_stars)
+    key = tuple(options.items())
+    entry = next((e for e in kept if e[0] is image and e[1] == key), None)  # (image, key, measure, answers)
+    if entry is None:
+        stage: list = []
+        answer = detect(stage)
+        entry = (image, key, stage[0] if stage else None, {max_stars: answer})
+        kept.append(entry)
+    elif max_stars not in entry[3]:
+        entry[3][max_stars] = entry[2](max_stars) if entry[2] is not None else detect()
+    out = entry[3][max_stars]
+    return dataclasses.replace(out, params=dict(out.params))
 
 
 DETECTIONS_KEPT_MAX_PIXELS = 16_000_000  # `detections_kept` keeps frames up to this size
